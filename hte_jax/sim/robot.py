@@ -1,0 +1,194 @@
+"""The hexapod model: MJCF loading, simulation options, walls and index bookkeeping.
+
+`load_robot(config)` compiles `assets/hexapod.xml` with the options in `RobotConfig`
+and returns a `Robot`: the MJX model (a pytree, so batched model fields can be
+`vmap`-ed later) plus static facts (`RobotInfo`) that jitted code needs as Python ints.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import math
+import os
+from pathlib import Path
+
+import mujoco
+from flax import struct
+from mujoco import mjx
+
+from hte_jax.errors import ConfigError
+
+NUM_LEGS = 6
+JOINTS_PER_LEG = 3
+NUM_JOINTS = NUM_LEGS * JOINTS_PER_LEG
+FOOT_RADIUS = 0.025
+LEG_NAMES = ("front-right", "middle-right", "rear-right", "rear-left", "middle-left", "front-left")
+# Collision bits (see assets/hexapod.xml): feet touch the floor, body and links touch walls.
+FLOOR_BIT = 1
+WALL_BIT = 2
+WALL_HEIGHT = 0.9
+
+
+def assets_dir() -> Path:
+    """Folder holding the MJCF and shipped repertoires (`$HTE_JAX_ASSETS` overrides)."""
+    env = os.environ.get("HTE_JAX_ASSETS")
+    path = Path(env) if env else Path(__file__).resolve().parents[2] / "assets"
+    if not (path / "hexapod.xml").is_file():
+        raise FileNotFoundError(
+            f"hexapod.xml not found in {path}; install hte-jax from a checkout "
+            "(pip install -e .) or point HTE_JAX_ASSETS at the assets folder"
+        )
+    return path
+
+
+@dataclasses.dataclass(frozen=True)
+class RobotConfig:
+    """Simulation options of the hexapod (hashable: used as a static jit argument).
+
+    timestep: physics step in seconds; must divide `control_dt`.
+    control_dt: controller period (the original runs its servos at 100 Hz).
+    solver_iterations / ls_iterations: Newton solver and line-search iterations.
+    servo_gain: velocity-servo gain kv in N m s/rad (torque = kv (v_cmd - qdot), clipped).
+    armature: reflected rotor inertia added to every leg joint, kg m^2.
+    max_torque / max_joint_velocity: servo torque (N m) and commanded-velocity (rad/s) limits.
+    joint_limits: enforce the +-pi/2 joint ranges.
+    walls: axis-aligned boxes (x1, y1, x2, y2) in metres, 0.9 m high, added to the world.
+    body_wall_collisions: whether body and leg links (not only feet) collide with walls.
+    """
+
+    timestep: float = 0.01
+    control_dt: float = 0.01
+    solver_iterations: int = 4
+    ls_iterations: int = 8
+    servo_gain: float = 1.0
+    armature: float = 0.01
+    max_torque: float = 4.0
+    max_joint_velocity: float = 5.0
+    joint_limits: bool = True
+    walls: tuple[tuple[float, float, float, float], ...] = ()
+    body_wall_collisions: bool = True
+
+    def __post_init__(self):
+        _positive("timestep", self.timestep)
+        _positive("control_dt", self.control_dt)
+        ratio = self.control_dt / self.timestep
+        if abs(ratio - round(ratio)) > 1e-6:
+            raise ConfigError(
+                f"control_dt={self.control_dt} must be a whole multiple of timestep={self.timestep}"
+            )
+        for name in ("solver_iterations", "ls_iterations"):
+            value = getattr(self, name)
+            if not isinstance(value, int) or value < 1:
+                raise ConfigError(f"{name} must be a positive integer, got {value!r}")
+        for name in ("servo_gain", "max_torque", "max_joint_velocity"):
+            _positive(name, getattr(self, name))
+        if not (math.isfinite(self.armature) and self.armature >= 0):
+            raise ConfigError(f"armature must be >= 0, got {self.armature!r}")
+        for wall in self.walls:
+            if len(wall) != 4 or not (wall[0] < wall[2] and wall[1] < wall[3]):
+                raise ConfigError(f"wall {wall!r} must be (x1, y1, x2, y2) with x1 < x2 and y1 < y2")
+
+    @property
+    def substeps(self) -> int:
+        """Physics steps per control step."""
+        return int(round(self.control_dt / self.timestep))
+
+
+def _positive(name: str, value: float) -> None:
+    if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+        raise ConfigError(f"{name} must be a positive finite number, got {value!r}")
+
+
+@dataclasses.dataclass(frozen=True)
+class RobotInfo:
+    """Static facts about a compiled model (Python ints and tuples only).
+
+    joint_qpos: qpos address of the 18 leg joints, leg-major (leg0 hip, femur, tibia, leg1 ...).
+    joint_dof: qvel address of the same joints.
+    foot_geoms: geom id of the six foot spheres, leg order.
+    base_body: body id of base_link.
+    """
+
+    config: RobotConfig
+    nq: int
+    nv: int
+    joint_qpos: tuple[int, ...]
+    joint_dof: tuple[int, ...]
+    foot_geoms: tuple[int, ...]
+    base_body: int
+
+
+@struct.dataclass
+class Robot:
+    """A compiled hexapod: `model` is the MJX model pytree, `info` its static facts."""
+
+    model: mjx.Model
+    info: RobotInfo = struct.field(pytree_node=False)
+
+    @property
+    def config(self) -> RobotConfig:
+        return self.info.config
+
+
+def build_spec(config: RobotConfig) -> mujoco.MjSpec:
+    """The MJCF as an editable spec with `config` applied (walls, options, servo)."""
+    spec = mujoco.MjSpec.from_file(str(assets_dir() / "hexapod.xml"))
+    spec.option.timestep = config.timestep
+    spec.option.iterations = config.solver_iterations
+    spec.option.ls_iterations = config.ls_iterations
+    for joint in spec.joints:
+        if joint.type == mujoco.mjtJoint.mjJNT_HINGE:
+            joint.armature = config.armature
+            joint.limited = (
+                mujoco.mjtLimited.mjLIMITED_TRUE if config.joint_limits else mujoco.mjtLimited.mjLIMITED_FALSE
+            )
+    for actuator in spec.actuators:
+        actuator.set_to_velocity(kv=config.servo_gain)
+        actuator.ctrlrange = [-config.max_joint_velocity, config.max_joint_velocity]
+        actuator.forcerange = [-config.max_torque, config.max_torque]
+        actuator.ctrllimited = mujoco.mjtLimited.mjLIMITED_TRUE
+        actuator.forcelimited = mujoco.mjtLimited.mjLIMITED_TRUE
+    affinity = FLOOR_BIT | (WALL_BIT if config.body_wall_collisions else 0)
+    for i, (x1, y1, x2, y2) in enumerate(config.walls):
+        spec.worldbody.add_geom(
+            name=f"wall_{i}",
+            type=mujoco.mjtGeom.mjGEOM_BOX,
+            pos=[(x1 + x2) / 2, (y1 + y2) / 2, 0.0],
+            size=[(x2 - x1) / 2, (y2 - y1) / 2, WALL_HEIGHT / 2],
+            contype=0,
+            conaffinity=affinity,
+            rgba=[0.6, 0.4, 0.3, 1.0],
+        )
+    return spec
+
+
+@functools.lru_cache(maxsize=16)
+def mj_model(config: RobotConfig = RobotConfig()) -> mujoco.MjModel:
+    """The compiled native MuJoCo model for `config` (cached)."""
+    return build_spec(config).compile()
+
+
+def robot_info(model: mujoco.MjModel, config: RobotConfig) -> RobotInfo:
+    """Index bookkeeping for a compiled model."""
+    names = [
+        name
+        for leg in range(NUM_LEGS)
+        for name in (f"body_leg_{leg}", f"leg_{leg}_1_2", f"leg_{leg}_2_3")
+    ]
+    joints = [model.joint(name) for name in names]
+    return RobotInfo(
+        config=config,
+        nq=model.nq,
+        nv=model.nv,
+        joint_qpos=tuple(int(j.qposadr[0]) for j in joints),
+        joint_dof=tuple(int(j.dofadr[0]) for j in joints),
+        foot_geoms=tuple(model.geom(f"foot_{leg}").id for leg in range(NUM_LEGS)),
+        base_body=model.body("base_link").id,
+    )
+
+
+def load_robot(config: RobotConfig = RobotConfig()) -> Robot:
+    """Compile the hexapod for `config` and move it to the default JAX device."""
+    model = mj_model(config)
+    return Robot(model=mjx.put_model(model), info=robot_info(model, config))

@@ -1,0 +1,294 @@
+"""Batched, jitted hexapod rollouts: `vmap` over individuals, `lax.scan` over control steps.
+
+One call simulates a whole population. Each individual has its own controller
+parameters (one or several 36-parameter controllers run back to back), its own
+damage mask and its own initial state, so damages and reset-free starts batch
+with no recompilation. Rollouts that go non-finite, explode, flip or collapse
+are flagged invalid per individual and frozen at their last valid state, so a
+blow-up never leaks NaNs into the outputs.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+import functools
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+from mujoco import mjx
+
+from hte_jax.errors import ConfigError
+from hte_jax.sim.controller import NUM_PARAMS, SAMPLES_PER_PERIOD, servo_command, target_table
+from hte_jax.sim.damage import DAMAGED_POSE, apply_damage, damaged_joint_mask
+from hte_jax.sim.robot import FOOT_RADIUS, NUM_JOINTS, NUM_LEGS, Robot, mj_model
+
+
+class InvalidReason(enum.IntFlag):
+    """Bits of `RolloutResult.invalid_reason`."""
+
+    NON_FINITE = 1  # NaN or inf in qpos / qvel
+    EXPLODED = 2  # some |qvel| above ValidityLimits.max_speed
+    FLIPPED = 4  # body tilted more than ValidityLimits.max_tilt
+    HEIGHT = 8  # base height outside [min_base_height, max_base_height]
+    BODY_ON_FLOOR = 16  # a corner of the body box below the floor (only feet collide with it)
+
+
+@dataclasses.dataclass(frozen=True)
+class ValidityLimits:
+    """When a rollout is declared invalid.
+
+    max_tilt: largest angle (rad) between the body's z axis and the world's z axis.
+    min_base_height / max_base_height: allowed base-origin height in metres (the belly
+      touches the floor at 0.021 m; no gait of the controller lowers the base below 0.079 m).
+    max_speed: largest allowed |qvel| entry (m/s or rad/s).
+    """
+
+    max_tilt: float = math.pi / 4
+    min_base_height: float = 0.04
+    max_base_height: float = 1.0
+    max_speed: float = 100.0
+
+
+@dataclasses.dataclass(frozen=True)
+class RolloutSpec:
+    """Static description of a rollout (hashable; changing it recompiles).
+
+    num_steps: control steps (100 per simulated second at the default control_dt).
+    pose_steps: control-step indices in [0, num_steps] at which the base pose is recorded;
+      index k is the state after k steps (0 = initial, num_steps = final).
+    record_contacts: return per-step foot contacts (B, T, 6).
+    record_feet: return per-step foot-sphere centres (B, T, 6, 3) (memory: 72 B per step).
+    contact_tolerance: a foot is in contact when its sphere is closer than this to the floor (m).
+    limits: validity limits.
+    """
+
+    num_steps: int = 300
+    pose_steps: tuple[int, ...] = ()
+    record_contacts: bool = True
+    record_feet: bool = False
+    contact_tolerance: float = 1e-3
+    limits: ValidityLimits = ValidityLimits()
+
+    def __post_init__(self):
+        if not isinstance(self.num_steps, int) or self.num_steps < 1:
+            raise ConfigError(f"num_steps must be a positive integer, got {self.num_steps!r}")
+        for step in self.pose_steps:
+            if not (isinstance(step, int) and 0 <= step <= self.num_steps):
+                raise ConfigError(f"pose step {step!r} outside [0, num_steps={self.num_steps}]")
+
+
+@struct.dataclass
+class SimState:
+    """Physical state of one or more robots (any leading batch shape).
+
+    qpos: (..., 25) base position (3), base quaternion w-x-y-z (4), 18 joint angles (leg-major).
+    qvel: (..., 24) base linear velocity (3, world), angular velocity (3, body), 18 joint rates.
+    qacc_warmstart: (..., 24) constraint-solver warm start; carrying it makes chained
+      rollouts identical to one long rollout.
+    """
+
+    qpos: jax.Array
+    qvel: jax.Array
+    qacc_warmstart: jax.Array
+
+
+@struct.dataclass
+class RolloutResult:
+    """What a batched rollout returns, B individuals, T = num_steps, P = len(pose_steps).
+
+    final_state: SimState (B, ...) after the rollout (frozen at the last valid state if invalid).
+    valid: (B,) bool, False if the rollout was ever invalid.
+    invalid_step: (B,) int32 control step at which it became invalid (T if valid).
+    invalid_reason: (B,) int32 `InvalidReason` bits seen at that step (0 if valid).
+    base_pos: (B, P, 3) base position at `pose_steps`.
+    base_quat: (B, P, 4) base orientation (w, x, y, z) at `pose_steps`.
+    foot_contacts: (B, T, 6) bool, foot touching the floor during step t, or None.
+    foot_pos: (B, T, 6, 3) foot-sphere centres at the start of step t, or None.
+    command_abs_sum: (B, 18) sum over steps of |commanded joint velocity| * control_dt (rad).
+    """
+
+    final_state: SimState
+    valid: jax.Array
+    invalid_step: jax.Array
+    invalid_reason: jax.Array
+    base_pos: jax.Array
+    base_quat: jax.Array
+    foot_contacts: jax.Array | None
+    foot_pos: jax.Array | None
+    command_abs_sum: jax.Array
+
+
+def initial_state(robot: Robot, damage: jax.Array | None = None) -> SimState:
+    """The model's reference pose (base 0.15 m up, joints at 0), damaged legs in their pose.
+
+    Args: damage (6,) bool or None. Returns: unbatched SimState.
+    """
+    model = mj_model(robot.config)
+    qpos = jnp.asarray(model.qpos0, jnp.float32)
+    if damage is not None:
+        joints = jnp.asarray(robot.info.joint_qpos)
+        pose = jnp.tile(jnp.asarray(DAMAGED_POSE, jnp.float32), NUM_LEGS)
+        qpos = qpos.at[joints].set(jnp.where(damaged_joint_mask(jnp.asarray(damage)), pose, qpos[joints]))
+    zeros = jnp.zeros(model.nv, jnp.float32)
+    return SimState(qpos=qpos, qvel=zeros, qacc_warmstart=zeros)
+
+
+def _broadcast(tree, batch: int):
+    return jax.tree.map(lambda x: jnp.broadcast_to(x, (batch, *x.shape)), tree)
+
+
+# Bottom corners of the body box in the body frame (half sizes 0.114 x 0.0905 x 0.021).
+_BODY_BOTTOM = np.array([[sx * 0.114, sy * 0.0905, -0.021] for sx in (-1, 1) for sy in (-1, 1)], np.float32)
+
+
+def _world_z_of(qpos: jax.Array, points: np.ndarray) -> jax.Array:
+    """World height of body-frame points (N, 3) for a base pose qpos[:7] (unit quaternion)."""
+    w, x, y, z = qpos[3], qpos[4], qpos[5], qpos[6]
+    row_z = jnp.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)])
+    return qpos[2] + points @ row_z
+
+
+def _check(qpos: jax.Array, qvel: jax.Array, limits: ValidityLimits) -> jax.Array:
+    """InvalidReason bits of one state (0 = valid)."""
+    finite = jnp.isfinite(qpos).all() & jnp.isfinite(qvel).all()
+    exploded = jnp.abs(qvel).max() > limits.max_speed
+    up_z = 1.0 - 2.0 * (qpos[4] ** 2 + qpos[5] ** 2)  # world z of the body's z axis
+    flipped = up_z < math.cos(limits.max_tilt)
+    height = (qpos[2] < limits.min_base_height) | (qpos[2] > limits.max_base_height)
+    on_floor = _world_z_of(qpos, _BODY_BOTTOM).min() < 0.0
+    return (
+        jnp.where(finite, 0, InvalidReason.NON_FINITE)
+        | jnp.where(exploded, InvalidReason.EXPLODED, 0)
+        | jnp.where(flipped, InvalidReason.FLIPPED, 0)
+        | jnp.where(height, InvalidReason.HEIGHT, 0)
+        | jnp.where(on_floor, InvalidReason.BODY_ON_FLOOR, 0)
+    ).astype(jnp.int32)
+
+
+def _rollout_one(
+    robot: Robot, spec: RolloutSpec, template: mjx.Data, tables: jax.Array, damage: jax.Array, init: SimState
+):
+    """One individual: tables (S, 100, 18) joint targets, damage (6,), init unbatched."""
+    info, config = robot.info, robot.config
+    num_segments = tables.shape[0]
+    segment_steps = spec.num_steps // num_segments
+    joint_qpos = np.asarray(info.joint_qpos)
+    feet = np.asarray(info.foot_geoms)
+    pose_slot = np.full(spec.num_steps + 1, -1, np.int32)  # step -> slot in pose buffer
+    for slot, step in enumerate(spec.pose_steps):
+        pose_slot[step] = slot
+    pose_slot = jnp.asarray(pose_slot)
+    num_poses = len(spec.pose_steps)
+
+    def record_pose(buffer, qpos, step):
+        hit = jnp.arange(num_poses) == pose_slot[step]
+        return jnp.where(hit[:, None], qpos[None, :7], buffer)
+
+    def control_step(carry, step):
+        data, reason, invalid_step, poses, command_sum = carry
+        poses = record_pose(poses, data.qpos, step)
+        row = (step % segment_steps) % SAMPLES_PER_PERIOD
+        target = apply_damage(tables[step // segment_steps, row], damage)
+        command = servo_command(target, data.qpos[joint_qpos], config.max_joint_velocity)
+        stepped = data.replace(ctrl=command)
+        for _ in range(config.substeps):
+            stepped = mjx.step(robot.model, stepped)
+        new_reason = jnp.where(reason == 0, _check(stepped.qpos, stepped.qvel, spec.limits), reason)
+        ok = new_reason == 0
+        # Freeze an invalid individual at its last valid state (no NaN leaks out).
+        stepped = stepped.replace(
+            qpos=jnp.where(ok, stepped.qpos, data.qpos),
+            qvel=jnp.where(ok, stepped.qvel, data.qvel),
+            qacc_warmstart=jnp.where(ok, stepped.qacc_warmstart, data.qacc_warmstart),
+        )
+        invalid_step = jnp.where((reason == 0) & ~ok, step, invalid_step)
+        command_sum = command_sum + jnp.where(ok, jnp.abs(command), 0.0) * config.control_dt
+        # geom_xpos was computed by the step's forward pass, i.e. at the start of this step.
+        foot_pos = jnp.where(ok, stepped.geom_xpos[feet], data.geom_xpos[feet])
+        outputs = {}
+        if spec.record_contacts:
+            outputs["contacts"] = foot_pos[:, 2] - FOOT_RADIUS < spec.contact_tolerance
+        if spec.record_feet:
+            outputs["feet"] = foot_pos
+        return (stepped, new_reason, invalid_step, poses, command_sum), outputs
+
+    data = template.replace(qpos=init.qpos, qvel=init.qvel, qacc_warmstart=init.qacc_warmstart)
+    data = mjx.kinematics(robot.model, data)  # geom_xpos of the initial state
+    carry = (
+        data,
+        _check(init.qpos, init.qvel, spec.limits),
+        jnp.int32(spec.num_steps),
+        jnp.zeros((num_poses, 7), jnp.float32),
+        jnp.zeros(NUM_JOINTS, jnp.float32),
+    )
+    (data, reason, invalid_step, poses, command_sum), outputs = jax.lax.scan(
+        control_step, carry, jnp.arange(spec.num_steps)
+    )
+    poses = record_pose(poses, data.qpos, spec.num_steps)
+    invalid_step = jnp.where((reason != 0) & (invalid_step == spec.num_steps), 0, invalid_step)
+    return RolloutResult(
+        final_state=SimState(qpos=data.qpos, qvel=data.qvel, qacc_warmstart=data.qacc_warmstart),
+        valid=reason == 0,
+        invalid_step=invalid_step,
+        invalid_reason=reason,
+        base_pos=poses[:, :3],
+        base_quat=poses[:, 3:],
+        foot_contacts=outputs.get("contacts"),
+        foot_pos=outputs.get("feet"),
+        command_abs_sum=command_sum,
+    )
+
+
+@functools.partial(jax.jit, static_argnames=("spec",))
+def rollout(
+    robot: Robot, params: jax.Array, damage: jax.Array, init: SimState, spec: RolloutSpec
+) -> RolloutResult:
+    """Simulate a population of hexapods, one jitted call.
+
+    Args:
+      robot: from `load_robot`.
+      params: (B, 36) controllers, or (B, S, 36) controllers run back to back, each for
+        num_steps / S control steps with its clock reset to 0 (S must divide num_steps).
+      damage: (B, 6) or (6,) bool masks of legs blocked in the air.
+      init: SimState batched (B, ...) or unbatched (broadcast to all individuals).
+      spec: static `RolloutSpec`.
+    Returns: RolloutResult with leading dim B.
+    """
+    if params.ndim == 2:
+        params = params[:, None, :]
+    if params.ndim != 3 or params.shape[-1] != NUM_PARAMS:
+        raise ConfigError(f"params must have shape (B, 36) or (B, S, 36), got {params.shape}")
+    batch, num_segments = params.shape[:2]
+    if spec.num_steps % num_segments:
+        raise ConfigError(f"{num_segments} controller segments do not divide num_steps={spec.num_steps}")
+    damage = jnp.asarray(damage, bool)
+    if damage.shape[-1] != NUM_LEGS or damage.ndim > 2:
+        raise ConfigError(f"damage must have shape (6,) or (B, 6), got {damage.shape}")
+    if damage.ndim == 1:
+        damage = jnp.broadcast_to(damage, (batch, NUM_LEGS))
+    if init.qpos.ndim == 1:
+        init = _broadcast(init, batch)
+    tables = jax.vmap(jax.vmap(target_table))(params.astype(jnp.float32))  # (B, S, 100, 18)
+    template = mjx.make_data(robot.model)
+    run = functools.partial(_rollout_one, robot, spec, template)
+    return jax.vmap(run)(tables, damage, init)
+
+
+def standing_state(robot: Robot, damage: jax.Array | None = None, settle_steps: int = 100) -> SimState:
+    """A settled standing pose: zero controller for `settle_steps`, then re-centred at x = y = 0.
+
+    Args: damage (6,) bool, (B, 6) bool or None. Returns: SimState, batched like `damage`.
+    """
+    damage = jnp.zeros(NUM_LEGS, bool) if damage is None else jnp.asarray(damage, bool)
+    batched = damage.ndim == 2
+    damage = damage.reshape(-1, NUM_LEGS)
+    init = jax.vmap(lambda d: initial_state(robot, d))(damage)
+    params = jnp.zeros((damage.shape[0], NUM_PARAMS))
+    spec = RolloutSpec(num_steps=settle_steps, record_contacts=False)
+    state = rollout(robot, params, damage, init, spec).final_state
+    state = state.replace(qpos=state.qpos.at[:, :2].set(0.0))
+    return state if batched else jax.tree.map(lambda x: x[0], state)

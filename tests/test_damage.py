@@ -1,0 +1,56 @@
+"""Damage masks, names and the blocked-in-the-air pose."""
+
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+import pytest
+
+from hte_jax.errors import ConfigError
+from hte_jax.sim import damage
+from hte_jax.sim.robot import RobotConfig, mj_model
+
+
+def test_paper_conditions():
+    masks = damage.paper_damage_masks()
+    assert masks.shape == (7, 6)
+    np.testing.assert_array_equal(masks[:6], np.eye(6, dtype=bool))
+    np.testing.assert_array_equal(masks[6], [False, True, False, False, True, False])
+
+
+@pytest.mark.parametrize("name,legs", [("none", []), ("leg3", [3]), ("legs1+4", [1, 4]), (6, [1, 4]), (-1, []), (0, [0])])
+def test_parse_damage(name, legs):
+    np.testing.assert_array_equal(np.flatnonzero(damage.parse_damage(name)), legs)
+
+
+@pytest.mark.parametrize("bad", ["leg6", "legs2+5", "", 7, -2])
+def test_unknown_damage_is_a_clear_error(bad):
+    with pytest.raises(ConfigError, match="unknown damage"):
+        damage.parse_damage(bad)
+
+
+def test_bad_leg_index():
+    with pytest.raises(ConfigError, match="leg index"):
+        damage.damage_mask([6])
+
+
+def test_apply_damage_overrides_only_damaged_legs():
+    targets = jnp.arange(18, dtype=jnp.float32) / 100
+    mask = jnp.asarray([False, True, False, False, True, False])
+    out = np.asarray(damage.apply_damage(targets, mask)).reshape(6, 3)
+    np.testing.assert_allclose(out[[1, 4]], np.tile(damage.DAMAGED_POSE, (2, 1)), rtol=1e-6)
+    np.testing.assert_allclose(out[[0, 2, 3, 5]], np.asarray(targets).reshape(6, 3)[[0, 2, 3, 5]])
+
+
+def test_damaged_pose_lifts_the_foot_well_above_the_hip():
+    model = mj_model(RobotConfig())
+    data = mujoco.MjData(model)
+    for leg in range(6):
+        data.qpos[:] = model.qpos0
+        data.qpos[7 + 3 * leg : 10 + 3 * leg] = damage.DAMAGED_POSE
+        mujoco.mj_kinematics(model, data)
+        hip = data.xpos[model.body(f"leg_{leg}_1").id]
+        foot = data.geom_xpos[model.geom(f"foot_{leg}").id]
+        assert foot[2] - hip[2] > 0.18  # 0.081 femur + 0.111 tibia, straight up
+        # the pose is inside the joint limits
+        lo, hi = model.jnt_range[model.joint(f"leg_{leg}_1_2").id]
+        assert lo - 1e-6 <= damage.DAMAGED_POSE[1] <= hi + 1e-6

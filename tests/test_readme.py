@@ -1,0 +1,23 @@
+"""The README's example runs as written and returns what it says."""
+
+import re
+from pathlib import Path
+
+README = Path(__file__).resolve().parents[1] / "README.md"
+
+
+def test_readme_commands_come_first():
+    text = README.read_text()
+    first_block = re.search(r"```bash\n(.*?)```", text, re.S).group(1).split("\n")
+    assert first_block[:2] == ['pip install -e ".[dev]"', "pytest"]
+
+
+def test_readme_example_runs():
+    code = re.search(r"```python\n(.*?)```", README.read_text(), re.S).group(1)
+    namespace = {}
+    exec(compile(code, str(README), "exec"), namespace)
+    result = namespace["result"]
+    assert result.valid.shape == (7,)
+    assert result.base_pos.shape == (7, 4, 3)
+    assert result.foot_contacts.shape == (7, 300, 6)
+    assert namespace["start"].qpos.shape == (7, 25)

@@ -1,0 +1,228 @@
+"""Batched MJX rollouts: standing, walking, damages, invalid individuals (acceptance 2-5).
+
+Every test reuses one module-wide batch of 16 rollouts (one compilation) where it can:
+MJX compiles take ~20 s each on a 2-core CPU.
+"""
+
+import math
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+import pytest
+
+from hte_jax.errors import ConfigError
+from hte_jax.sim.controller import target_table, servo_command
+from hte_jax.sim.damage import DAMAGED_POSE, paper_damage_masks
+from hte_jax.sim.robot import load_robot, mj_model
+from hte_jax.sim.rollout import InvalidReason, RolloutSpec, SimState, initial_state, rollout, standing_state
+
+# Tripod gait of the 36-parameter controller, per leg (a, p, d) hip then (a, p, d) vertical.
+# Legs 0, 2, 4 lift together, 1, 3, 5 half a period later; the hip swing leads the vertical
+# signal by a quarter period, mirrored between the right (0-2) and left (3-5) sides; half
+# amplitudes (hip +-pi/16, femur +-pi/8) keep the body within a few degrees of level.
+TRIPOD = np.array(
+    [
+        [0.5, 0.75, 0.5, 0.5, 0.0, 0.5],
+        [0.5, 0.25, 0.5, 0.5, 0.5, 0.5],
+        [0.5, 0.75, 0.5, 0.5, 0.0, 0.5],
+        [0.5, 0.75, 0.5, 0.5, 0.5, 0.5],
+        [0.5, 0.25, 0.5, 0.5, 0.0, 0.5],
+        [0.5, 0.75, 0.5, 0.5, 0.5, 0.5],
+    ],
+    np.float32,
+).reshape(36)
+# A wave gait: leg L lifts at phase L/6, so at most three legs are in the air and the
+# robot keeps walking with any one leg (or both middle legs) blocked in the air.
+WAVE = np.array(
+    [
+        [1.0, 0.25, 0.5, 1.0, 0.0, 0.5],
+        [1.0, 0.42, 0.5, 1.0, 0.17, 0.5],
+        [1.0, 0.58, 0.5, 1.0, 0.33, 0.5],
+        [1.0, 0.25, 0.5, 1.0, 0.5, 0.5],
+        [1.0, 0.42, 0.5, 1.0, 0.67, 0.5],
+        [1.0, 0.58, 0.5, 1.0, 0.83, 0.5],
+    ],
+    np.float32,
+).reshape(36)
+
+SPEC = RolloutSpec(num_steps=300, pose_steps=tuple(range(0, 301, 10)), record_feet=True)
+STAND, TRIPOD_IDX, DAMAGED, NAN_PARAMS, TIPPING, EXPLODED, NAN_STATE, WAVE_IDX = 0, 1, slice(2, 9), 9, 10, 11, 12, 13
+BAD = [NAN_PARAMS, TIPPING, EXPLODED, NAN_STATE]
+GOOD = [i for i in range(16) if i not in BAD]
+
+
+def _batch_inputs(robot):
+    damages = np.zeros((16, 6), bool)
+    damages[DAMAGED] = paper_damage_masks()
+    params = np.random.default_rng(0).uniform(size=(16, 36)).astype(np.float32)
+    params[STAND] = 0.0
+    params[TRIPOD_IDX] = TRIPOD
+    params[DAMAGED] = WAVE
+    params[WAVE_IDX] = WAVE
+    init = standing_state(robot, jnp.asarray(damages))
+    return params, jnp.asarray(damages), init
+
+
+def _corrupt(params, init):
+    """Make individuals 9-12 invalid in four different ways."""
+    params = params.copy()
+    params[NAN_PARAMS, 3] = np.nan  # NaN commands: the physics goes NaN in the first step
+    qpos, qvel = np.array(init.qpos), np.array(init.qvel)
+    half = math.radians(40) / 2  # rolled by 40 degrees, 0.3 m up, spinning over at 6 rad/s
+    qpos[TIPPING, 2:7] = [0.3, math.cos(half), math.sin(half), 0.0, 0.0]
+    qvel[TIPPING, 3] = 6.0
+    qvel[EXPLODED, 6:] = 500.0
+    qvel[NAN_STATE, 0] = np.nan
+    return params, init.replace(qpos=jnp.asarray(qpos), qvel=jnp.asarray(qvel))
+
+
+@pytest.fixture(scope="module")
+def robot():
+    return load_robot()
+
+
+@pytest.fixture(scope="module")
+def batch(robot):
+    params, damages, init = _batch_inputs(robot)
+    bad_params, bad_init = _corrupt(params, init)
+    dirty = rollout(robot, jnp.asarray(bad_params), damages, bad_init, SPEC)
+    clean = rollout(robot, jnp.asarray(params), damages, init, SPEC)
+    return {"params": params, "damages": np.asarray(damages), "init": init, "dirty": dirty, "clean": clean}
+
+
+def _np(x):
+    return np.asarray(x)
+
+
+def _up_z(quat):
+    return 1.0 - 2.0 * (quat[..., 1] ** 2 + quat[..., 2] ** 2)
+
+
+def test_standing_state(robot):
+    state = standing_state(robot)
+    assert state.qpos.shape == (25,)
+    assert float(state.qpos[2]) == pytest.approx(0.134, abs=0.003)
+    assert float(jnp.abs(state.qpos[:2]).max()) == 0.0
+    assert float(jnp.abs(state.qvel).max()) < 0.05
+
+
+def test_initial_state_places_damaged_legs():
+    robot = load_robot()
+    state = initial_state(robot, jnp.asarray([False, False, True, False, False, False]))
+    np.testing.assert_allclose(_np(state.qpos[13:16]), DAMAGED_POSE, atol=1e-6)
+    assert np.all(_np(state.qpos[7:13]) == 0)
+
+
+def test_zero_parameters_stand_still(batch):
+    """Acceptance 2: steady base height, drift < 1 cm over 3 s."""
+    res = batch["clean"]
+    pos = _np(res.base_pos[STAND])
+    assert bool(res.valid[STAND])
+    assert np.ptp(pos[:, 2]) < 0.002
+    assert np.linalg.norm(pos[-1, :2] - pos[0, :2]) < 0.01
+    assert _up_z(_np(res.base_quat[STAND])).min() > math.cos(math.radians(2))
+
+
+def test_tripod_walks_forward_upright(batch):
+    """Acceptance 3: > 0.2 m forward in 3 s, body upright throughout."""
+    res = batch["clean"]
+    pos = _np(res.base_pos[TRIPOD_IDX])
+    assert bool(res.valid[TRIPOD_IDX])
+    assert pos[-1, 0] - pos[0, 0] > 0.2
+    assert abs(pos[-1, 1] - pos[0, 1]) < 0.1
+    assert _up_z(_np(res.base_quat[TRIPOD_IDX])).min() > math.cos(math.radians(10))
+    contacts = _np(res.foot_contacts[TRIPOD_IDX])
+    assert 0.2 < contacts.mean() < 0.9  # feet alternate between stance and swing
+
+
+def test_damaged_feet_never_touch_the_floor(batch):
+    """Acceptance 4: the 7 paper conditions in one batch; blocked legs stay in the air."""
+    res, masks = batch["clean"], batch["damages"][DAMAGED]
+    assert masks.shape == (7, 6)
+    assert _np(res.valid[DAMAGED]).all()
+    contacts = _np(res.foot_contacts[DAMAGED])  # (7, 300, 6)
+    foot_z = _np(res.foot_pos[DAMAGED])[..., 2]
+    for k, mask in enumerate(masks):
+        assert not contacts[k][:, mask].any()
+        assert foot_z[k][:, mask].min() > 0.1
+        assert contacts[k][:, ~mask].any(axis=0).all()  # every healthy leg does touch
+        pos = _np(res.base_pos[DAMAGED][k])
+        assert np.linalg.norm(pos[-1, :2] - pos[0, :2]) > 0.05  # it still walks
+
+
+def test_invalid_rollouts_are_flagged_and_isolated(batch):
+    """Acceptance 5: NaN, explosion, flip are flagged per individual; the batch survives."""
+    dirty, clean = batch["dirty"], batch["clean"]
+    valid = _np(dirty.valid)
+    reason = _np(dirty.invalid_reason)
+    step = _np(dirty.invalid_step)
+    assert not valid[BAD].any()
+    assert reason[NAN_PARAMS] & InvalidReason.NON_FINITE and step[NAN_PARAMS] == 0
+    assert reason[TIPPING] & InvalidReason.FLIPPED and 1 <= step[TIPPING] < 20
+    assert reason[EXPLODED] & InvalidReason.EXPLODED and step[EXPLODED] == 0
+    assert reason[NAN_STATE] & InvalidReason.NON_FINITE and step[NAN_STATE] == 0
+    assert np.all(step[valid] == SPEC.num_steps) and np.all(reason[valid] == 0)
+    # Blown-up individuals are frozen at their last valid state: no NaN leaks out ...
+    for i in (NAN_PARAMS, TIPPING, EXPLODED):
+        for leaf in jax.tree.leaves(jax.tree.map(lambda x: x[i], dirty)):
+            assert np.isfinite(_np(leaf).astype(float)).all()
+    # ... and the other individuals are exactly what they are in a batch without them.
+    for a, b in zip(jax.tree.leaves(dirty), jax.tree.leaves(clean)):
+        np.testing.assert_array_equal(_np(a)[GOOD], _np(b)[GOOD])
+
+
+def test_controller_segments_reset_the_clock(robot, batch):
+    """(B, S, 36): three identical 1 s segments equal one 3 s controller; a zero segment stops."""
+    init = jax.tree.map(lambda x: x[TRIPOD_IDX], batch["init"])
+    params = jnp.asarray(np.stack([np.stack([TRIPOD] * 3), np.stack([TRIPOD, 0 * TRIPOD, 0 * TRIPOD])]))
+    res = rollout(robot, params, jnp.zeros(6, bool), init, SPEC)
+    np.testing.assert_allclose(_np(res.base_pos[0]), _np(batch["clean"].base_pos[TRIPOD_IDX]), atol=1e-5)
+    pos = _np(res.base_pos[1])
+    assert pos[10, 0] - pos[0, 0] > 0.05  # walked during the first second
+    assert np.linalg.norm(pos[-1, :2] - pos[15, :2]) < 0.01  # then stood still
+
+
+def test_reset_free_chaining(robot, batch):
+    """Two chained 1.5 s rollouts from arbitrary states equal one 3 s rollout."""
+    idx = [TRIPOD_IDX, WAVE_IDX]
+    init = jax.tree.map(lambda x: x[jnp.asarray(idx)], batch["init"])
+    half = RolloutSpec(num_steps=150, pose_steps=(150,))
+    params = jnp.asarray(batch["params"][idx])
+    first = rollout(robot, params, jnp.zeros(6, bool), init, half)
+    # the second half starts at control step 150, i.e. at phase 50 of the 1 s period
+    signals = params.reshape(2, 12, 3)
+    shifted = signals.at[:, :, 1].set((signals[:, :, 1] + 0.5) % 1.0).reshape(2, 36)
+    second = rollout(robot, shifted, jnp.zeros(6, bool), first.final_state, half)
+    full = batch["clean"]
+    np.testing.assert_allclose(_np(first.base_pos[:, 0]), _np(full.base_pos[jnp.asarray(idx), 15]), atol=1e-5)
+    np.testing.assert_allclose(_np(second.base_pos[:, 0]), _np(full.base_pos[jnp.asarray(idx), 30]), atol=2e-3)
+
+
+def test_mjx_agrees_with_native_mujoco(robot, batch):
+    """The tripod in native MuJoCo (float64, same servo law) ends within 3 cm of MJX."""
+    model = mj_model(robot.config)
+    data = mujoco.MjData(model)
+    state = jax.tree.map(lambda x: np.asarray(x[TRIPOD_IDX], np.float64), batch["init"])
+    data.qpos[:], data.qvel[:] = state.qpos, state.qvel
+    table = _np(target_table(jnp.asarray(TRIPOD)))
+    for k in range(300):
+        data.ctrl[:] = _np(servo_command(jnp.asarray(table[k % 100]), jnp.asarray(data.qpos[7:]), 5.0))
+        mujoco.mj_step(model, data)
+    mjx_final = _np(batch["clean"].base_pos[TRIPOD_IDX, -1])
+    np.testing.assert_allclose(data.qpos[:2], mjx_final[:2], atol=0.03)
+
+
+def test_bad_inputs_are_clear_errors(robot):
+    init = initial_state(robot)
+    with pytest.raises(ConfigError, match="params must have shape"):
+        rollout(robot, jnp.zeros((2, 35)), jnp.zeros(6, bool), init, SPEC)
+    with pytest.raises(ConfigError, match="damage must have shape"):
+        rollout(robot, jnp.zeros((2, 36)), jnp.zeros(5, bool), init, SPEC)
+    with pytest.raises(ConfigError, match="do not divide"):
+        rollout(robot, jnp.zeros((2, 7, 36)), jnp.zeros(6, bool), init, SPEC)
+    with pytest.raises(ConfigError, match="pose step"):
+        RolloutSpec(num_steps=10, pose_steps=(11,))
+    with pytest.raises(ConfigError, match="num_steps"):
+        RolloutSpec(num_steps=0)
