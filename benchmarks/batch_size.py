@@ -45,6 +45,8 @@ def _parse(argv=None):
     p.add_argument("--native-batches", type=str, default="64,256,1024,4096",
                    help="comma-separated batch sizes for native MuJoCo ('' to skip)")
     p.add_argument("--out", type=Path, default=None, help="JSON path (default: results/batch_size_<device>_<date>.json)")
+    p.add_argument("--merge", type=Path, nargs="*", default=[],
+                   help="JSON files of earlier partial sweeps on the same device to include")
     p.add_argument("--worker", type=int, default=None, help=argparse.SUPPRESS)
     p.add_argument("--native-worker", type=int, default=None, help=argparse.SUPPRESS)
     return p.parse_args(argv)
@@ -211,6 +213,19 @@ def _environment() -> dict:
     }
 
 
+def _merged_rows(paths, env, settings) -> list:
+    """Rows of earlier partial sweeps (a long sweep may be split across time-limited jobs)."""
+    rows = []
+    for path in paths:
+        earlier = json.loads(Path(path).read_text())
+        if earlier["environment"]["device"] != env["device"]:
+            raise SystemExit(f"{path} was measured on {earlier['environment']['device']}, not {env['device']}")
+        if earlier["settings"] != settings:
+            raise SystemExit(f"{path} used settings {earlier['settings']}, not {settings}")
+        rows += earlier["rows"]
+    return rows
+
+
 def _fmt_bytes(n) -> str:
     return "-" if n is None else f"{n / 2**20:,.0f} MiB"
 
@@ -242,8 +257,12 @@ def main(argv=None):
         return
 
     env = _environment()
+    config = _robot_config(args)
+    settings = {"steps": args.steps, "repeats": args.repeats, "timestep": config.timestep,
+                "solver_iterations": config.solver_iterations, "ls_iterations": config.ls_iterations,
+                "joint_limits": config.joint_limits}
     max_batch = args.max_batch or (1024 if env["platform"] == "cpu" else 131072)
-    rows = []
+    rows = _merged_rows(args.merge, env, settings)
     batch = args.min_batch
     while batch <= max_batch:
         row = _spawn("--worker", batch, args)
@@ -280,14 +299,11 @@ def main(argv=None):
     for key, value in summary.items():
         print(f"{key}: {value:,.3f}" if isinstance(value, float) else f"{key}: {value}")
 
-    config = _robot_config(args)
     out = args.out or RESULTS / f"batch_size_{env['platform']}_{env['device'].replace(' ', '_')}_{env['date']}.json"
     out.parent.mkdir(parents=True, exist_ok=True)
     payload = {
         "environment": env,
-        "settings": {"steps": args.steps, "repeats": args.repeats, "timestep": config.timestep,
-                     "solver_iterations": config.solver_iterations, "ls_iterations": config.ls_iterations,
-                     "joint_limits": config.joint_limits},
+        "settings": settings,
         "rows": rows,
         "summary": summary,
     }
