@@ -1,0 +1,26 @@
+"""Quality-Diversity engine: fixed-size containers, variation, the MAP-Elites loop, metrics, io, plots."""
+
+from hte_jax.qd.archive import Archive
+from hte_jax.qd.grid import Grid
+from hte_jax.qd.io import CheckpointError, load_checkpoint, save_checkpoint
+from hte_jax.qd.loop import MapElites, MapElitesConfig, QDState, resume, run
+from hte_jax.qd.metrics import RepertoireMetrics, repertoire_metrics
+from hte_jax.qd.repertoire import Evaluation, Insertion, Repertoire
+
+__all__ = [
+    "Archive",
+    "CheckpointError",
+    "Evaluation",
+    "Grid",
+    "Insertion",
+    "MapElites",
+    "MapElitesConfig",
+    "QDState",
+    "Repertoire",
+    "RepertoireMetrics",
+    "load_checkpoint",
+    "repertoire_metrics",
+    "resume",
+    "run",
+    "save_checkpoint",
+]

@@ -1,0 +1,97 @@
+"""MAP-Elites grid with arithmetic cell indexing, any number of dimensions and bins.
+
+Dimension i spans [low_i, high_i] cut into bins_i equal bins; a descriptor's cell is
+floor((x - low) / (high - low) * bins), with x = high falling in the last bin. Cells are
+numbered row-major (the last dimension varies fastest). A descriptor outside the bounds
+is rejected, like the original's "dead" individuals.
+
+Insertion of a batch: per cell, the best valid candidate of the batch (ties: the first in
+the batch) replaces the cell's elite if its fitness is strictly higher (an empty cell has
+fitness -inf).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from hte_jax.errors import ConfigError
+from hte_jax.qd.repertoire import Evaluation, Insertion, Repertoire, empty_repertoire, insertable, write
+
+
+@dataclasses.dataclass(frozen=True)
+class Grid:
+    """A grid container (static, hashable).
+
+    bins: cells per dimension, e.g. (100, 100) or (100, 100, 2, 2, 2, 2, 2, 2).
+    low, high: descriptor bounds per dimension.
+    """
+
+    bins: tuple[int, ...]
+    low: tuple[float, ...]
+    high: tuple[float, ...]
+
+    def __post_init__(self):
+        if not self.bins or any(not isinstance(b, int) or b < 1 for b in self.bins):
+            raise ConfigError(f"grid bins must be positive integers, got {self.bins!r}")
+        if not (len(self.low) == len(self.high) == len(self.bins)):
+            raise ConfigError(f"grid low/high/bins lengths differ: {len(self.low)}, {len(self.high)}, {len(self.bins)}")
+        for i, (lo, hi) in enumerate(zip(self.low, self.high)):
+            if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
+                raise ConfigError(f"grid dimension {i}: need finite low < high, got [{lo}, {hi}]")
+
+    @property
+    def capacity(self) -> int:
+        return math.prod(self.bins)
+
+    @property
+    def descriptor_dim(self) -> int:
+        return len(self.bins)
+
+    def empty(self, genotype_dim: int, extras=None) -> Repertoire:
+        """An empty repertoire with one slot per cell."""
+        return empty_repertoire(self.capacity, genotype_dim, self.descriptor_dim, extras)
+
+    def cell_index(self, descriptors: jax.Array) -> jax.Array:
+        """(B, D) descriptors -> (B,) int32 cell index, -1 if outside the bounds or not finite."""
+        low = jnp.asarray(self.low, jnp.float32)
+        high = jnp.asarray(self.high, jnp.float32)
+        bins = jnp.asarray(self.bins, jnp.int32)
+        inside = jnp.all((descriptors >= low) & (descriptors <= high), axis=-1)
+        scaled = (descriptors - low) / (high - low) * bins
+        coords = jnp.clip(jnp.floor(scaled).astype(jnp.int32), 0, bins - 1)
+        strides = np.cumprod((1,) + self.bins[:0:-1])[::-1].astype(np.int32)  # row-major
+        index = (coords * strides).sum(axis=-1)
+        return jnp.where(inside, index, -1)
+
+    def cell_centres(self) -> np.ndarray:
+        """(C, D) centre of every cell, row-major."""
+        axes = [
+            lo + (np.arange(b) + 0.5) * (hi - lo) / b for b, lo, hi in zip(self.bins, self.low, self.high)
+        ]
+        mesh = np.meshgrid(*axes, indexing="ij")
+        return np.stack([m.reshape(-1) for m in mesh], axis=-1).astype(np.float32)
+
+    def add(self, repertoire: Repertoire, genotypes: jax.Array, evaluation: Evaluation):
+        """Insert a batch; returns (new repertoire, Insertion)."""
+        batch = genotypes.shape[0]
+        cell = self.cell_index(evaluation.descriptors)
+        ok = insertable(evaluation) & (cell >= 0)
+        cell = jnp.where(ok, cell, self.capacity)  # a dummy segment for rejected rows
+        fitness = jnp.where(ok, evaluation.fitnesses, -jnp.inf)
+        segments = self.capacity + 1
+        best = jax.ops.segment_max(fitness, cell, num_segments=segments)
+        order = jnp.arange(batch, dtype=jnp.int32)
+        contender = ok & (fitness == best[cell])
+        first = jax.ops.segment_min(jnp.where(contender, order, batch), cell, num_segments=segments)
+        winner = ok & (first[cell] == order)
+        incumbent = jnp.concatenate([repertoire.fitnesses, jnp.full((1,), jnp.inf)])[cell]
+        accepted = winner & (fitness > incumbent)
+        slot = jnp.where(accepted, cell, -1).astype(jnp.int32)
+        was_filled = jnp.concatenate([repertoire.filled, jnp.ones((1,), bool)])[cell]
+        new = write(repertoire, slot, genotypes, evaluation)
+        return new, Insertion(accepted=accepted, new_slot=accepted & ~was_filled, slot=slot)

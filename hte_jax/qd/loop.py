@@ -1,0 +1,240 @@
+"""MAP-Elites as pure `init` / `ask` / `tell` functions plus a thin host-side runner.
+
+A generation is one jitted call: select parents uniformly among elites, vary them, evaluate
+the whole batch in one call of the user's `evaluate`, insert the batch. Blocks of generations
+run under `lax.scan`; between blocks the host shows progress, logs metrics to CSV and writes
+a checkpoint, so a killed run resumes where it stopped and gives bit-identical results.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import math
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+from tqdm.auto import tqdm
+
+from hte_jax.errors import ConfigError
+from hte_jax.qd import io
+from hte_jax.qd.metrics import MetricsLog, RepertoireMetrics, repertoire_metrics
+from hte_jax.qd.repertoire import Evaluation, Insertion, Repertoire
+from hte_jax.qd.variation import polynomial_mutation, sbx_crossover, uniform_selection
+
+# evaluate(key, genotypes (B, G)) -> Evaluation with B rows; must be jittable.
+EvaluateFn = Callable[[jax.Array, jax.Array], Evaluation]
+
+
+@dataclasses.dataclass(frozen=True)
+class MapElitesConfig:
+    """Hyper-parameters (hashable; the original's values per layer are in docs/design.md).
+
+    batch_size: offspring per generation. init_size: random individuals evaluated first
+    (a multiple of batch_size). mutation_rate / eta_m: per-gene polynomial mutation.
+    crossover_rate / eta_c: fraction of offspring made by SBX crossover before mutation.
+    qd_offset: fitness lower bound used by the QD score.
+    """
+
+    batch_size: int = 200
+    init_size: int = 200
+    mutation_rate: float = 0.14
+    eta_m: float = 10.0
+    crossover_rate: float = 0.0
+    eta_c: float = 10.0
+    qd_offset: float = 0.0
+
+    def __post_init__(self):
+        for name in ("batch_size", "init_size"):
+            value = getattr(self, name)
+            if not isinstance(value, int) or value < 1:
+                raise ConfigError(f"{name} must be a positive integer, got {value!r}")
+        if self.init_size % self.batch_size:
+            raise ConfigError(f"init_size={self.init_size} must be a multiple of batch_size={self.batch_size}")
+        for name in ("mutation_rate", "crossover_rate"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and 0.0 <= value <= 1.0):
+                raise ConfigError(f"{name} must lie in [0, 1], got {value!r}")
+        for name in ("eta_m", "eta_c"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
+                raise ConfigError(f"{name} must be a non-negative number, got {value!r}")
+        if not math.isfinite(self.qd_offset):
+            raise ConfigError(f"qd_offset must be finite, got {self.qd_offset!r}")
+
+
+@struct.dataclass
+class QDState:
+    """Everything a run needs to continue.
+
+    repertoire: the container's Repertoire.
+    key: (2,) uint32 PRNG key for the next generation.
+    generation: int32 scalar, generations done after the initial batch.
+    """
+
+    repertoire: Repertoire
+    key: jax.Array
+    generation: jax.Array
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class MapElites:
+    """A MAP-Elites algorithm: a container (`Grid` or `Archive`), an evaluation, a config.
+
+    genotype_dim: genes per individual, each in [0, 1].
+    extras: example pytree of per-individual extras the evaluation returns (shapes without B).
+    """
+
+    container: Any
+    evaluate: EvaluateFn
+    genotype_dim: int
+    config: MapElitesConfig = MapElitesConfig()
+    extras: Any = None
+
+    @property
+    def evaluations_per_generation(self) -> int:
+        return self.config.batch_size
+
+    def evaluations(self, state: QDState) -> int:
+        """Evaluations done so far (host int)."""
+        return self.config.init_size + int(state.generation) * self.config.batch_size
+
+    def empty_state(self, key: jax.Array) -> QDState:
+        """A state with an empty repertoire (also the template checkpoints are loaded into)."""
+        return QDState(
+            repertoire=self.container.empty(self.genotype_dim, self.extras),
+            key=key,
+            generation=jnp.int32(0),
+        )
+
+    @functools.partial(jax.jit, static_argnums=0)
+    def init(self, key: jax.Array) -> QDState:
+        """Evaluate init_size uniform random genotypes and insert them, batch by batch."""
+        key, key_init = jax.random.split(key)
+        state = self.empty_state(key)
+        batches = self.config.init_size // self.config.batch_size
+
+        def insert(repertoire, batch_key):
+            key_genes, key_eval = jax.random.split(batch_key)
+            genotypes = jax.random.uniform(key_genes, (self.config.batch_size, self.genotype_dim))
+            repertoire, _ = self.container.add(repertoire, genotypes, self.evaluate(key_eval, genotypes))
+            return repertoire, None
+
+        repertoire, _ = jax.lax.scan(insert, state.repertoire, jax.random.split(key_init, batches))
+        return state.replace(repertoire=repertoire)
+
+    def ask(self, repertoire: Repertoire, key: jax.Array) -> jax.Array:
+        """(batch_size, G) offspring of uniformly selected elites."""
+        cfg = self.config
+        key_sel, key_mate, key_cross, key_use, key_mut = jax.random.split(key, 5)
+        parents = repertoire.genotypes[uniform_selection(key_sel, repertoire, cfg.batch_size)]
+        if cfg.crossover_rate > 0:
+            mates = repertoire.genotypes[uniform_selection(key_mate, repertoire, cfg.batch_size)]
+            children = sbx_crossover(key_cross, parents, mates, cfg.eta_c)
+            use = jax.random.uniform(key_use, (cfg.batch_size, 1)) < cfg.crossover_rate
+            parents = jnp.where(use, children, parents)
+        return polynomial_mutation(key_mut, parents, cfg.mutation_rate, cfg.eta_m)
+
+    def tell(self, repertoire: Repertoire, genotypes: jax.Array, evaluation: Evaluation):
+        """Insert an evaluated batch: (new repertoire, Insertion)."""
+        return self.container.add(repertoire, genotypes, evaluation)
+
+    def generation_step(self, state: QDState) -> tuple[QDState, jax.Array]:
+        """One generation; returns the new state and the number of accepted offspring."""
+        key, key_ask, key_eval = jax.random.split(state.key, 3)
+        genotypes = self.ask(state.repertoire, key_ask)
+        repertoire, insertion = self.tell(state.repertoire, genotypes, self.evaluate(key_eval, genotypes))
+        new = QDState(repertoire=repertoire, key=key, generation=state.generation + 1)
+        return new, insertion.accepted.sum(dtype=jnp.int32)
+
+    @functools.partial(jax.jit, static_argnums=(0, 2))
+    def run_block(self, state: QDState, generations: int) -> tuple[QDState, jax.Array]:
+        """`generations` generations under lax.scan; returns the state and the accepted count."""
+        state, accepted = jax.lax.scan(lambda s, _: self.generation_step(s), state, None, length=generations)
+        return state, accepted.sum()
+
+    @functools.partial(jax.jit, static_argnums=0)
+    def metrics(self, state: QDState) -> RepertoireMetrics:
+        return repertoire_metrics(state.repertoire, self.config.qd_offset)
+
+    def checkpoint_metadata(self) -> dict:
+        """What must match for a checkpoint to be resumed by this algorithm."""
+        return {
+            "container": {"kind": type(self.container).__name__, **dataclasses.asdict(self.container)},
+            "config": dataclasses.asdict(self.config),
+            "genotype_dim": self.genotype_dim,
+        }
+
+
+def run(
+    algo: MapElites,
+    state: QDState,
+    generations: int,
+    *,
+    block_size: int = 10,
+    log_path: str | Path | None = None,
+    checkpoint_path: str | Path | None = None,
+    progress: bool = True,
+    on_block: Callable[[int, QDState, dict], None] | None = None,
+) -> QDState:
+    """Run until `state.generation == generations`, one jitted block of generations at a time.
+
+    After every block: one CSV row (if log_path), an atomic checkpoint (if checkpoint_path),
+    the progress bar, and `on_block(block, state, row)`. Starting from a resumed state runs
+    only the remaining generations; block boundaries stay at multiples of block_size.
+    """
+    if not isinstance(block_size, int) or block_size < 1:
+        raise ConfigError(f"block_size must be a positive integer, got {block_size!r}")
+    log = MetricsLog(log_path) if log_path is not None else None
+    done = int(state.generation)
+    if log is not None:  # drop rows written after the checkpoint we start from
+        log.truncate_after(done // block_size - 1 if done else -2)
+    total_blocks = -(-generations // block_size)
+    bar = tqdm(total=total_blocks, initial=done // block_size, disable=not progress, unit="block")
+    start = time.perf_counter()
+
+    def record(block, accepted):
+        metrics = jax.device_get(algo.metrics(state))
+        row = {
+            "block": block,
+            "generation": int(state.generation),
+            "evaluations": algo.evaluations(state),
+            "filled": metrics.filled,
+            "coverage": metrics.coverage,
+            "qd_score": metrics.qd_score,
+            "mean_fitness": metrics.mean_fitness,
+            "max_fitness": metrics.max_fitness,
+            "accepted": metrics.filled if accepted is None else accepted,
+            "wall_time_s": time.perf_counter() - start,
+        }
+        if log is not None:
+            log.append(row)
+        return metrics, row
+
+    if done == 0:
+        record(-1, None)  # the initial random batch, as block -1
+    while done < generations:
+        block = done // block_size
+        count = min(block_size * (block + 1), generations) - done
+        state, accepted = algo.run_block(state, count)
+        done = int(state.generation)
+        metrics, row = record(block, accepted)
+        if checkpoint_path is not None:
+            io.save_checkpoint(checkpoint_path, state, algo.checkpoint_metadata())
+        bar.update(1)
+        bar.set_postfix(filled=int(metrics.filled), qd=f"{float(metrics.qd_score):.4g}", max=f"{float(metrics.max_fitness):.3g}")
+        if on_block is not None:
+            on_block(block, state, row)
+    bar.close()
+    return state
+
+
+def resume(algo: MapElites, checkpoint_path: str | Path) -> QDState:
+    """Load a checkpoint written by `run` for this algorithm (clear error on any mismatch)."""
+    template = algo.empty_state(jax.random.PRNGKey(0))
+    return io.load_checkpoint(checkpoint_path, template, algo.checkpoint_metadata())

@@ -1,0 +1,95 @@
+"""Repertoire metrics and their CSV log.
+
+QD score = sum over filled slots of (fitness - offset). The offset is a lower bound of the
+task's fitness (e.g. -pi for the hexapod's angle-error fitness, which lies in [-pi, 0]), so
+every elite adds a non-negative amount and the score can only grow when cells fill.
+"""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+from hte_jax.qd.repertoire import Repertoire
+
+FIELDS = (
+    "block",
+    "generation",
+    "evaluations",
+    "filled",
+    "coverage",
+    "qd_score",
+    "mean_fitness",
+    "max_fitness",
+    "accepted",
+    "wall_time_s",
+)
+
+
+@struct.dataclass
+class RepertoireMetrics:
+    """Scalars describing a repertoire (all 0-d arrays).
+
+    filled: number of elites; coverage: filled / capacity; qd_score: sum(fitness - offset);
+    mean_fitness, max_fitness: over elites (NaN when empty).
+    """
+
+    filled: jax.Array
+    coverage: jax.Array
+    qd_score: jax.Array
+    mean_fitness: jax.Array
+    max_fitness: jax.Array
+
+
+def repertoire_metrics(repertoire: Repertoire, offset: float) -> RepertoireMetrics:
+    filled = repertoire.filled
+    count = filled.sum(dtype=jnp.int32)
+    fitness = jnp.where(filled, repertoire.fitnesses, 0.0)
+    total = fitness.sum()
+    return RepertoireMetrics(
+        filled=count,
+        coverage=count / repertoire.capacity,
+        qd_score=total - offset * count,
+        mean_fitness=jnp.where(count > 0, total / jnp.maximum(count, 1), jnp.nan),
+        max_fitness=jnp.where(count > 0, jnp.where(filled, repertoire.fitnesses, -jnp.inf).max(), jnp.nan),
+    )
+
+
+class MetricsLog:
+    """Appends one CSV row per block; a resumed run keeps appending to the same file."""
+
+    def __init__(self, path: str | Path):
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+
+    def truncate_after(self, block: int) -> None:
+        """Drop rows of blocks > `block` (written after the checkpoint a run resumes from)."""
+        if not self.path.exists():
+            return
+        rows = [r for r in self.read() if int(r["block"]) <= block]
+        self._write(rows, mode="w")
+
+    def append(self, row: dict) -> None:
+        self._write([row], mode="a")
+
+    def read(self) -> list[dict]:
+        with self.path.open(newline="") as handle:
+            return list(csv.DictReader(handle))
+
+    def _write(self, rows, mode: str) -> None:
+        new_file = mode == "w" or not self.path.exists() or self.path.stat().st_size == 0
+        with self.path.open(mode, newline="") as handle:
+            writer = csv.DictWriter(handle, fieldnames=FIELDS)
+            if new_file:
+                writer.writeheader()
+            for row in rows:
+                writer.writerow({k: _plain(row[k]) for k in FIELDS})
+
+
+def _plain(value):
+    """Python scalar for CSV (JAX and NumPy scalars become int or float)."""
+    return value.item() if hasattr(value, "item") else value

@@ -1,0 +1,114 @@
+"""The data every container stores: a fixed-size block of elites, with explicit empty slots.
+
+Containers (`Grid`, `Archive`) are static, hashable descriptions with pure `add` functions;
+the `Repertoire` below is the pytree they read and write. Genotype, descriptor, fitness and
+extras of an elite are always written together, in one masked scatter.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+EMPTY_FITNESS = -jnp.inf
+
+
+@struct.dataclass
+class Repertoire:
+    """Elites of a container with C slots, genotypes of size G, descriptors of size D.
+
+    genotypes: (C, G) float32, zeros where empty.
+    descriptors: (C, D) float32, zeros where empty.
+    fitnesses: (C,) float32, -inf where empty.
+    filled: (C,) bool, which slots hold an elite.
+    extras: pytree of (C, ...) arrays stored with each elite (e.g. per-elite metadata), or {}.
+    """
+
+    genotypes: jax.Array
+    descriptors: jax.Array
+    fitnesses: jax.Array
+    filled: jax.Array
+    extras: Any = struct.field(default_factory=dict)
+
+    @property
+    def capacity(self) -> int:
+        return self.fitnesses.shape[0]
+
+    @property
+    def size(self) -> jax.Array:
+        """Number of filled slots (int32 scalar)."""
+        return self.filled.sum(dtype=jnp.int32)
+
+
+@struct.dataclass
+class Evaluation:
+    """What an evaluation returns for B individuals.
+
+    fitnesses: (B,) float32 (higher is better).
+    descriptors: (B, D) float32.
+    valid: (B,) bool; invalid individuals are never inserted.
+    extras: pytree of (B, ...) arrays stored with inserted elites, or {}.
+    """
+
+    fitnesses: jax.Array
+    descriptors: jax.Array
+    valid: jax.Array
+    extras: Any = struct.field(default_factory=dict)
+
+
+@struct.dataclass
+class Insertion:
+    """Outcome of adding a batch of B individuals.
+
+    accepted: (B,) bool, the individual is now an elite.
+    new_slot: (B,) bool, it took a slot that was empty (grid: new cell; archive: new entry).
+    slot: (B,) int32, where it went, -1 if rejected.
+    """
+
+    accepted: jax.Array
+    new_slot: jax.Array
+    slot: jax.Array
+
+
+def empty_repertoire(capacity: int, genotype_dim: int, descriptor_dim: int, extras: Any = None) -> Repertoire:
+    """An empty repertoire; `extras` is a pytree of per-elite example arrays (shapes without C)."""
+    extras = {} if extras is None else extras
+    return Repertoire(
+        genotypes=jnp.zeros((capacity, genotype_dim), jnp.float32),
+        descriptors=jnp.zeros((capacity, descriptor_dim), jnp.float32),
+        fitnesses=jnp.full((capacity,), EMPTY_FITNESS, jnp.float32),
+        filled=jnp.zeros((capacity,), bool),
+        extras=jax.tree.map(lambda x: jnp.zeros((capacity, *jnp.shape(x)), jnp.asarray(x).dtype), extras),
+    )
+
+
+def write(repertoire: Repertoire, slot: jax.Array, genotypes, evaluation: Evaluation) -> Repertoire:
+    """Write the rows of a batch into `slot` (B,) int32; rows with slot -1 are skipped.
+
+    Slots must be unique among the rows written (containers guarantee it), so the scatter
+    is deterministic.
+    """
+    target = jnp.where(slot >= 0, slot, repertoire.capacity)  # out of range -> dropped
+
+    def put(store, rows):
+        return store.at[target].set(rows.astype(store.dtype), mode="drop")
+
+    return repertoire.replace(
+        genotypes=put(repertoire.genotypes, genotypes),
+        descriptors=put(repertoire.descriptors, evaluation.descriptors),
+        fitnesses=put(repertoire.fitnesses, evaluation.fitnesses),
+        filled=put(repertoire.filled, jnp.ones_like(slot, bool)),
+        extras=jax.tree.map(put, repertoire.extras, evaluation.extras),
+    )
+
+
+def insertable(evaluation: Evaluation) -> jax.Array:
+    """(B,) bool: valid, finite fitness and finite descriptors."""
+    return (
+        evaluation.valid
+        & jnp.isfinite(evaluation.fitnesses)
+        & jnp.isfinite(evaluation.descriptors).all(axis=-1)
+    )

@@ -1,0 +1,50 @@
+"""Parent selection and variation operators on genotypes in [0, 1] (sferes conventions)."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+from hte_jax.qd.repertoire import Repertoire
+
+
+def uniform_selection(key: jax.Array, repertoire: Repertoire, num: int) -> jax.Array:
+    """(num,) slots drawn uniformly, with replacement, among the filled ones.
+
+    Draws a rank r in [0, filled count) and returns the slot of the r-th filled slot
+    (O(capacity + num log capacity), whatever the capacity). An empty repertoire has nothing
+    to select: the caller must fill it first (MAP-Elites' initial random batch does).
+    """
+    cumulative = jnp.cumsum(repertoire.filled, dtype=jnp.int32)
+    rank = jax.random.randint(key, (num,), 0, jnp.maximum(cumulative[-1], 1))
+    return jnp.searchsorted(cumulative, rank + 1, side="left").astype(jnp.int32)
+
+
+def polynomial_mutation(key: jax.Array, genotypes: jax.Array, rate: float, eta: float) -> jax.Array:
+    """sferes' polynomial mutation, gene-wise with probability `rate`, then clipped to [0, 1].
+
+    delta = (2r)^(1/(eta+1)) - 1 if r < 0.5 else 1 - (2(1-r))^(1/(eta+1)), r ~ U(0, 1),
+    added to the gene (the genes' range is 1, so delta needs no scaling).
+    """
+    key_apply, key_r = jax.random.split(key)
+    apply = jax.random.uniform(key_apply, genotypes.shape) < rate
+    r = jax.random.uniform(key_r, genotypes.shape)
+    power = 1.0 / (eta + 1.0)
+    delta = jnp.where(r < 0.5, (2.0 * r) ** power - 1.0, 1.0 - (2.0 * (1.0 - r)) ** power)
+    return jnp.clip(jnp.where(apply, genotypes + delta, genotypes), 0.0, 1.0)
+
+
+def sbx_crossover(key: jax.Array, parents_a: jax.Array, parents_b: jax.Array, eta: float) -> jax.Array:
+    """Simulated binary crossover (Deb & Agrawal), one child per pair, each gene with p = 0.5.
+
+    Args: parents (N, G) in [0, 1]. Returns: (N, G) children clipped to [0, 1].
+    """
+    key_gene, key_u, key_side = jax.random.split(key, 3)
+    u = jax.random.uniform(key_u, parents_a.shape)
+    beta = jnp.where(u <= 0.5, (2.0 * u) ** (1.0 / (eta + 1.0)), (1.0 / (2.0 * (1.0 - u))) ** (1.0 / (eta + 1.0)))
+    mean = 0.5 * (parents_a + parents_b)
+    half_spread = 0.5 * beta * jnp.abs(parents_a - parents_b)
+    side = jnp.where(jax.random.bernoulli(key_side, 0.5, parents_a.shape), 1.0, -1.0)
+    child = mean + side * half_spread
+    cross = jax.random.bernoulli(key_gene, 0.5, parents_a.shape)
+    return jnp.clip(jnp.where(cross, child, parents_a), 0.0, 1.0)
