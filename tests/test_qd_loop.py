@@ -279,3 +279,19 @@ def test_plots_are_written(arm_run, tmp_path):
     for name in ("grid.png", "scatter.png", "metrics.png"):
         image = matplotlib.image.imread(tmp_path / name)
         assert image.shape[0] > 200 and image.shape[1] > 200 and image.std() > 0.01
+
+
+# --- command line ------------------------------------------------------------------------
+
+
+def test_inspect_checkpoint_cli(tmp_path, small_algo):
+    path = tmp_path / "ck.npz"
+    save_checkpoint(path, small_algo.init(jax.random.PRNGKey(0)), small_algo.checkpoint_metadata())
+    cmd = [sys.executable, "-m", "experiments.inspect_checkpoint"]
+    ok = subprocess.run([*cmd, str(path)], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert ok.returncode == 0, ok.stderr
+    assert "elites: " in ok.stdout and "repertoire/genotypes" in ok.stdout and "generation: 0" in ok.stdout
+    path.write_bytes(path.read_bytes()[:100])
+    bad = subprocess.run([*cmd, str(path)], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert bad.returncode == 2
+    assert "truncated or corrupt" in bad.stderr and "Traceback" not in bad.stderr

@@ -12,12 +12,18 @@ def test_readme_commands_come_first():
     assert first_block[:2] == ['pip install -e ".[dev]"', "pytest"]
 
 
-def test_readme_example_runs():
-    code = re.search(r"```python\n(.*?)```", README.read_text(), re.S).group(1)
+def test_readme_examples_run(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)  # the examples write under ./runs
+    blocks = re.findall(r"```python\n(.*?)```", README.read_text(), re.S)
+    assert len(blocks) == 2
     namespace = {}
-    exec(compile(code, str(README), "exec"), namespace)
+    for code in blocks:
+        exec(compile(code, str(README), "exec"), namespace)
     result = namespace["result"]
     assert result.valid.shape == (7,)
     assert result.base_pos.shape == (7, 4, 3)
     assert result.foot_contacts.shape == (7, 300, 6)
     assert namespace["start"].qpos.shape == (7, 25)
+    assert int(namespace["state"].generation) == 50
+    for name in ("metrics.csv", "checkpoint.npz", "grid.png", "metrics.png"):
+        assert (tmp_path / "runs" / "arm" / name).stat().st_size > 0
