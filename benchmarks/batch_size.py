@@ -17,10 +17,8 @@ Prints a table and writes JSON to benchmarks/results/.
 from __future__ import annotations
 
 import argparse
-import datetime as dt
 import json
 import os
-import platform
 import resource
 import statistics
 import subprocess
@@ -28,7 +26,8 @@ import sys
 import time
 from pathlib import Path
 
-RESULTS = Path(__file__).resolve().parent / "results"
+from common import environment, result_path
+
 CONTROL_DT = 0.01
 
 
@@ -197,22 +196,6 @@ def _spawn(flag: str, batch: int, args) -> dict:
     return json.loads(lines[-1])
 
 
-def _environment() -> dict:
-    import jax
-    import mujoco
-
-    device = jax.devices()[0]
-    return {
-        "date": dt.date.today().isoformat(),
-        "device": device.device_kind,
-        "platform": device.platform,
-        "cpu_count": os.cpu_count(),
-        "python": platform.python_version(),
-        "jax": jax.__version__,
-        "mujoco": mujoco.__version__,
-    }
-
-
 def _merged_rows(paths, env, settings) -> list:
     """Rows of earlier partial sweeps (a long sweep may be split across time-limited jobs)."""
     rows = []
@@ -256,7 +239,7 @@ def main(argv=None):
         print(json.dumps(_native_worker(args)))
         return
 
-    env = _environment()
+    env = environment()
     config = _robot_config(args)
     settings = {"steps": args.steps, "repeats": args.repeats, "timestep": config.timestep,
                 "solver_iterations": config.solver_iterations, "ls_iterations": config.ls_iterations,
@@ -299,7 +282,7 @@ def main(argv=None):
     for key, value in summary.items():
         print(f"{key}: {value:,.3f}" if isinstance(value, float) else f"{key}: {value}")
 
-    out = args.out or RESULTS / f"batch_size_{env['platform']}_{env['device'].replace(' ', '_')}_{env['date']}.json"
+    out = args.out or result_path("batch_size", env)
     out.parent.mkdir(parents=True, exist_ok=True)
     payload = {
         "environment": env,

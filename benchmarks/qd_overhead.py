@@ -17,10 +17,7 @@ Times are medians of --repeats runs of jitted, compiled functions. Prints a tabl
 from __future__ import annotations
 
 import argparse
-import datetime as dt
 import json
-import os
-import platform
 import statistics
 import time
 from pathlib import Path
@@ -28,11 +25,11 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
+from common import environment, result_path
 
 from hte_jax.qd import Archive, Evaluation, Grid, MapElites, MapElitesConfig, repertoire_metrics
 from hte_jax.qd.tasks import planar_arm_evaluate
 
-RESULTS = Path(__file__).resolve().parent / "results"
 GENOTYPE_DIM = 36
 
 
@@ -116,15 +113,7 @@ def main(argv=None):
     parser.add_argument("--out", type=Path, default=None)
     args = parser.parse_args(argv)
 
-    device = jax.devices()[0]
-    env = {
-        "date": dt.date.today().isoformat(),
-        "device": device.device_kind,
-        "platform": device.platform,
-        "cpu_count": os.cpu_count(),
-        "python": platform.python_version(),
-        "jax": jax.__version__,
-    }
+    env = environment()
     batches = []
     b = args.min_batch
     while b <= args.max_batch:
@@ -164,7 +153,7 @@ def main(argv=None):
 
     print(f"\n{env['device']} ({env['platform']}), jax {env['jax']}, medians of {args.repeats}; "
           "QD share = (ask + insert + metrics) / (that + one 3 s rollout of the batch)")
-    out = args.out or RESULTS / f"qd_overhead_{env['platform']}_{env['device'].replace(' ', '_')}_{env['date']}.json"
+    out = args.out or result_path("qd_overhead", env)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps({"environment": env, "settings": vars(args) | {"out": str(out)}, "rows": rows}, indent=2))
     print(f"wrote {out}")

@@ -1,5 +1,32 @@
-"""Exception types raised on bad user input."""
+"""Exception types raised on bad user input, and the checks that raise them."""
+
+import math
 
 
 class ConfigError(ValueError):
     """A configuration value is out of range or inconsistent; the message names it."""
+
+
+def require_int(name: str, value, minimum: int = 1) -> None:
+    """`value` must be an integer >= minimum."""
+    if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
+        raise ConfigError(f"{name} must be an integer >= {minimum}, got {value!r}")
+
+
+def require_number(name: str, value, low: float = -math.inf, high: float = math.inf, *, open_low: bool = False) -> None:
+    """`value` must be a finite real in [low, high] (or (low, high] with open_low)."""
+    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+    ok = ok and (value > low if open_low else value >= low) and value <= high
+    if not ok:
+        bounds = f"{'(' if open_low else '['}{low}, {high}]"
+        raise ConfigError(f"{name} must be a finite number in {bounds}, got {value!r}")
+
+
+def require_bounds(name: str, low, high, dims: int | None = None) -> None:
+    """Per-dimension bounds: same length (== dims if given), finite, low < high."""
+    if len(low) != len(high) or not low or (dims is not None and len(low) != dims):
+        raise ConfigError(f"{name}: low and high must be non-empty, of equal length{'' if dims is None else f' {dims}'}; "
+                          f"got {len(low)} and {len(high)}")
+    for i, (lo, hi) in enumerate(zip(low, high)):
+        if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
+            raise ConfigError(f"{name} dimension {i}: need finite low < high, got [{lo}, {hi}]")

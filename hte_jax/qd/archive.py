@@ -26,12 +26,11 @@ filled slots are always a prefix of the storage. Nearest-neighbour ties go to th
 from __future__ import annotations
 
 import dataclasses
-import math
 
 import jax
 import jax.numpy as jnp
 
-from hte_jax.errors import ConfigError
+from hte_jax.errors import ConfigError, require_bounds, require_int, require_number
 from hte_jax.qd.repertoire import Evaluation, Insertion, Repertoire, empty_repertoire, insertable, write
 
 _BIG = jnp.inf
@@ -92,21 +91,14 @@ class Archive:
     chunk_size: int = 512
 
     def __post_init__(self):
-        if not isinstance(self.capacity, int) or self.capacity < 1:
-            raise ConfigError(f"archive capacity must be a positive integer, got {self.capacity!r}")
-        if len(self.low) != len(self.high) or not self.low:
-            raise ConfigError("archive low and high must be non-empty and of the same length")
-        for i, (lo, hi) in enumerate(zip(self.low, self.high)):
-            if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
-                raise ConfigError(f"archive dimension {i}: need finite low < high, got [{lo}, {hi}]")
-        if not (math.isfinite(self.l) and self.l > 0):
-            raise ConfigError(f"archive l must be a positive distance, got {self.l!r}")
-        if not isinstance(self.k, int) or self.k < 1:
-            raise ConfigError(f"archive k must be a positive integer, got {self.k!r}")
-        if not (0.0 <= self.eps < 1.0):
-            raise ConfigError(f"archive eps must lie in [0, 1), got {self.eps!r}")
-        if not isinstance(self.chunk_size, int) or self.chunk_size < 1:
-            raise ConfigError(f"archive chunk_size must be a positive integer, got {self.chunk_size!r}")
+        require_int("archive capacity", self.capacity)
+        require_bounds("archive", self.low, self.high)
+        require_number("archive l", self.l, 0.0, open_low=True)
+        require_int("archive k", self.k)
+        require_number("archive eps", self.eps, 0.0, 1.0)
+        if self.eps == 1.0:
+            raise ConfigError("archive eps must be < 1 (eps = 1 disables the second-neighbour rule)")
+        require_int("archive chunk_size", self.chunk_size)
 
     @property
     def descriptor_dim(self) -> int:

@@ -19,7 +19,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from hte_jax.errors import ConfigError
+from hte_jax.errors import ConfigError, require_bounds, require_int
 from hte_jax.qd.repertoire import Evaluation, Insertion, Repertoire, empty_repertoire, insertable, write
 
 
@@ -36,13 +36,11 @@ class Grid:
     high: tuple[float, ...]
 
     def __post_init__(self):
-        if not self.bins or any(not isinstance(b, int) or b < 1 for b in self.bins):
-            raise ConfigError(f"grid bins must be positive integers, got {self.bins!r}")
-        if not (len(self.low) == len(self.high) == len(self.bins)):
-            raise ConfigError(f"grid low/high/bins lengths differ: {len(self.low)}, {len(self.high)}, {len(self.bins)}")
-        for i, (lo, hi) in enumerate(zip(self.low, self.high)):
-            if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
-                raise ConfigError(f"grid dimension {i}: need finite low < high, got [{lo}, {hi}]")
+        if not self.bins:
+            raise ConfigError("grid bins must not be empty")
+        for i, bins in enumerate(self.bins):
+            require_int(f"grid bins[{i}]", bins)
+        require_bounds("grid", self.low, self.high, len(self.bins))
 
     @property
     def capacity(self) -> int:

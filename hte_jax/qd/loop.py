@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import math
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -21,7 +20,7 @@ import jax.numpy as jnp
 from flax import struct
 from tqdm.auto import tqdm
 
-from hte_jax.errors import ConfigError
+from hte_jax.errors import ConfigError, require_int, require_number
 from hte_jax.qd import io
 from hte_jax.qd.metrics import MetricsLog, RepertoireMetrics, repertoire_metrics
 from hte_jax.qd.repertoire import Evaluation, Insertion, Repertoire
@@ -50,22 +49,15 @@ class MapElitesConfig:
     qd_offset: float = 0.0
 
     def __post_init__(self):
-        for name in ("batch_size", "init_size"):
-            value = getattr(self, name)
-            if not isinstance(value, int) or value < 1:
-                raise ConfigError(f"{name} must be a positive integer, got {value!r}")
+        require_int("batch_size", self.batch_size)
+        require_int("init_size", self.init_size)
         if self.init_size % self.batch_size:
             raise ConfigError(f"init_size={self.init_size} must be a multiple of batch_size={self.batch_size}")
-        for name in ("mutation_rate", "crossover_rate"):
-            value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and 0.0 <= value <= 1.0):
-                raise ConfigError(f"{name} must lie in [0, 1], got {value!r}")
-        for name in ("eta_m", "eta_c"):
-            value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
-                raise ConfigError(f"{name} must be a non-negative number, got {value!r}")
-        if not math.isfinite(self.qd_offset):
-            raise ConfigError(f"qd_offset must be finite, got {self.qd_offset!r}")
+        require_number("mutation_rate", self.mutation_rate, 0.0, 1.0)
+        require_number("crossover_rate", self.crossover_rate, 0.0, 1.0)
+        require_number("eta_m", self.eta_m, 0.0)
+        require_number("eta_c", self.eta_c, 0.0)
+        require_number("qd_offset", self.qd_offset)
 
 
 @struct.dataclass

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import math
 import os
 from pathlib import Path
 
@@ -17,7 +16,7 @@ import mujoco
 from flax import struct
 from mujoco import mjx
 
-from hte_jax.errors import ConfigError
+from hte_jax.errors import ConfigError, require_int, require_number
 
 NUM_LEGS = 6
 JOINTS_PER_LEG = 3
@@ -70,21 +69,16 @@ class RobotConfig:
     body_wall_collisions: bool = True
 
     def __post_init__(self):
-        _positive("timestep", self.timestep)
-        _positive("control_dt", self.control_dt)
+        for name in ("timestep", "control_dt", "servo_gain", "max_torque", "max_joint_velocity"):
+            require_number(name, getattr(self, name), 0.0, open_low=True)
         ratio = self.control_dt / self.timestep
         if abs(ratio - round(ratio)) > 1e-6:
             raise ConfigError(
                 f"control_dt={self.control_dt} must be a whole multiple of timestep={self.timestep}"
             )
-        for name in ("solver_iterations", "ls_iterations"):
-            value = getattr(self, name)
-            if not isinstance(value, int) or value < 1:
-                raise ConfigError(f"{name} must be a positive integer, got {value!r}")
-        for name in ("servo_gain", "max_torque", "max_joint_velocity"):
-            _positive(name, getattr(self, name))
-        if not (math.isfinite(self.armature) and self.armature >= 0):
-            raise ConfigError(f"armature must be >= 0, got {self.armature!r}")
+        require_int("solver_iterations", self.solver_iterations)
+        require_int("ls_iterations", self.ls_iterations)
+        require_number("armature", self.armature, 0.0)
         for wall in self.walls:
             if len(wall) != 4 or not (wall[0] < wall[2] and wall[1] < wall[3]):
                 raise ConfigError(f"wall {wall!r} must be (x1, y1, x2, y2) with x1 < x2 and y1 < y2")
@@ -93,11 +87,6 @@ class RobotConfig:
     def substeps(self) -> int:
         """Physics steps per control step."""
         return int(round(self.control_dt / self.timestep))
-
-
-def _positive(name: str, value: float) -> None:
-    if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
-        raise ConfigError(f"{name} must be a positive finite number, got {value!r}")
 
 
 @dataclasses.dataclass(frozen=True)

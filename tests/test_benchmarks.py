@@ -1,0 +1,43 @@
+"""The benchmark scripts run end to end at tiny sizes and write well-formed results.
+
+These check that the scripts work, not how fast anything is (speed lives in benchmarks/results).
+"""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _run(script, *args):
+    proc = subprocess.run([sys.executable, str(ROOT / "benchmarks" / script), *args], cwd=ROOT,
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    return proc.stdout
+
+
+def test_batch_size_benchmark(tmp_path):
+    out = tmp_path / "bs.json"
+    stdout = _run("batch_size.py", "--max-batch", "1", "--steps", "20", "--repeats", "1",
+                  "--native-batches", "4", "--out", str(out))
+    result = json.loads(out.read_text())
+    engines = {row["engine"]: row for row in result["rows"]}
+    assert set(engines) == {"mjx", "native"} and not any("error" in r for r in result["rows"])
+    assert engines["mjx"]["steps_per_s"] > 0 and engines["mjx"]["compile_s"] > 0
+    assert engines["native"]["steps_per_s"] > 0 and engines["native"]["threads"] >= 1
+    assert result["summary"]["mjx_over_native"] > 0
+    assert result["environment"]["mujoco"] == "3.17.0"
+    assert "best_mjx_batch" in stdout
+
+
+def test_qd_overhead_benchmark(tmp_path):
+    out = tmp_path / "qd.json"
+    _run("qd_overhead.py", "--min-batch", "64", "--max-batch", "64", "--eval-max-batch", "0",
+         "--archive-capacity", "1024", "--repeats", "1", "--out", str(out))
+    rows = json.loads(out.read_text())["rows"]
+    assert [r["container"] for r in rows] == ["grid_2d_100x100", "grid_8d_640k", "archive_9d_1024"]
+    for row in rows:
+        assert row["batch"] == 64 and row["ask_s"] > 0 and row["insert_s"] > 0
+        assert row["filled"] >= {"grid_2d_100x100": 5000, "grid_8d_640k": 320_000, "archive_9d_1024": 512}[row["container"]]
