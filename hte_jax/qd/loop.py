@@ -180,8 +180,7 @@ def run(
     the progress bar, and `on_block(block, state, row)`. Starting from a resumed state runs
     only the remaining generations; block boundaries stay at multiples of block_size.
     """
-    if not isinstance(block_size, int) or block_size < 1:
-        raise ConfigError(f"block_size must be a positive integer, got {block_size!r}")
+    require_int("block_size", block_size)
     log = MetricsLog(log_path) if log_path is not None else None
     done = int(state.generation)
     if log is not None:  # drop rows written after the checkpoint we start from
