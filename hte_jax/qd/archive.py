@@ -31,7 +31,15 @@ import jax
 import jax.numpy as jnp
 
 from hte_jax.errors import ConfigError, require_bounds, require_int, require_number
-from hte_jax.qd.repertoire import Evaluation, Insertion, Repertoire, empty_repertoire, insertable, write
+from hte_jax.qd.repertoire import (
+    Evaluation,
+    Insertion,
+    Repertoire,
+    best_per_target,
+    empty_repertoire,
+    insertable,
+    write,
+)
 
 _BIG = jnp.inf
 
@@ -157,11 +165,7 @@ class Archive:
         replaces = contested & dominates
 
         # 2a. Replacements of the same elite: highest fitness, then first in the batch.
-        target = jnp.where(replaces, nn, self.capacity)
-        best = jax.ops.segment_max(jnp.where(replaces, fit, -_BIG), target, num_segments=self.capacity + 1)
-        contender = replaces & (fit == best[target])
-        first = jax.ops.segment_min(jnp.where(contender, order, batch), target, num_segments=self.capacity + 1)
-        replace_ok = replaces & (first[target] == order)
+        replace_ok = best_per_target(fit, nn, replaces, self.capacity)
 
         # 2b. Accepted candidates within l of a higher-ranked accepted candidate are dropped.
         kept = is_new | replace_ok

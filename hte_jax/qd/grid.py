@@ -20,7 +20,15 @@ import jax.numpy as jnp
 import numpy as np
 
 from hte_jax.errors import ConfigError, require_bounds, require_int
-from hte_jax.qd.repertoire import Evaluation, Insertion, Repertoire, empty_repertoire, insertable, write
+from hte_jax.qd.repertoire import (
+    Evaluation,
+    Insertion,
+    Repertoire,
+    best_per_target,
+    empty_repertoire,
+    insertable,
+    write,
+)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -76,17 +84,11 @@ class Grid:
 
     def add(self, repertoire: Repertoire, genotypes: jax.Array, evaluation: Evaluation):
         """Insert a batch; returns (new repertoire, Insertion)."""
-        batch = genotypes.shape[0]
         cell = self.cell_index(evaluation.descriptors)
         ok = insertable(evaluation) & (cell >= 0)
-        cell = jnp.where(ok, cell, self.capacity)  # a dummy segment for rejected rows
+        cell = jnp.where(ok, cell, self.capacity)  # rejected rows point past the last cell
         fitness = jnp.where(ok, evaluation.fitnesses, -jnp.inf)
-        segments = self.capacity + 1
-        best = jax.ops.segment_max(fitness, cell, num_segments=segments)
-        order = jnp.arange(batch, dtype=jnp.int32)
-        contender = ok & (fitness == best[cell])
-        first = jax.ops.segment_min(jnp.where(contender, order, batch), cell, num_segments=segments)
-        winner = ok & (first[cell] == order)
+        winner = best_per_target(fitness, cell, ok, self.capacity)
         incumbent = jnp.concatenate([repertoire.fitnesses, jnp.full((1,), jnp.inf)])[cell]
         accepted = winner & (fitness > incumbent)
         slot = jnp.where(accepted, cell, -1).astype(jnp.int32)

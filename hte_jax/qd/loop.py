@@ -88,10 +88,6 @@ class MapElites:
     config: MapElitesConfig = MapElitesConfig()
     extras: Any = None
 
-    @property
-    def evaluations_per_generation(self) -> int:
-        return self.config.batch_size
-
     def evaluations(self, state: QDState) -> int:
         """Evaluations done so far (host int)."""
         return self.config.init_size + int(state.generation) * self.config.batch_size

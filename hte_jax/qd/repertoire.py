@@ -105,6 +105,20 @@ def write(repertoire: Repertoire, slot: jax.Array, genotypes, evaluation: Evalua
     )
 
 
+def best_per_target(fitness: jax.Array, target: jax.Array, candidate: jax.Array, num_targets: int) -> jax.Array:
+    """(B,) bool: the candidate with the highest fitness for its target, ties to the first in the batch.
+
+    fitness (B,); target (B,) int in [0, num_targets); candidate (B,) bool marks who competes.
+    """
+    batch = fitness.shape[0]
+    order = jnp.arange(batch, dtype=jnp.int32)
+    segment = jnp.where(candidate, target, num_targets)  # non-candidates share a dummy segment
+    best = jax.ops.segment_max(jnp.where(candidate, fitness, -jnp.inf), segment, num_segments=num_targets + 1)
+    contender = candidate & (fitness == best[segment])
+    first = jax.ops.segment_min(jnp.where(contender, order, batch), segment, num_segments=num_targets + 1)
+    return candidate & (first[segment] == order)
+
+
 def insertable(evaluation: Evaluation) -> jax.Array:
     """(B,) bool: valid, finite fitness and finite descriptors."""
     return (
