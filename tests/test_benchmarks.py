@@ -41,3 +41,25 @@ def test_qd_overhead_benchmark(tmp_path):
     for row in rows:
         assert row["batch"] == 64 and row["ask_s"] > 0 and row["insert_s"] > 0
         assert row["filled"] >= {"grid_2d_100x100": 5000, "grid_8d_640k": 320_000, "archive_9d_1024": 512}[row["container"]]
+
+
+def test_hbr_layer_benchmark(tmp_path):
+    out = tmp_path / "layers.json"
+    stdout = _run("hbr_layers.py", "--preset", "tiny", "--batch-sizes", "8", "--repeats", "1",
+                  "--layers", "bottom", "--out", str(out))
+    result = json.loads(out.read_text())
+    (row,) = result["rows"]
+    assert (row["layer"], row["batch"]) == ("bottom", 8)
+    assert row["evaluations_per_s"] > 0 and abs(row["steps_per_s"] / row["evaluations_per_s"] - 100) < 1e-6
+    assert result["settings"]["preset"] == "tiny" and "eval/s" in stdout
+
+
+def test_hbr_preset_benchmark(tmp_path):
+    out = tmp_path / "preset.json"
+    _run("hbr_preset.py", "--preset", "tiny", "--out", str(tmp_path / "run"), "--no-progress", "--json", str(out))
+    result = json.loads(out.read_text())
+    assert result["preset"] == "tiny" and result["total_wall_s"] > 0
+    assert set(result["layers"]) == {"bottom", "middle", "top"}
+    assert result["layers"]["top"]["evaluations"] == 64
+    assert sum(layer["wall_time_s"] for layer in result["layers"].values()) <= result["total_wall_s"]
+    assert (tmp_path / "run" / "hbr.npz").stat().st_size > 0

@@ -15,7 +15,7 @@ def test_readme_commands_come_first():
 def test_readme_examples_run(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)  # the examples write under ./runs
     blocks = re.findall(r"```python\n(.*?)```", README.read_text(), re.S)
-    assert len(blocks) == 2
+    assert len(blocks) == 3
     namespace = {}
     for code in blocks:
         exec(compile(code, str(README), "exec"), namespace)
@@ -25,5 +25,8 @@ def test_readme_examples_run(tmp_path, monkeypatch):
     assert result.foot_contacts.shape == (7, 300, 6)
     assert namespace["start"].qpos.shape == (7, 25)
     assert int(namespace["state"].generation) == 50
+    assert namespace["skill"].displacement.shape == (7, 3)
+    assert namespace["skill"].steps.middle_index.shape == (3, 7)
+    assert namespace["intact"].shape == (7, 2)
     for name in ("metrics.csv", "checkpoint.npz", "grid.png", "metrics.png"):
         assert (tmp_path / "runs" / "arm" / name).stat().st_size > 0

@@ -37,8 +37,8 @@ def _flatten(tree) -> dict[str, np.ndarray]:
     return {_leaf_name(path): np.asarray(leaf) for path, leaf in leaves}
 
 
-def save_checkpoint(path: str | Path, tree: Any, metadata: dict | None = None) -> None:
-    """Atomically write `tree` (a pytree of arrays) and JSON-able `metadata` to `path`."""
+def save_checkpoint(path: str | Path, tree: Any, metadata: dict | None = None, *, compress: bool = False) -> None:
+    """Atomically write `tree` (a pytree of arrays) and JSON-able `metadata` to `path` (zip-deflated if compress)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     arrays = _flatten(tree)
@@ -51,7 +51,8 @@ def save_checkpoint(path: str | Path, tree: Any, metadata: dict | None = None) -
     tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
     try:
         with open(tmp, "wb") as handle:
-            np.savez(handle, **arrays, **{_META: np.array(json.dumps(header))})
+            save = np.savez_compressed if compress else np.savez
+            save(handle, **arrays, **{_META: np.array(json.dumps(header))})
             handle.flush()
             os.fsync(handle.fileno())
         os.replace(tmp, path)

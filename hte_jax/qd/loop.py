@@ -169,6 +169,7 @@ def run(
     checkpoint_path: str | Path | None = None,
     progress: bool = True,
     on_block: Callable[[int, QDState, dict], None] | None = None,
+    description: str | None = None,
 ) -> QDState:
     """Run until `state.generation == generations`, one jitted block of generations at a time.
 
@@ -182,7 +183,7 @@ def run(
     if log is not None:  # drop rows written after the checkpoint we start from
         log.truncate_after(done // block_size - 1 if done else -2)
     total_blocks = -(-generations // block_size)
-    bar = tqdm(total=total_blocks, initial=done // block_size, disable=not progress, unit="block")
+    bar = tqdm(total=total_blocks, initial=done // block_size, disable=not progress, unit="block", desc=description)
     start = time.perf_counter()
 
     def record(block, accepted):

@@ -62,6 +62,7 @@ class RolloutSpec:
       index k is the state after k steps (0 = initial, num_steps = final).
     record_contacts: return per-step foot contacts (B, T, 6).
     record_feet: return per-step foot-sphere centres (B, T, 6, 3) (memory: 72 B per step).
+    record_joints: return per-step joint angles (B, T, 18) (memory: 72 B per step).
     contact_tolerance: a foot is in contact when its sphere is closer than this to the floor (m).
     limits: validity limits.
     """
@@ -70,6 +71,7 @@ class RolloutSpec:
     pose_steps: tuple[int, ...] = ()
     record_contacts: bool = True
     record_feet: bool = False
+    record_joints: bool = False
     contact_tolerance: float = 1e-3
     limits: ValidityLimits = ValidityLimits()
 
@@ -109,6 +111,7 @@ class RolloutResult:
     foot_contacts: (B, T, 6) bool, foot touching the floor during step t, or None.
     foot_pos: (B, T, 6, 3) foot-sphere centres at the start of step t, or None.
     command_abs_sum: (B, 18) sum over steps of |commanded joint velocity| * control_dt (rad).
+    joint_pos: (B, T, 18) joint angles at the start of step t, or None.
     """
 
     final_state: SimState
@@ -120,6 +123,7 @@ class RolloutResult:
     foot_contacts: jax.Array | None
     foot_pos: jax.Array | None
     command_abs_sum: jax.Array
+    joint_pos: jax.Array | None = None
 
 
 def initial_state(robot: Robot, damage: jax.Array | None = None) -> SimState:
@@ -214,6 +218,8 @@ def _rollout_one(
             outputs["contacts"] = foot_pos[:, 2] - FOOT_RADIUS < spec.contact_tolerance
         if spec.record_feet:
             outputs["feet"] = foot_pos
+        if spec.record_joints:
+            outputs["joints"] = data.qpos[joint_qpos]
         return (stepped, new_reason, invalid_step, poses, command_sum), outputs
 
     data = template.replace(qpos=init.qpos, qvel=init.qvel, qacc_warmstart=init.qacc_warmstart)
@@ -240,6 +246,7 @@ def _rollout_one(
         foot_contacts=outputs.get("contacts"),
         foot_pos=outputs.get("feet"),
         command_abs_sum=command_sum,
+        joint_pos=outputs.get("joints"),
     )
 
 

@@ -1,0 +1,40 @@
+"""Hierarchical behavioural repertoire: leg primitives, body motions, skills, and their execution."""
+
+from hte_jax.hbr.analysis import hbr_statistics, pattern_histogram
+from hte_jax.hbr.bottom import BottomTask, evaluate_bottom
+from hte_jax.hbr.execution import HBR, SkillResult, StepResult, execute_skill, execute_step, select_middle, skill_waypoints
+from hte_jax.hbr.middle import MiddleTask, evaluate_middle, leg_controllers, nearest_index, pattern_bits, pattern_code
+from hte_jax.hbr.store import load_hbr, save_hbr, shipped_hbr_path
+from hte_jax.hbr.top import TopTask, evaluate_top
+from hte_jax.hbr.training import PRESETS, HBRConfig, LayerSchedule, preset, train_hbr, with_overrides
+
+__all__ = [
+    "HBR",
+    "PRESETS",
+    "BottomTask",
+    "HBRConfig",
+    "LayerSchedule",
+    "MiddleTask",
+    "SkillResult",
+    "StepResult",
+    "TopTask",
+    "evaluate_bottom",
+    "evaluate_middle",
+    "evaluate_top",
+    "execute_skill",
+    "execute_step",
+    "hbr_statistics",
+    "leg_controllers",
+    "load_hbr",
+    "nearest_index",
+    "pattern_bits",
+    "pattern_code",
+    "pattern_histogram",
+    "preset",
+    "save_hbr",
+    "select_middle",
+    "shipped_hbr_path",
+    "skill_waypoints",
+    "train_hbr",
+    "with_overrides",
+]

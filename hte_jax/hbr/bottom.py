@@ -1,0 +1,130 @@
+"""Bottom layer: leg primitives (paper section 3; facts section 3).
+
+A primitive is the 6 controller parameters of one leg: (a, p, d) of the hip signal and (a, p, d)
+of the vertical signal. It is evaluated on the full standing robot for 1 s with a leg drawn at
+random (the other five legs hold the standing pose), so one repertoire serves all six legs.
+
+Descriptor (each normalised to [0, 1]; outside the range the individual is invalid):
+  swing: signed arc (m) the foot sweeps about its hip while on the ground, positive when the hip
+    signal rises (the hip angle falls): R * sum over steps with the foot down at both ends of
+    -(q_hip[t+1] - q_hip[t]), R = 0.176 m the foot's horizontal reach. It is leg-agnostic, and
+    after a whole period it measures the stroke that propels the body (the original's
+    start-to-end displacement is ~0 after exactly one period, facts section 14.7).
+  height: the signed extreme of the foot's height relative to the body, minus its initial value.
+  duty: the vertical signal's duty gene quantised to 4 levels {0, 1/3, 2/3, 1} (floor(4 d), with
+    d = 1 in the top level; the original maps d = 1 to 0).
+Fitness, "minimal activation": minus the time-averaged |commanded velocity| of the leg's three
+joints, divided by the servo's velocity limit (in [-1, 0]); the original's minus-sum-of-genes
+also penalised phases and duties.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+
+from hte_jax.errors import require_int, require_number
+from hte_jax.qd.repertoire import Evaluation
+from hte_jax.sim.controller import NUM_PARAMS
+from hte_jax.sim.robot import NUM_LEGS, Robot
+from hte_jax.sim.rollout import RolloutSpec, SimState, rollout
+
+GENES = 6  # (a, p, d) hip signal, (a, p, d) vertical signal
+DESCRIPTORS = 3  # swing, height, duty
+FOOT_REACH = 0.176  # horizontal hip-to-foot distance at the standing pose (m)
+
+
+@dataclasses.dataclass(frozen=True)
+class BottomTask:
+    """How a leg primitive is evaluated (hashable).
+
+    steps: control steps (100 = 1 s). swing_range / height_range: the descriptor covers
+    [-range, range] metres. duty_levels: quantisation of the duty descriptor.
+    """
+
+    steps: int = 100
+    swing_range: float = 0.2
+    height_range: float = 0.06
+    duty_levels: int = 4
+
+    def __post_init__(self):
+        require_int("bottom steps", self.steps)
+        require_number("bottom swing_range", self.swing_range, 0.0, open_low=True)
+        require_number("bottom height_range", self.height_range, 0.0, open_low=True)
+        require_int("bottom duty_levels", self.duty_levels, minimum=2)
+
+    @property
+    def spec(self) -> RolloutSpec:
+        return RolloutSpec(
+            num_steps=self.steps,
+            pose_steps=tuple(range(self.steps)),
+            record_contacts=True,
+            record_feet=True,
+            record_joints=True,
+        )
+
+
+def swing_distance(hip_angle: jax.Array, contact: jax.Array) -> jax.Array:
+    """(..., T) hip angles and foot contacts -> (...,) signed stance sweep of the foot (m)."""
+    down = contact[..., 1:] & contact[..., :-1]
+    return -FOOT_REACH * jnp.sum(jnp.where(down, jnp.diff(hip_angle, axis=-1), 0.0), axis=-1)
+
+
+def lift_height(foot_z: jax.Array, base_z: jax.Array) -> jax.Array:
+    """(..., T) foot and base heights -> (...,) signed extreme of the foot's relative height change."""
+    relative = (foot_z - base_z) - (foot_z[..., :1] - base_z[..., :1])
+    extreme = jnp.argmax(jnp.abs(relative), axis=-1)
+    return jnp.take_along_axis(relative, extreme[..., None], axis=-1)[..., 0]
+
+
+def duty_level(duty: jax.Array, levels: int = 4) -> jax.Array:
+    """Duty genes in [0, 1] -> their level k / (levels - 1), k = min(floor(levels d), levels - 1)."""
+    k = jnp.minimum(jnp.floor(duty * levels + 1e-6), levels - 1)
+    return k / (levels - 1)
+
+
+def activation_fitness(command_abs_sum: jax.Array, duration: float, max_velocity: float) -> jax.Array:
+    """(..., 3) integrated |command| (rad) of a leg's joints -> (...,) fitness in [-1, 0]."""
+    return -command_abs_sum.mean(axis=-1) / (duration * max_velocity)
+
+
+def leg_params(genes: jax.Array, leg: jax.Array) -> jax.Array:
+    """(B, 6) primitives and (B,) leg indices -> (B, 36) controllers driving only that leg."""
+    onehot = jax.nn.one_hot(leg, NUM_LEGS, dtype=genes.dtype)
+    return (onehot[:, :, None] * genes[:, None, :]).reshape(genes.shape[0], NUM_PARAMS)
+
+
+def evaluate_bottom(robot: Robot, start: SimState, task: BottomTask, key: jax.Array, genes: jax.Array) -> Evaluation:
+    """Evaluate (B, 6) leg primitives, each on a random leg, from the standing state `start`.
+
+    Returns descriptors (B, 3) in [0, 1], fitness (B,), and extras {"leg": (B,) int32}.
+    """
+    batch = genes.shape[0]
+    leg = jax.random.randint(key, (batch,), 0, NUM_LEGS)
+    result = rollout(robot, leg_params(genes, leg), jnp.zeros(NUM_LEGS, bool), start, task.spec)
+    rows = jnp.arange(batch)
+    hip = result.joint_pos[rows, :, 3 * leg]  # (B, T)
+    contact = result.foot_contacts[rows, :, leg]
+    foot_z = result.foot_pos[rows, :, leg, 2]
+    swing = swing_distance(hip, contact)
+    height = lift_height(foot_z, result.base_pos[:, :, 2])
+    descriptors = jnp.stack(
+        [
+            (swing + task.swing_range) / (2 * task.swing_range),
+            (height + task.height_range) / (2 * task.height_range),
+            duty_level(genes[:, 5], task.duty_levels),
+        ],
+        axis=-1,
+    )
+    leg_commands = result.command_abs_sum.reshape(batch, NUM_LEGS, 3)[rows, leg]
+    duration = task.steps * robot.config.control_dt
+    fitness = activation_fitness(leg_commands, duration, robot.config.max_joint_velocity)
+    in_range = jnp.all((descriptors >= 0.0) & (descriptors <= 1.0), axis=-1)
+    return Evaluation(
+        fitnesses=fitness,
+        descriptors=descriptors,
+        valid=result.valid & in_range,
+        extras={"leg": leg.astype(jnp.int32)},
+    )

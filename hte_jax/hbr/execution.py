@@ -1,0 +1,183 @@
+"""Hierarchical execution: a top-layer genotype down to joint commands, batched and jittable.
+
+top genotype (9) -> three waypoints -> for each 1 s step, the middle elite whose primary
+descriptor is nearest to the waypoint seen from the robot's current pose (optionally only among
+elites with a chosen contact pattern) -> its six leg primitives -> one 36-parameter controller,
+simulated for 1 s. Training of the top layer, the modulation analysis and the online phase all
+call `execute_skill` / `execute_step`, so a skill is decoded the same way everywhere.
+
+Waypoints: the genotype holds three middle-layer primary descriptors (normalised x, y, yaw
+steps); waypoint k is the pose reached by composing the first k + 1 steps from the start pose.
+Before each step the next waypoint is re-expressed in the robot's current frame, so a step that
+fell short is corrected by the next one (the original does the same at deployment).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+from hte_jax.hbr.geometry import compose_pose, planar_pose, relative_pose
+from hte_jax.hbr.middle import PRIMARY, MiddleTask, decode, leg_controllers, pattern_code
+from hte_jax.qd.archive import map_rows
+from hte_jax.qd.repertoire import Repertoire
+from hte_jax.sim.robot import NUM_LEGS, Robot
+from hte_jax.sim.rollout import RolloutSpec, SimState, rollout
+
+STEPS_PER_SKILL = 3
+ANY_PATTERN = -1
+
+
+@struct.dataclass
+class HBR:
+    """A trained hierarchical behavioural repertoire.
+
+    bottom: leg primitives, genotypes (Cb, 6), descriptors (Cb, 3) (swing, height, duty).
+    middle: body motions, genotypes (Cm, 18), descriptors (Cm, 9) (x, y, yaw, 6 contact bits).
+    top: skills on a grid, genotypes (Ct, 9), descriptors (Ct, 2) (final x, y).
+    middle_params: (Cm, 36) the controller of every middle elite (zeros where empty).
+    middle_patterns: (Cm,) int32 contact pattern of every middle elite (-1 where empty).
+    middle_task: how the middle layer was evaluated (static).
+    """
+
+    bottom: Repertoire
+    middle: Repertoire
+    top: Repertoire
+    middle_params: jax.Array
+    middle_patterns: jax.Array
+    middle_task: MiddleTask = struct.field(pytree_node=False, default=MiddleTask())
+
+    @classmethod
+    def build(cls, bottom: Repertoire, middle: Repertoire, top: Repertoire, middle_task: MiddleTask) -> HBR:
+        """Assemble the layers and precompute the middle elites' controllers and patterns."""
+        params = jnp.where(middle.filled[:, None], leg_controllers(bottom, decode(middle.genotypes)), 0.0)
+        patterns = jnp.where(middle.filled, pattern_code(middle.descriptors[:, PRIMARY:]), ANY_PATTERN)
+        return cls(bottom, middle, top, params, patterns.astype(jnp.int32), middle_task)
+
+
+@struct.dataclass
+class StepResult:
+    """One 1 s step of B robots.
+
+    state: SimState (B, ...) after the step. valid: (B,) bool.
+    middle_index: (B,) int32 middle elite executed. pattern_found: (B,) bool, False when no elite
+      has the requested pattern (then the nearest elite of any pattern ran).
+    displacement: (B, 3) (x, y, yaw) in the frame of the pose at the start of the step.
+    contact_fraction: (B, 6) fraction of the step each foot was on the ground.
+    """
+
+    state: SimState
+    valid: jax.Array
+    middle_index: jax.Array
+    pattern_found: jax.Array
+    displacement: jax.Array
+    contact_fraction: jax.Array
+
+
+@struct.dataclass
+class SkillResult:
+    """A 3 s skill of B robots.
+
+    state: SimState (B, ...) at the end. valid: (B,) bool, every step valid.
+    displacement: (B, 3) (x, y, yaw) in the start frame. steps: StepResult with leading (3, B).
+    """
+
+    state: SimState
+    valid: jax.Array
+    displacement: jax.Array
+    steps: StepResult
+
+
+def select_middle(hbr: HBR, desired: jax.Array, pattern: jax.Array, chunk: int = 1024):
+    """Nearest middle elite in primary descriptor to `desired` (B, 3), among elites with `pattern` (B,).
+
+    pattern -1 means any. Returns (index (B,) int32, found (B,) bool); where no elite has the
+    pattern, the nearest elite of any pattern is returned and found is False.
+    """
+    points = hbr.middle.descriptors[:, :PRIMARY]
+    filled = hbr.middle.filled
+
+    def block(args):
+        q, p = args
+        dist = jnp.zeros((q.shape[0], points.shape[0]), jnp.float32)
+        for d in range(PRIMARY):
+            diff = q[:, d, None] - points[None, :, d]
+            dist = dist + diff * diff
+        anywhere = jnp.where(filled[None, :], dist, jnp.inf)
+        matching = jnp.where((p[:, None] < 0) | (hbr.middle_patterns[None, :] == p[:, None]), anywhere, jnp.inf)
+        found = jnp.isfinite(matching).any(axis=-1)
+        index = jnp.where(found, jnp.argmin(matching, axis=-1), jnp.argmin(anywhere, axis=-1))
+        return index.astype(jnp.int32), found
+
+    return map_rows(block, (desired, pattern.astype(jnp.int32)), (0.0, ANY_PATTERN), chunk)
+
+
+def _step_spec(steps: int) -> RolloutSpec:
+    return RolloutSpec(num_steps=steps, pose_steps=(0, steps), record_contacts=True)
+
+
+def execute_step(
+    robot: Robot, hbr: HBR, state: SimState, damage: jax.Array, target: jax.Array, pattern: jax.Array
+) -> StepResult:
+    """Walk one second towards the world pose `target` (B, 3) with contact `pattern` (B,) (-1: any)."""
+    task = hbr.middle_task
+    qpos = state.qpos
+    here = planar_pose(qpos[:, :3], qpos[:, 3:7])
+    desired = task.normalise(relative_pose(here, target))
+    index, found = select_middle(hbr, desired, pattern)
+    result = rollout(robot, hbr.middle_params[index], damage, state, _step_spec(task.steps))
+    poses = planar_pose(result.base_pos, result.base_quat)
+    return StepResult(
+        state=result.final_state,
+        valid=result.valid,
+        middle_index=index,
+        pattern_found=found,
+        displacement=relative_pose(poses[:, 0], poses[:, 1]),
+        contact_fraction=result.foot_contacts.mean(axis=1),
+    )
+
+
+def skill_waypoints(task: MiddleTask, genotypes: jax.Array) -> jax.Array:
+    """(..., 9) top genotypes -> (..., 3, 3) waypoints (x, y, yaw) in the skill's start frame."""
+    steps = task.denormalise(genotypes.reshape(*genotypes.shape[:-1], STEPS_PER_SKILL, PRIMARY))
+    pose = jnp.zeros_like(steps[..., 0, :])
+    waypoints = []
+    for k in range(STEPS_PER_SKILL):
+        pose = compose_pose(pose, steps[..., k, :])
+        waypoints.append(pose)
+    return jnp.stack(waypoints, axis=-2)
+
+
+def execute_skill(
+    robot: Robot,
+    hbr: HBR,
+    genotypes: jax.Array,
+    start: SimState,
+    damage: jax.Array | None = None,
+    patterns: jax.Array | None = None,
+) -> SkillResult:
+    """Execute (B, 9) top genotypes from `start` (B, ...) with damage (B, 6) and contact patterns (B, 3).
+
+    damage None: intact. patterns None or -1 entries: nearest elite of any pattern.
+    """
+    batch = genotypes.shape[0]
+    damage = jnp.zeros((batch, NUM_LEGS), bool) if damage is None else jnp.broadcast_to(damage, (batch, NUM_LEGS))
+    if patterns is None:
+        patterns = jnp.full((batch, STEPS_PER_SKILL), ANY_PATTERN, jnp.int32)
+    origin = planar_pose(start.qpos[:, :3], start.qpos[:, 3:7])
+    targets = compose_pose(origin[:, None, :], skill_waypoints(hbr.middle_task, genotypes))  # (B, 3, 3)
+
+    def one_step(state, xs):
+        target, pattern = xs
+        step = execute_step(robot, hbr, state, damage, target, pattern)
+        return step.state, step
+
+    final, steps = jax.lax.scan(one_step, start, (jnp.swapaxes(targets, 0, 1), jnp.swapaxes(patterns, 0, 1)))
+    end = planar_pose(final.qpos[:, :3], final.qpos[:, 3:7])
+    return SkillResult(
+        state=final,
+        valid=steps.valid.all(axis=0),
+        displacement=relative_pose(origin, end),
+        steps=steps,
+    )

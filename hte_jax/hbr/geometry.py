@@ -1,0 +1,72 @@
+"""Planar pose arithmetic shared by the layers: headings, start-frame displacements, angle error.
+
+All functions broadcast over leading dimensions. Quaternions are (w, x, y, z).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+
+def wrap_angle(angle: jax.Array) -> jax.Array:
+    """Angles wrapped to [-pi, pi)."""
+    return (angle + jnp.pi) % (2 * jnp.pi) - jnp.pi
+
+
+def heading(quat: jax.Array) -> jax.Array:
+    """(..., 4) quaternion -> (...,) yaw of the body's x axis projected on the floor (rad)."""
+    w, x, y, z = quat[..., 0], quat[..., 1], quat[..., 2], quat[..., 3]
+    return jnp.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+
+
+def planar_pose(pos: jax.Array, quat: jax.Array) -> jax.Array:
+    """(..., 3) positions and (..., 4) quaternions -> (..., 3) planar poses (x, y, heading)."""
+    return jnp.concatenate([pos[..., :2], heading(quat)[..., None]], axis=-1)
+
+
+def relative_pose(start: jax.Array, end: jax.Array) -> jax.Array:
+    """Planar pose `end` (..., 3) expressed in the frame of `start` (..., 3).
+
+    Returns (dx, dy, dyaw): the displacement rotated by -start.yaw, and the wrapped heading change.
+    """
+    c, s = jnp.cos(start[..., 2]), jnp.sin(start[..., 2])
+    dx, dy = end[..., 0] - start[..., 0], end[..., 1] - start[..., 1]
+    return jnp.stack([c * dx + s * dy, -s * dx + c * dy, wrap_angle(end[..., 2] - start[..., 2])], axis=-1)
+
+
+def compose_pose(base: jax.Array, local: jax.Array) -> jax.Array:
+    """The pose `local` (..., 3), given in the frame of `base` (..., 3), in the world frame."""
+    c, s = jnp.cos(base[..., 2]), jnp.sin(base[..., 2])
+    x = base[..., 0] + c * local[..., 0] - s * local[..., 1]
+    y = base[..., 1] + s * local[..., 0] + c * local[..., 1]
+    return jnp.stack([x, y, wrap_angle(base[..., 2] + local[..., 2])], axis=-1)
+
+
+def arc_heading(dx: jax.Array, dy: jax.Array) -> jax.Array:
+    """Heading at the end of the circular arc that leaves the origin along +x and ends at (dx, dy).
+
+    The arc's tangent turns by twice the chord's angle: 2 atan2(dy, dx), wrapped (straight
+    backwards walking, dx < 0 and dy = 0, ends with heading 0).
+    """
+    return wrap_angle(2 * jnp.arctan2(dy, dx))
+
+
+def angle_error(displacement: jax.Array) -> jax.Array:
+    """Fitness of a planar displacement (..., 3) = (dx, dy, dyaw) in the start frame.
+
+    Minus the absolute difference between the arrival heading and the heading of the ideal
+    circular trajectory to the same point (Cully et al. 2015): 0 is perfect, -pi the worst.
+    """
+    ideal = arc_heading(displacement[..., 0], displacement[..., 1])
+    return -jnp.abs(wrap_angle(displacement[..., 2] - ideal))
+
+
+def medoid_index(points: jax.Array) -> jax.Array:
+    """(..., N, D) -> (...,) index of the point with the smallest summed distance to the others.
+
+    Ties go to the lowest index.
+    """
+    diff = points[..., :, None, :] - points[..., None, :, :]
+    total = jnp.sqrt((diff * diff).sum(-1) + 0.0).sum(-1)
+    return jnp.argmin(total, axis=-1)

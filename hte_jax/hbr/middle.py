@@ -1,0 +1,154 @@
+"""Middle layer: 1 s body motions (paper section 3; facts section 4).
+
+Genotype: 18 numbers, for each leg a target (swing, height, duty) in the bottom layer's
+descriptor space; each is mapped to its nearest bottom primitive and the six primitives form
+one 36-parameter controller.
+
+Evaluation: the controller runs for `samples` consecutive seconds from the standing state, so
+every second after the first starts from the dynamic state the previous one left (the
+original's chained initial states). Per second: the displacement (x, y, yaw) in the frame of
+the pose at the start of that second, and each foot's fraction of steps on the ground. The
+reported sample is the medoid of the samples in normalised (x, y, yaw) (the sample with the
+smallest summed distance to the others): a robust median.
+
+Descriptor (9-D, [0, 1]): primary (x + 0.5, y + 0.5, (yaw + 1) / 2) for |x|, |y| <= 0.5 m
+and |yaw| <= 1 rad, outside which the individual is invalid; secondary: six contact bits,
+1 if the foot is down more than `contact_threshold` of the second (paper: 30 %).
+Fitness: the circular-trajectory angle error of the medoid sample (its own position and yaw).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+
+from hte_jax.errors import require_int, require_number
+from hte_jax.hbr.geometry import angle_error, medoid_index, planar_pose, relative_pose
+from hte_jax.qd.archive import map_rows
+from hte_jax.qd.repertoire import Evaluation, Repertoire
+from hte_jax.sim.robot import NUM_LEGS, Robot
+from hte_jax.sim.rollout import RolloutSpec, SimState, rollout
+
+GENES = 18
+PRIMARY = 3  # x, y, yaw
+DESCRIPTORS = PRIMARY + NUM_LEGS
+NUM_PATTERNS = 2**NUM_LEGS
+
+
+@dataclasses.dataclass(frozen=True)
+class MiddleTask:
+    """How a body motion is evaluated (hashable).
+
+    samples: consecutive 1 s samples (original 10). steps: control steps per sample.
+    max_step: |x|, |y| range of the primary descriptor (m). max_turn: |yaw| range (rad).
+    contact_threshold: a leg's contact bit is 1 above this fraction of the second.
+    """
+
+    samples: int = 10
+    steps: int = 100
+    max_step: float = 0.5
+    max_turn: float = 1.0
+    contact_threshold: float = 0.3
+
+    def __post_init__(self):
+        require_int("middle samples", self.samples)
+        require_int("middle steps", self.steps)
+        require_number("middle max_step", self.max_step, 0.0, open_low=True)
+        require_number("middle max_turn", self.max_turn, 0.0, open_low=True)
+        require_number("middle contact_threshold", self.contact_threshold, 0.0, 1.0)
+
+    @property
+    def spec(self) -> RolloutSpec:
+        total = self.samples * self.steps
+        return RolloutSpec(num_steps=total, pose_steps=tuple(range(0, total + 1, self.steps)), record_contacts=True)
+
+    def normalise(self, displacement: jax.Array) -> jax.Array:
+        """(..., 3) displacement (m, m, rad) -> (..., 3) primary descriptor."""
+        scale = jnp.asarray([2 * self.max_step, 2 * self.max_step, 2 * self.max_turn], jnp.float32)
+        return displacement / scale + 0.5
+
+    def denormalise(self, primary: jax.Array) -> jax.Array:
+        """Inverse of `normalise`."""
+        scale = jnp.asarray([2 * self.max_step, 2 * self.max_step, 2 * self.max_turn], jnp.float32)
+        return (primary - 0.5) * scale
+
+
+def nearest_index(points: jax.Array, mask: jax.Array, queries: jax.Array, chunk: int = 4096) -> jax.Array:
+    """Index of the nearest point among `mask`-ed rows of points (C, D) for each query (..., D).
+
+    Squared Euclidean distance; ties go to the lowest index; -1 where the mask is empty.
+    """
+    shape = queries.shape[:-1]
+    flat = queries.reshape(-1, queries.shape[-1])
+
+    def block(args):
+        (q,) = args
+        dist = jnp.zeros((q.shape[0], points.shape[0]), jnp.float32)
+        for d in range(points.shape[1]):
+            diff = q[:, d, None] - points[None, :, d]
+            dist = dist + diff * diff
+        dist = jnp.where(mask[None, :], dist, jnp.inf)
+        return jnp.argmin(dist, axis=-1).astype(jnp.int32)
+
+    index = map_rows(block, (flat,), (0.0,), chunk)
+    return jnp.where(mask.any(), index, -1).reshape(shape)
+
+
+def leg_controllers(bottom: Repertoire, targets: jax.Array) -> jax.Array:
+    """(..., 6, 3) per-leg targets in bottom descriptor space -> (..., 36) controllers."""
+    index = nearest_index(bottom.descriptors, bottom.filled, targets)
+    genes = bottom.genotypes[jnp.maximum(index, 0)]  # (..., 6, 6)
+    return genes.reshape(*targets.shape[:-2], NUM_LEGS * 6)
+
+
+def decode(genotypes: jax.Array) -> jax.Array:
+    """(..., 18) middle genotypes -> (..., 6, 3) per-leg bottom-descriptor targets."""
+    return genotypes.reshape(*genotypes.shape[:-1], NUM_LEGS, 3)
+
+
+def pattern_code(bits: jax.Array) -> jax.Array:
+    """(..., 6) contact bits (leg 0 first) -> (...,) int32 pattern in [0, 64), leg 0 the most significant bit."""
+    weights = 2 ** jnp.arange(NUM_LEGS - 1, -1, -1)
+    return jnp.sum(jnp.round(bits).astype(jnp.int32) * weights, axis=-1).astype(jnp.int32)
+
+
+def pattern_bits(code: jax.Array) -> jax.Array:
+    """Inverse of `pattern_code`: (...,) int -> (..., 6) float32 bits."""
+    shifts = jnp.arange(NUM_LEGS - 1, -1, -1)
+    return ((jnp.asarray(code)[..., None] >> shifts) & 1).astype(jnp.float32)
+
+
+def evaluate_controllers(robot: Robot, start: SimState, task: MiddleTask, params: jax.Array) -> Evaluation:
+    """Evaluate (B, 36) controllers as body motions from `start`.
+
+    Returns descriptors (B, 9), fitness (B,), validity, and extras {"contact_fraction": (B, 6),
+    "medoid": (B,) int32 index of the reported sample}.
+    """
+    batch = params.shape[0]
+    tiled = jnp.broadcast_to(params[:, None, :], (batch, task.samples, params.shape[-1]))
+    result = rollout(robot, tiled, jnp.zeros(NUM_LEGS, bool), start, task.spec)
+    poses = planar_pose(result.base_pos, result.base_quat)  # (B, S + 1, 3)
+    displacement = relative_pose(poses[:, :-1], poses[:, 1:])  # (B, S, 3)
+    primary = task.normalise(displacement)
+    fraction = result.foot_contacts.reshape(batch, task.samples, task.steps, NUM_LEGS).mean(axis=2)
+    medoid = medoid_index(primary)
+    rows = jnp.arange(batch)
+    chosen = primary[rows, medoid]
+    bits = (fraction[rows, medoid] > task.contact_threshold).astype(jnp.float32)
+    in_range = jnp.all((chosen >= 0.0) & (chosen <= 1.0), axis=-1)
+    return Evaluation(
+        fitnesses=angle_error(displacement[rows, medoid]),
+        descriptors=jnp.concatenate([chosen, bits], axis=-1),
+        valid=result.valid & in_range,
+        extras={"contact_fraction": fraction[rows, medoid], "medoid": medoid.astype(jnp.int32)},
+    )
+
+
+def evaluate_middle(
+    robot: Robot, start: SimState, task: MiddleTask, bottom: Repertoire, key: jax.Array, genotypes: jax.Array
+) -> Evaluation:
+    """Evaluate (B, 18) middle genotypes (key unused: the evaluation is deterministic)."""
+    del key
+    return evaluate_controllers(robot, start, task, leg_controllers(bottom, decode(genotypes)))

@@ -1,0 +1,153 @@
+"""HBR files: the three layers' elites in one compressed `.npz`, checked on load.
+
+Only elites are stored (archive slots are a prefix, so middle indices stay valid; top elites keep
+their grid cell), with the layers' tasks and capacities in the JSON header. `load_hbr` rebuilds
+fixed-size device repertoires and raises `CheckpointError` naming any problem: wrong format,
+missing or wrong-shaped arrays, non-finite values, descriptors out of range, dangling indices.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import jax.numpy as jnp
+import numpy as np
+
+from hte_jax.hbr import bottom as bottom_layer
+from hte_jax.hbr import middle as middle_layer
+from hte_jax.hbr import top as top_layer
+from hte_jax.hbr.execution import HBR, STEPS_PER_SKILL
+from hte_jax.hbr.middle import MiddleTask
+from hte_jax.hbr.top import TopTask
+from hte_jax.qd.io import CheckpointError, read_checkpoint, save_checkpoint
+from hte_jax.qd.repertoire import EMPTY_FITNESS, Repertoire
+from hte_jax.sim.robot import assets_dir
+
+KIND = "hte_jax.hbr"
+KIND_VERSION = 1
+SHIPPED = "hbr_gpu/hbr.npz"  # trained with the gpu preset by experiments.train_hbr
+
+
+def shipped_hbr_path() -> Path:
+    """The HBR shipped in assets/ (trained by this code with `--preset gpu`)."""
+    return assets_dir() / SHIPPED
+
+
+def _elites(repertoire: Repertoire) -> dict[str, np.ndarray]:
+    filled = np.asarray(repertoire.filled)
+    rows = np.flatnonzero(filled)
+    out = {
+        "slots": rows.astype(np.int32),
+        "genotypes": np.asarray(repertoire.genotypes)[rows],
+        "descriptors": np.asarray(repertoire.descriptors)[rows],
+        "fitnesses": np.asarray(repertoire.fitnesses)[rows],
+    }
+    for name, value in repertoire.extras.items():
+        out[f"extra_{name}"] = np.asarray(value)[rows]
+    return out
+
+
+def save_hbr(path: str | Path, hbr: HBR, top_task: TopTask, metadata: dict | None = None) -> None:
+    """Atomically write `hbr` (compressed) with its tasks and any extra JSON-able `metadata`."""
+    arrays = {}
+    for layer in ("bottom", "middle", "top"):
+        for name, value in _elites(getattr(hbr, layer)).items():
+            arrays[f"{layer}_{name}"] = value
+    header = {
+        "kind": KIND,
+        "kind_version": KIND_VERSION,
+        "capacity": {layer: getattr(hbr, layer).capacity for layer in ("bottom", "middle", "top")},
+        "middle_task": dataclasses.asdict(hbr.middle_task),
+        "top_task": dataclasses.asdict(top_task),
+        **(metadata or {}),
+    }
+    save_checkpoint(path, arrays, header, compress=True)
+
+
+# layer -> (genes, descriptors, {extra: (shape without rows, dtype)})
+_LAYOUT = {
+    "bottom": (bottom_layer.GENES, bottom_layer.DESCRIPTORS, {"leg": ((), np.int32)}),
+    "middle": (
+        middle_layer.GENES,
+        middle_layer.DESCRIPTORS,
+        {"contact_fraction": ((6,), np.float32), "medoid": ((), np.int32)},
+    ),
+    "top": (top_layer.GENES, 2, {"middle_indices": ((STEPS_PER_SKILL,), np.int32), "arrival_yaw": ((), np.float32)}),
+}
+
+
+def _rebuild(path, arrays, layer: str, capacity: int) -> Repertoire:
+    genes, dims, extras = _LAYOUT[layer]
+    want = {"slots": ((), np.int32), "genotypes": ((genes,), np.float32), "descriptors": ((dims,), np.float32),
+            "fitnesses": ((), np.float32)}
+    want.update({f"extra_{name}": spec for name, spec in extras.items()})
+    columns = {}
+    rows = None
+    for name, (shape, dtype) in want.items():
+        key = f"{layer}_{name}"
+        if key not in arrays:
+            raise CheckpointError(f"{path}: not a complete HBR file: missing {key!r}")
+        value = arrays[key]
+        if rows is None:
+            rows = value.shape[0] if value.ndim else -1
+        if value.dtype != dtype or value.shape != (rows, *shape):
+            raise CheckpointError(
+                f"{path}: {key} has shape {value.shape} and dtype {value.dtype}, expected {(rows, *shape)} {np.dtype(dtype)}"
+            )
+        if value.dtype.kind == "f" and not np.isfinite(value).all():
+            raise CheckpointError(f"{path}: {key} holds NaN or inf values")
+        columns[name] = value
+    slots = columns["slots"]
+    if rows > capacity or (rows and (slots.min() < 0 or slots.max() >= capacity or len(np.unique(slots)) != rows)):
+        raise CheckpointError(f"{path}: {layer} slots are not unique indices below the capacity {capacity}")
+    if ((columns["genotypes"] < 0) | (columns["genotypes"] > 1)).any():
+        raise CheckpointError(f"{path}: {layer} genotypes outside [0, 1]")
+    if ((columns["descriptors"] < 0) | (columns["descriptors"] > 1)).any():
+        raise CheckpointError(f"{path}: {layer} descriptors outside [0, 1]")
+
+    def scatter(values, fill):
+        store = np.full((capacity, *values.shape[1:]), fill, values.dtype)
+        store[slots] = values
+        return jnp.asarray(store)
+
+    filled = np.zeros(capacity, bool)
+    filled[slots] = True
+    return Repertoire(
+        genotypes=scatter(columns["genotypes"], 0),
+        descriptors=scatter(columns["descriptors"], 0),
+        fitnesses=scatter(columns["fitnesses"], EMPTY_FITNESS),
+        filled=jnp.asarray(filled),
+        extras={name: scatter(columns[f"extra_{name}"], 0) for name in extras},
+    )
+
+
+def load_hbr(path: str | Path | None = None) -> tuple[HBR, TopTask, dict]:
+    """Read an HBR file (default: the shipped one): (HBR on device, its TopTask, the header metadata)."""
+    path = shipped_hbr_path() if path is None else path
+    arrays, header = read_checkpoint(path)
+    meta = header.get("metadata", {})
+    if meta.get("kind") != KIND:
+        raise CheckpointError(f"{path}: not an HBR file (kind {meta.get('kind')!r})")
+    if meta.get("kind_version") != KIND_VERSION:
+        raise CheckpointError(f"{path}: HBR file version {meta.get('kind_version')!r} is not supported")
+    try:
+        middle_task = MiddleTask(**meta["middle_task"])
+        top_task = TopTask(**meta["top_task"])
+        capacity = {layer: int(meta["capacity"][layer]) for layer in ("bottom", "middle", "top")}
+    except (KeyError, TypeError, ValueError) as error:
+        raise CheckpointError(f"{path}: bad HBR header: {error}") from None
+    if capacity["top"] != top_task.bins**2:
+        raise CheckpointError(f"{path}: top capacity {capacity['top']} does not match a {top_task.bins}^2 grid")
+    layers = {layer: _rebuild(path, arrays, layer, capacity[layer]) for layer in ("bottom", "middle", "top")}
+    middle_count = int(layers["middle"].filled.sum())
+    if not bool(np.asarray(layers["middle"].filled)[:middle_count].all()):
+        raise CheckpointError(f"{path}: middle elites are not a prefix of the archive")
+    used = np.asarray(arrays["top_extra_middle_indices"])
+    if used.size and (used.min() < 0 or used.max() >= middle_count):
+        raise CheckpointError(f"{path}: top elites refer to middle elites that are not in the file")
+    cells = np.asarray(top_task.grid().cell_index(jnp.asarray(arrays["top_descriptors"]))) if used.size else used
+    if used.size and not np.array_equal(cells, arrays["top_slots"]):
+        raise CheckpointError(f"{path}: top elites are not stored in the grid cells of their descriptors")
+    hbr = HBR.build(layers["bottom"], layers["middle"], layers["top"], middle_task)
+    return hbr, top_task, meta

@@ -1,0 +1,68 @@
+"""Top layer: 3 s omnidirectional skills on a 100 x 100 grid (paper section 3; facts section 5).
+
+Genotype: three middle-layer primary descriptors (9 numbers), decoded and executed by
+`execution.execute_skill` from the standing state, choosing middle elites by primary descriptor
+only (the secondary one is ignored during training, paper section 4).
+Descriptor: final (x, y) in the start frame, ((x + extent) / (2 extent), (y + extent) / (2 extent)),
+invalid outside [0, 1]. Fitness: the circular-trajectory angle error of the whole skill.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+
+from hte_jax.errors import require_int, require_number
+from hte_jax.hbr.execution import HBR, STEPS_PER_SKILL, execute_skill
+from hte_jax.hbr.geometry import angle_error
+from hte_jax.qd.grid import Grid
+from hte_jax.qd.repertoire import Evaluation
+from hte_jax.sim.robot import Robot
+from hte_jax.sim.rollout import SimState
+
+GENES = 9
+
+
+@dataclasses.dataclass(frozen=True)
+class TopTask:
+    """The top layer's grid: `bins` x `bins` cells over [-extent, extent]^2 metres."""
+
+    bins: int = 100
+    extent: float = 1.5
+
+    def __post_init__(self):
+        require_int("top bins", self.bins)
+        require_number("top extent", self.extent, 0.0, open_low=True)
+
+    def grid(self) -> Grid:
+        return Grid(bins=(self.bins, self.bins), low=(0.0, 0.0), high=(1.0, 1.0))
+
+    def normalise(self, xy: jax.Array) -> jax.Array:
+        return (xy + self.extent) / (2 * self.extent)
+
+    def denormalise(self, descriptor: jax.Array) -> jax.Array:
+        return descriptor * (2 * self.extent) - self.extent
+
+
+def evaluate_top(robot: Robot, start: SimState, task: TopTask, hbr: HBR, key: jax.Array, genotypes: jax.Array) -> Evaluation:
+    """Evaluate (B, 9) skills from the standing state `start` (unbatched; key unused).
+
+    Extras: "middle_indices" (B, 3) int32 middle elites executed, "arrival_yaw" (B,) rad.
+    """
+    del key
+    batch = genotypes.shape[0]
+    starts = jax.tree.map(lambda x: jnp.broadcast_to(x, (batch, *x.shape)), start)
+    skill = execute_skill(robot, hbr, genotypes, starts)
+    descriptors = task.normalise(skill.displacement[:, :2])
+    in_range = jnp.all((descriptors >= 0.0) & (descriptors <= 1.0), axis=-1)
+    return Evaluation(
+        fitnesses=angle_error(skill.displacement),
+        descriptors=descriptors,
+        valid=skill.valid & in_range,
+        extras={
+            "middle_indices": jnp.swapaxes(skill.steps.middle_index, 0, 1).reshape(batch, STEPS_PER_SKILL),
+            "arrival_yaw": skill.displacement[:, 2],
+        },
+    )

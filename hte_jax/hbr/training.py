@@ -1,0 +1,331 @@
+"""Training an HBR: bottom, then middle, then top, each a resumable MAP-Elites run.
+
+`train_hbr(config, out_dir)` writes, under out_dir:
+  config.json                      the full configuration (a resumed run must match it)
+  <layer>/checkpoint.npz, metrics.csv   per layer (bottom, middle, top)
+  hbr.npz                          the trained repertoire (`store.load_hbr`)
+  summary.json                     per-layer metrics, evaluations and wall times
+  plots/*.png                      maps of every layer and metric curves
+A killed run continues with `resume=True` from the last block of the layer it was in and gives
+bit-identical repertoires for the same seed.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+
+from hte_jax.errors import ConfigError, require_int, require_number
+from hte_jax.hbr import bottom as bottom_layer
+from hte_jax.hbr import middle as middle_layer
+from hte_jax.hbr import top as top_layer
+from hte_jax.hbr.analysis import hbr_statistics
+from hte_jax.hbr.bottom import BottomTask, evaluate_bottom
+from hte_jax.hbr.execution import HBR, STEPS_PER_SKILL
+from hte_jax.hbr.middle import MiddleTask, evaluate_middle
+from hte_jax.hbr.plots import plot_hbr
+from hte_jax.hbr.store import save_hbr
+from hte_jax.hbr.top import TopTask, evaluate_top
+from hte_jax.qd import io
+from hte_jax.qd.archive import Archive
+from hte_jax.qd.loop import MapElites, MapElitesConfig, QDState, resume, run
+from hte_jax.sim.robot import Robot, load_robot
+from hte_jax.sim.rollout import standing_state
+
+LAYERS = ("bottom", "middle", "top")
+
+
+@dataclasses.dataclass(frozen=True)
+class LayerSchedule:
+    """MAP-Elites budget and variation of one layer.
+
+    batch_size: offspring per generation; init_size: random individuals first (a multiple of
+    batch_size); generations: after the initial batch; block_size: generations per jitted block
+    (one progress tick, CSV row and checkpoint each); mutation_rate / eta_m: polynomial mutation;
+    capacity: archive slots (bottom and middle; the top layer is a fixed grid).
+    """
+
+    batch_size: int
+    init_size: int
+    generations: int
+    block_size: int
+    mutation_rate: float
+    eta_m: float = 10.0
+    capacity: int = 1
+
+    def __post_init__(self):
+        require_int("batch_size", self.batch_size)
+        require_int("init_size", self.init_size)
+        require_int("generations", self.generations, minimum=0)
+        require_int("block_size", self.block_size)
+        require_int("capacity", self.capacity)
+        require_number("mutation_rate", self.mutation_rate, 0.0, 1.0)
+        require_number("eta_m", self.eta_m, 0.0)
+
+    @property
+    def evaluations(self) -> int:
+        return self.init_size + self.generations * self.batch_size
+
+    def map_elites_config(self, qd_offset: float) -> MapElitesConfig:
+        return MapElitesConfig(
+            batch_size=self.batch_size,
+            init_size=self.init_size,
+            mutation_rate=self.mutation_rate,
+            eta_m=self.eta_m,
+            qd_offset=qd_offset,
+        )
+
+
+@dataclasses.dataclass(frozen=True)
+class HBRConfig:
+    """Everything that defines a trained HBR (the paper's values are in docs/design.md).
+
+    bottom / middle / top: the layers' schedules. seed: PRNG seed.
+    middle_samples: chained 1 s samples per middle evaluation (original 10).
+    contact_threshold: fraction of a second a foot must be down for its contact bit.
+    bottom_l / middle_l: archive distance thresholds. top_bins: grid cells per axis.
+    """
+
+    bottom: LayerSchedule
+    middle: LayerSchedule
+    top: LayerSchedule
+    seed: int = 0
+    middle_samples: int = 10
+    contact_threshold: float = 0.3
+    bottom_l: float = 0.01
+    middle_l: float = 0.05
+    top_bins: int = 100
+
+    def __post_init__(self):
+        require_int("seed", self.seed, minimum=0)
+        require_int("middle_samples", self.middle_samples)
+        require_number("contact_threshold", self.contact_threshold, 0.0, 1.0)
+        require_number("bottom_l", self.bottom_l, 0.0, open_low=True)
+        require_number("middle_l", self.middle_l, 0.0, open_low=True)
+        require_int("top_bins", self.top_bins)
+        for layer in LAYERS:
+            schedule = getattr(self, layer)
+            if schedule.init_size % schedule.batch_size:
+                raise ConfigError(
+                    f"{layer}.init_size={schedule.init_size} must be a multiple of {layer}.batch_size={schedule.batch_size}"
+                )
+
+    @property
+    def bottom_task(self) -> BottomTask:
+        return BottomTask()
+
+    @property
+    def middle_task(self) -> MiddleTask:
+        return MiddleTask(samples=self.middle_samples, contact_threshold=self.contact_threshold)
+
+    @property
+    def top_task(self) -> TopTask:
+        return TopTask(bins=self.top_bins)
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict) -> HBRConfig:
+        data = dict(data)
+        for layer in LAYERS:
+            try:
+                data[layer] = LayerSchedule(**data[layer])
+            except ConfigError as error:
+                raise ConfigError(f"{layer}.{error}") from None
+        return cls(**data)
+
+
+def _schedule(batch, init, generations, block, mutation, capacity=1) -> LayerSchedule:
+    return LayerSchedule(batch, init, generations, block, mutation, capacity=capacity)
+
+
+# Mutation rates are the paper's (Table 1): 0.17 bottom, 0.11 middle, 0.14 top; eta_m = 10.
+PRESETS: dict[str, HBRConfig] = {
+    # CI: all three layers end to end in seconds of compute (plus compilation).
+    "tiny": HBRConfig(
+        bottom=_schedule(16, 32, 2, 1, 0.17, capacity=256),
+        middle=_schedule(16, 32, 2, 1, 0.11, capacity=256),
+        top=_schedule(16, 32, 2, 1, 0.14),
+        middle_samples=2,
+    ),
+    # The default: a usable small HBR on a 2-core CPU in about 15 minutes.
+    "cpu": HBRConfig(
+        bottom=_schedule(256, 512, 8, 4, 0.17, capacity=2048),
+        middle=_schedule(256, 512, 14, 2, 0.11, capacity=8192),
+        top=_schedule(256, 512, 14, 2, 0.14),
+        middle_samples=3,
+    ),
+    # One H100 / H200 in about 10 minutes.
+    "gpu": HBRConfig(
+        bottom=_schedule(16384, 16384, 16, 8, 0.17, capacity=16384),
+        middle=_schedule(32768, 32768, 36, 4, 0.11, capacity=65536),
+        top=_schedule(16384, 16384, 120, 10, 0.14),
+        middle_samples=5,
+    ),
+    # The paper's evaluation counts (5001 / 30000 / 20000 generations of 200) in batches of 8000.
+    "paper": HBRConfig(
+        bottom=_schedule(8000, 8000, 125, 5, 0.17, capacity=32768),
+        middle=_schedule(8000, 8000, 750, 10, 0.11, capacity=131072),
+        top=_schedule(8000, 8000, 500, 10, 0.14),
+        middle_samples=10,
+    ),
+}
+
+
+def preset(name: str) -> HBRConfig:
+    if name not in PRESETS:
+        raise ConfigError(f"unknown preset {name!r}; choose one of {sorted(PRESETS)}")
+    return PRESETS[name]
+
+
+def with_overrides(config: HBRConfig, overrides: dict[str, Any]) -> HBRConfig:
+    """A copy of `config` with "field" or "layer.field" keys replaced (values converted to the field's type)."""
+    data = config.to_dict()
+    for key, value in overrides.items():
+        parts = key.split(".")
+        target = data
+        for part in parts[:-1]:
+            if part not in LAYERS or not isinstance(target.get(part), dict):
+                raise ConfigError(f"unknown setting {key!r}")
+            target = target[part]
+        field = parts[-1]
+        if field not in target or isinstance(target[field], dict):
+            raise ConfigError(f"unknown setting {key!r}")
+        kind = type(target[field])
+        try:
+            target[field] = kind(value) if not isinstance(value, kind) else value
+        except (TypeError, ValueError):
+            raise ConfigError(f"setting {key!r}: cannot read {value!r} as {kind.__name__}") from None
+    return HBRConfig.from_dict(data)
+
+
+def layer_algorithms(config: HBRConfig, robot: Robot, start, lower: dict) -> dict[str, Callable[[], MapElites]]:
+    """Factories of each layer's MapElites; `lower` holds the already trained layers' repertoires."""
+
+    def bottom() -> MapElites:
+        task = config.bottom_task
+        return MapElites(
+            container=Archive(config.bottom.capacity, (0.0,) * 3, (1.0,) * 3, config.bottom_l),
+            evaluate=lambda key, genes: evaluate_bottom(robot, start, task, key, genes),
+            genotype_dim=bottom_layer.GENES,
+            config=config.bottom.map_elites_config(qd_offset=-1.0),
+            extras={"leg": jnp.int32(0)},
+        )
+
+    def middle() -> MapElites:
+        task, repertoire = config.middle_task, lower["bottom"]
+        return MapElites(
+            container=Archive(config.middle.capacity, (0.0,) * 9, (1.0,) * 9, config.middle_l),
+            evaluate=lambda key, genes: evaluate_middle(robot, start, task, repertoire, key, genes),
+            genotype_dim=middle_layer.GENES,
+            config=config.middle.map_elites_config(qd_offset=-math.pi),
+            extras={"contact_fraction": jnp.zeros(6, jnp.float32), "medoid": jnp.int32(0)},
+        )
+
+    def top() -> MapElites:
+        task = config.top_task
+        empty_top = task.grid().empty(top_layer.GENES)
+        hbr = HBR.build(lower["bottom"], lower["middle"], empty_top, config.middle_task)
+        return MapElites(
+            container=task.grid(),
+            evaluate=lambda key, genes: evaluate_top(robot, start, task, hbr, key, genes),
+            genotype_dim=top_layer.GENES,
+            config=config.top.map_elites_config(qd_offset=-math.pi),
+            extras={"middle_indices": jnp.zeros(STEPS_PER_SKILL, jnp.int32), "arrival_yaw": jnp.float32(0)},
+        )
+
+    return {"bottom": bottom, "middle": middle, "top": top}
+
+
+@dataclasses.dataclass
+class TrainingOutcome:
+    hbr: HBR
+    summary: dict
+
+
+def _write_json(path: Path, data: dict) -> None:
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    tmp.write_text(json.dumps(data, indent=2, sort_keys=True) + "\n")
+    os.replace(tmp, path)
+
+
+def _prepare(out: Path, config: HBRConfig, resume_run: bool) -> None:
+    config_path = out / "config.json"
+    if config_path.exists():
+        if not resume_run:
+            raise ConfigError(f"{out} already holds a run; pass --resume to continue it or choose another --out")
+        stored = json.loads(config_path.read_text())
+        if stored != json.loads(json.dumps(config.to_dict())):
+            changed = sorted(k for k in set(stored) | set(config.to_dict()) if stored.get(k) != json.loads(json.dumps(config.to_dict())).get(k))
+            raise ConfigError(f"{out} was started with a different configuration (differs in: {', '.join(changed)})")
+    else:
+        out.mkdir(parents=True, exist_ok=True)
+        _write_json(config_path, config.to_dict())
+
+
+def train_hbr(
+    config: HBRConfig,
+    out_dir: str | Path,
+    *,
+    resume_run: bool = False,
+    progress: bool = True,
+    on_block: Callable[[str, int, QDState, dict], None] | None = None,
+    plots: bool = True,
+) -> TrainingOutcome:
+    """Train (or finish training) the three layers; see the module docstring for the outputs."""
+    out = Path(out_dir)
+    _prepare(out, config, resume_run)
+    robot = load_robot()
+    start = standing_state(robot)
+    keys = dict(zip(LAYERS, jax.random.split(jax.random.PRNGKey(config.seed), len(LAYERS))))
+    lower: dict = {}
+    summary: dict = {"config": config.to_dict(), "layers": {}}
+    for layer in LAYERS:
+        algo = layer_algorithms(config, robot, start, lower)[layer]()
+        schedule: LayerSchedule = getattr(config, layer)
+        checkpoint = out / layer / "checkpoint.npz"
+        began = time.perf_counter()
+        state = resume(algo, checkpoint) if checkpoint.exists() else algo.init(keys[layer])
+        hook = None if on_block is None else (lambda block, st, row, _layer=layer: on_block(_layer, block, st, row))
+        state = run(
+            algo,
+            state,
+            schedule.generations,
+            block_size=schedule.block_size,
+            log_path=out / layer / "metrics.csv",
+            checkpoint_path=checkpoint,
+            progress=progress,
+            on_block=hook,
+            description=layer,
+        )
+        if not checkpoint.exists():  # no block ran (generations = 0)
+            io.save_checkpoint(checkpoint, state, algo.checkpoint_metadata())
+        metrics = jax.device_get(algo.metrics(state))
+        lower[layer] = state.repertoire
+        summary["layers"][layer] = {
+            "evaluations": algo.evaluations(state),
+            "filled": int(metrics.filled),
+            "capacity": state.repertoire.capacity,
+            "mean_fitness": float(metrics.mean_fitness),
+            "max_fitness": float(metrics.max_fitness),
+            "qd_score": float(metrics.qd_score),
+            "wall_time_s": time.perf_counter() - began,
+        }
+    hbr = HBR.build(lower["bottom"], lower["middle"], lower["top"], config.middle_task)
+    summary["statistics"] = hbr_statistics(hbr)
+    summary["devices"] = [str(d) for d in jax.devices()]
+    save_hbr(out / "hbr.npz", hbr, config.top_task, {"training": summary})
+    _write_json(out / "summary.json", summary)
+    if plots:
+        plot_hbr(hbr, config.top_task, out, out / "plots")
+    return TrainingOutcome(hbr=hbr, summary=summary)

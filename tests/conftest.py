@@ -1,0 +1,27 @@
+"""Session-wide settings: a persistent XLA compilation cache shared by all tests of a session.
+
+MJX programs take 15-30 s to compile on a CPU; tests that build the same program again (a
+resumed training run, a re-simulation) then load it from the cache instead of recompiling.
+"""
+
+import os
+import shutil
+import tempfile
+
+import jax
+
+_CACHE = tempfile.mkdtemp(prefix="hte-jax-xla-cache-")
+# Subprocesses started by tests (benchmark scripts, CLIs) share the cache through the environment.
+os.environ["JAX_COMPILATION_CACHE_DIR"] = _CACHE
+os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0"
+os.environ["JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES"] = "0"
+
+
+def pytest_configure(config):
+    jax.config.update("jax_compilation_cache_dir", _CACHE)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+
+
+def pytest_unconfigure(config):
+    shutil.rmtree(_CACHE, ignore_errors=True)

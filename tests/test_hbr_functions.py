@@ -1,0 +1,170 @@
+"""Pure pieces of the HBR: geometry, angle error, descriptors, lookups, genotype decoding (acceptance 1)."""
+
+import math
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from hte_jax.hbr.bottom import FOOT_REACH, activation_fitness, duty_level, leg_params, lift_height, swing_distance
+from hte_jax.hbr.execution import HBR, select_middle, skill_waypoints
+from hte_jax.hbr.geometry import angle_error, compose_pose, heading, medoid_index, planar_pose, relative_pose, wrap_angle
+from hte_jax.hbr.middle import MiddleTask, leg_controllers, nearest_index, pattern_bits, pattern_code
+from hte_jax.qd.repertoire import Repertoire, empty_repertoire
+
+
+def _yaw_quat(yaw):
+    return np.stack([np.cos(yaw / 2), 0 * yaw, 0 * yaw, np.sin(yaw / 2)], axis=-1)
+
+
+def test_arc_motion_has_known_angle_error():
+    # A robot carried along a left arc of radius 0.4 m through phi, its heading tangent to the arc,
+    # starting at (0.3, -0.2) facing 0.7 rad: measured through quaternions and the start frame.
+    radius, phis = 0.4, np.array([0.2, 0.9, 2.0, -1.1])
+    start = np.array([0.3, -0.2, 0.7])
+    local = np.stack([radius * np.sin(np.abs(phis)), radius * (1 - np.cos(phis)) * np.sign(phis), phis], -1)
+    end = np.asarray(compose_pose(jnp.asarray(np.broadcast_to(start, local.shape)), jnp.asarray(local)))
+    pos = np.concatenate([end[:, :2], np.full((4, 1), 0.13)], -1)
+    start_pose = planar_pose(jnp.asarray([[*start[:2], 0.13]] * 4), jnp.asarray(_yaw_quat(np.full(4, start[2]))))
+    end_pose = planar_pose(jnp.asarray(pos), jnp.asarray(_yaw_quat(end[:, 2])))
+    motion = relative_pose(start_pose, end_pose)
+    np.testing.assert_allclose(np.asarray(motion), local, atol=1e-5)
+    np.testing.assert_allclose(np.asarray(angle_error(motion)), 0.0, atol=1e-5)
+    # Arriving 0.3 rad off the tangent costs exactly 0.3.
+    off = motion.at[:, 2].add(0.3)
+    np.testing.assert_allclose(np.asarray(angle_error(off)), -0.3, atol=1e-5)
+
+
+@pytest.mark.parametrize(
+    "motion, expected",
+    [((0.3, 0.0, 0.0), 0.0), ((-0.3, 0.0, 0.0), 0.0), ((0.0, 0.3, 0.0), -math.pi), ((0.0, 0.3, math.pi), 0.0),
+     ((0.2, 0.2, 0.0), -math.pi / 2), ((0.2, 0.2, math.pi / 2), 0.0), ((0.2, -0.2, -math.pi / 2), 0.0)],
+)
+def test_angle_error_hand_cases(motion, expected):
+    assert float(angle_error(jnp.asarray(motion))) == pytest.approx(expected, abs=1e-5)
+
+
+def test_heading_ignores_tilt_and_poses_invert():
+    # Yaw 0.8 then a 0.3 rad roll: heading is still 0.8.
+    yaw, roll = 0.8, 0.3
+    qz = np.array([math.cos(yaw / 2), 0, 0, math.sin(yaw / 2)])
+    qx = np.array([math.cos(roll / 2), math.sin(roll / 2), 0, 0])
+    w1, x1, y1, z1 = qz
+    w2, x2, y2, z2 = qx
+    q = np.array([w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2, w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
+                  w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2, w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2])
+    assert float(heading(jnp.asarray(q))) == pytest.approx(yaw, abs=1e-6)
+    rng = np.random.default_rng(0)
+    a = jnp.asarray(rng.uniform(-2, 2, (50, 3)))
+    b = jnp.asarray(rng.uniform(-2, 2, (50, 3)))
+    back = compose_pose(a, relative_pose(a, b))
+    np.testing.assert_allclose(np.asarray(back[:, :2]), np.asarray(b[:, :2]), atol=1e-5)
+    np.testing.assert_allclose(np.asarray(wrap_angle(back[:, 2] - b[:, 2])), 0.0, atol=1e-5)
+
+
+def test_medoid_matches_numpy():
+    rng = np.random.default_rng(1)
+    points = rng.normal(size=(20, 7, 3)).astype(np.float32)
+    points[3, 5] = 100.0  # an outlier never becomes the medoid
+    expected = [np.argmin(np.linalg.norm(p[:, None] - p[None], axis=-1).sum(-1)) for p in points]
+    np.testing.assert_array_equal(np.asarray(medoid_index(jnp.asarray(points))), expected)
+
+
+def test_swing_and_height_hand_cases():
+    steps = 100
+    hip = np.zeros(steps, np.float32)
+    hip[20:60] = -np.linspace(0, 0.2, 40)  # falls 0.2 rad ...
+    hip[60:] = hip[59]
+    contact = np.zeros(steps, bool)
+    contact[10:70] = True  # ... all of it with the foot down
+    assert float(swing_distance(jnp.asarray(hip), jnp.asarray(contact))) == pytest.approx(FOOT_REACH * 0.2, rel=1e-5)
+    assert float(swing_distance(jnp.asarray(hip), jnp.zeros(steps, bool))) == 0.0  # foot in the air: no stroke
+    assert float(swing_distance(jnp.asarray(-hip), jnp.asarray(contact))) == pytest.approx(-FOOT_REACH * 0.2, rel=1e-5)
+    base = 0.13 + 0.002 * np.sin(np.arange(steps) / 7.0)
+    foot = np.full(steps, 0.025) + 0.0
+    # The foot stays on the floor while the body bobs: height is the body's motion, opposite sign.
+    h = float(lift_height(jnp.asarray(foot), jnp.asarray(base)))
+    assert abs(h) <= 0.004 + 1e-6
+    lifted = foot.copy()
+    lifted[30:50] += 0.03 * np.sin(np.linspace(0, np.pi, 20))
+    assert float(lift_height(jnp.asarray(lifted), jnp.full(steps, 0.13))) == pytest.approx(0.03 * np.sin(np.pi * 9 / 19), rel=1e-4)
+    pushed = foot.copy()
+    assert float(lift_height(jnp.asarray(pushed), jnp.asarray(0.13 + np.linspace(0, 0.02, steps)))) == pytest.approx(-0.02, rel=1e-5)
+
+
+def test_duty_levels_and_activation():
+    duty = jnp.asarray([0.0, 0.1, 0.2499, 0.25, 0.5, 0.74, 0.75, 0.99, 1.0])
+    np.testing.assert_allclose(np.asarray(duty_level(duty)), [0, 0, 0, 1 / 3, 2 / 3, 2 / 3, 1, 1, 1], atol=1e-6)
+    # A leg commanded at the full 5 rad/s on all joints for 1 s scores -1; a still leg 0.
+    assert float(activation_fitness(jnp.full(3, 5.0), 1.0, 5.0)) == pytest.approx(-1.0)
+    assert float(activation_fitness(jnp.zeros(3), 1.0, 5.0)) == 0.0
+
+
+def test_leg_params_drive_only_the_chosen_leg():
+    genes = jnp.asarray(np.random.default_rng(2).uniform(size=(4, 6)), jnp.float32)
+    params = np.asarray(leg_params(genes, jnp.asarray([0, 3, 5, 2])))
+    for row, leg in enumerate([0, 3, 5, 2]):
+        np.testing.assert_array_equal(params[row].reshape(6, 6)[leg], np.asarray(genes[row]))
+        assert np.count_nonzero(np.delete(params[row].reshape(6, 6), leg, axis=0)) == 0
+
+
+def test_nearest_primitive_lookup_matches_numpy():
+    rng = np.random.default_rng(3)
+    capacity = 300
+    points = rng.uniform(size=(capacity, 3)).astype(np.float32)
+    points[7] = points[3]  # duplicate: ties go to the lower slot
+    mask = rng.uniform(size=capacity) < 0.7
+    mask[3] = mask[7] = True
+    queries = rng.uniform(size=(5, 6, 3)).astype(np.float32)
+    queries[0, 0] = points[3]
+    dist = ((queries[..., None, :] - points) ** 2).sum(-1)
+    expected = np.argmin(np.where(mask, dist, np.inf), axis=-1)
+    got = np.asarray(nearest_index(jnp.asarray(points), jnp.asarray(mask), jnp.asarray(queries), chunk=7))
+    np.testing.assert_array_equal(got, expected)
+    assert got[0, 0] == 3
+    assert int(nearest_index(jnp.asarray(points), jnp.zeros(capacity, bool), jnp.asarray(queries[0, 0]))) == -1
+    genes = rng.uniform(size=(capacity, 6)).astype(np.float32)
+    bottom = Repertoire(genotypes=jnp.asarray(genes), descriptors=jnp.asarray(points),
+                        fitnesses=jnp.zeros(capacity), filled=jnp.asarray(mask))
+    params = np.asarray(leg_controllers(bottom, jnp.asarray(queries)))
+    np.testing.assert_array_equal(params, genes[expected].reshape(5, 36))
+
+
+def test_contact_pattern_codes():
+    bits = jnp.asarray([[1, 1, 1, 1, 1, 1], [0, 1, 1, 1, 1, 1], [1, 0, 1, 0, 1, 0], [0, 0, 0, 0, 0, 1]], jnp.float32)
+    codes = np.asarray(pattern_code(bits))
+    np.testing.assert_array_equal(codes, [63, 31, 42, 1])  # leg 0 is the most significant bit (original)
+    np.testing.assert_array_equal(np.asarray(pattern_bits(jnp.asarray(codes))), np.asarray(bits))
+
+
+def test_select_middle_respects_patterns():
+    rng = np.random.default_rng(4)
+    capacity = 64
+    middle = empty_repertoire(capacity, 18, 9)
+    desc = rng.uniform(size=(40, 9)).astype(np.float32)
+    desc[:, 3:] = np.asarray(pattern_bits(jnp.asarray(rng.choice([63, 42, 21], size=40))))
+    middle = middle.replace(descriptors=middle.descriptors.at[:40].set(desc), filled=middle.filled.at[:40].set(True),
+                            fitnesses=middle.fitnesses.at[:40].set(0.0))
+    bottom = empty_repertoire(8, 6, 3).replace(filled=jnp.ones(8, bool))
+    hbr = HBR.build(bottom, middle, empty_repertoire(4, 9, 2), MiddleTask())
+    queries = rng.uniform(size=(30, 3)).astype(np.float32)
+    patterns = rng.choice([-1, 63, 42, 21, 0], size=30)
+    index, found = (np.asarray(x) for x in select_middle(hbr, jnp.asarray(queries), jnp.asarray(patterns), chunk=8))
+    codes = np.asarray(pattern_code(jnp.asarray(desc[:, 3:])))
+    for q, p, i, f in zip(queries, patterns, index, found):
+        allowed = np.ones(40, bool) if p < 0 or p == 0 else codes == p
+        d = np.where(allowed, ((desc[:, :3] - q) ** 2).sum(-1), np.inf)
+        assert i == np.argmin(d)
+        assert f == (p != 0)  # pattern 0 (no foot down) has no elite: nearest of any pattern
+
+
+def test_skill_waypoints_compose_middle_steps():
+    task = MiddleTask()
+    # Step 1: 0.2 m forward turning +0.5 rad; step 2: 0.1 m forward; step 3: 0.1 m left, no turn.
+    steps = np.array([[0.2, 0.0, 0.5], [0.1, 0.0, 0.0], [0.0, 0.1, 0.0]])
+    genes = np.asarray(task.normalise(jnp.asarray(steps))).reshape(9)
+    waypoints = np.asarray(skill_waypoints(task, jnp.asarray(genes)))
+    expected1 = np.array([0.2, 0.0, 0.5])
+    expected2 = expected1 + [0.1 * math.cos(0.5), 0.1 * math.sin(0.5), 0.0]
+    expected3 = expected2 + [-0.1 * math.sin(0.5), 0.1 * math.cos(0.5), 0.0]
+    np.testing.assert_allclose(waypoints, [expected1, expected2, expected3], atol=1e-6)

@@ -1,0 +1,216 @@
+"""HBR training end to end (tiny preset), resume, re-simulation of stored elites, HBR files (acceptance 1, 5)."""
+
+import csv
+import json
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import matplotlib.image
+import numpy as np
+import pytest
+
+from experiments.train_hbr import main as train_main
+from hte_jax.hbr.bottom import BottomTask, evaluate_bottom
+from hte_jax.hbr.execution import execute_skill, execute_step
+from hte_jax.hbr.geometry import compose_pose, planar_pose
+from hte_jax.hbr.middle import PRIMARY, evaluate_controllers
+from hte_jax.hbr.store import load_hbr
+from hte_jax.hbr.training import PRESETS, preset, train_hbr, with_overrides
+from hte_jax.errors import ConfigError
+from hte_jax.qd.io import CheckpointError, read_checkpoint, save_checkpoint
+from hte_jax.sim import load_robot, standing_state
+
+LAYERS = ("bottom", "middle", "top")
+
+
+@pytest.fixture(scope="module")
+def robot():
+    return load_robot()
+
+
+@pytest.fixture(scope="module")
+def start(robot):
+    return standing_state(robot)
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("hbr") / "tiny"
+    assert train_main(["--preset", "tiny", "--out", str(out), "--no-progress"]) == 0
+    return out
+
+
+def _rows(path):
+    with open(path) as handle:
+        return list(csv.DictReader(handle))
+
+
+def test_tiny_preset_writes_a_complete_hbr(tiny_run):
+    config = preset("tiny")
+    summary = json.loads((tiny_run / "summary.json").read_text())
+    hbr, top_task, meta = load_hbr(tiny_run / "hbr.npz")
+    for layer in LAYERS:
+        schedule = getattr(config, layer)
+        assert summary["layers"][layer]["evaluations"] == schedule.init_size + schedule.generations * schedule.batch_size
+        elites = int(getattr(hbr, layer).filled.sum())
+        assert elites == summary["statistics"][layer]["elites"] == summary["layers"][layer]["filled"] > 0
+        rows = _rows(tiny_run / layer / "metrics.csv")
+        assert [int(r["generation"]) for r in rows] == list(range(schedule.generations + 1))
+        filled = [int(r["filled"]) for r in rows]
+        assert filled == sorted(filled) and filled[-1] == elites
+        for descriptor in np.asarray(getattr(hbr, layer).descriptors)[np.asarray(getattr(hbr, layer).filled)]:
+            assert ((descriptor >= 0) & (descriptor <= 1)).all()
+    middle = np.asarray(hbr.middle.descriptors)[np.asarray(hbr.middle.filled)]
+    assert set(np.unique(middle[:, PRIMARY:])) <= {0.0, 1.0}
+    assert summary["statistics"]["middle"]["contact_patterns"] == len({tuple(b) for b in middle[:, PRIMARY:]})
+    assert meta["training"]["config"] == config.to_dict()
+    assert top_task == config.top_task and hbr.middle_task == config.middle_task
+    for name in ("top_xy_fitness", "middle_xy_yaw_patterns", "bottom_projections", "bottom_metrics", "middle_metrics",
+                 "top_metrics"):
+        image = matplotlib.image.imread(tiny_run / "plots" / f"{name}.png")
+        assert image.ndim == 3 and image.shape[0] > 100 and image.std() > 0
+
+
+def test_killed_run_resumes_bit_identical(tiny_run, tmp_path):
+    class Killed(Exception):
+        pass
+
+    def kill(layer, block, state, row):
+        if layer == "middle" and block == 0:
+            raise Killed
+
+    out = tmp_path / "killed"
+    with pytest.raises(Killed):
+        train_hbr(preset("tiny"), out, progress=False, on_block=kill, plots=False)
+    assert (out / "middle" / "checkpoint.npz").exists() and not (out / "top").exists()
+    train_hbr(preset("tiny"), out, resume_run=True, progress=False, plots=False)
+    resumed, _ = read_checkpoint(out / "hbr.npz")
+    reference, _ = read_checkpoint(tiny_run / "hbr.npz")
+    assert resumed.keys() == reference.keys()
+    for name in reference:
+        np.testing.assert_array_equal(resumed[name], reference[name], err_msg=name)
+    for layer in LAYERS:
+        strip = lambda rows: [{k: v for k, v in r.items() if k != "wall_time_s"} for r in rows]  # noqa: E731
+        assert strip(_rows(out / layer / "metrics.csv")) == strip(_rows(tiny_run / layer / "metrics.csv"))
+
+
+def test_cli_refuses_to_clobber_or_mix_configurations(tiny_run, capsys):
+    assert train_main(["--preset", "tiny", "--out", str(tiny_run)]) == 2
+    assert "--resume" in capsys.readouterr().err
+    assert train_main(["--preset", "tiny", "--out", str(tiny_run), "--resume", "--seed", "5"]) == 2
+    assert "seed" in capsys.readouterr().err
+    assert train_main(["--preset", "huge"]) == 2
+    assert "unknown preset" in capsys.readouterr().err
+    assert train_main(["--middle-init-size", "20", "--middle-batch-size", "16"]) == 2
+    assert "middle.init_size" in capsys.readouterr().err
+    assert train_main(["--top-mutation-rate", "lots"]) == 2
+    assert "top.mutation_rate" in capsys.readouterr().err
+
+
+def test_every_preset_value_can_be_overridden():
+    config = with_overrides(PRESETS["gpu"], {"middle.generations": "7", "seed": "3", "contact_threshold": 0.25})
+    assert (config.middle.generations, config.seed, config.contact_threshold) == (7, 3, 0.25)
+    assert config.top == PRESETS["gpu"].top
+    with pytest.raises(ConfigError, match="unknown setting 'middle.colour'"):
+        with_overrides(config, {"middle.colour": 1})
+    for name in ("cpu", "gpu", "paper"):
+        schedule = PRESETS[name]
+        assert (schedule.bottom.mutation_rate, schedule.middle.mutation_rate, schedule.top.mutation_rate) == (0.17, 0.11, 0.14)
+    paper = PRESETS["paper"]
+    # The paper's evaluation counts: 5001, 30000 and 20000 generations of 200.
+    assert paper.bottom.evaluations == pytest.approx(5001 * 200, rel=0.01)
+    assert paper.middle.evaluations == pytest.approx(30000 * 200, rel=0.01)
+    assert paper.top.evaluations == pytest.approx(20000 * 200, rel=0.01)
+
+
+def test_stored_middle_elites_reproduce_when_re_simulated(tiny_run, robot, start):
+    """Hierarchical execution of a middle elite (its target -> nearest elite -> controller) from
+    the standing state reproduces its stored primary descriptor (to 1e-4 for the reported
+    sample when it is the first; all elites re-simulated through their stored controllers)."""
+    hbr, _, _ = load_hbr(tiny_run / "hbr.npz")
+    count = int(hbr.middle.filled.sum())
+    stored = np.asarray(hbr.middle.descriptors)[:count]
+    again = evaluate_controllers(robot, start, hbr.middle_task, hbr.middle_params[:count])
+    np.testing.assert_allclose(np.asarray(again.descriptors), stored, atol=1e-4)
+    np.testing.assert_allclose(np.asarray(again.fitnesses), np.asarray(hbr.middle.fitnesses)[:count], atol=1e-4)
+    first = np.flatnonzero(np.asarray(hbr.middle.extras["medoid"])[:count] == 0)
+    assert first.size > 0
+    batch = first.size
+    starts = jax.tree.map(lambda x: jnp.broadcast_to(x, (batch, *x.shape)), start)
+    here = jnp.broadcast_to(planar_pose(start.qpos[:3], start.qpos[3:7]), (batch, 3))
+    motion = hbr.middle_task.denormalise(jnp.asarray(stored[first, :PRIMARY]))
+    target = compose_pose(here, motion)
+    step = execute_step(robot, hbr, starts, jnp.zeros((batch, 6), bool), target, jnp.full(batch, -1))
+    chosen = np.asarray(step.middle_index)
+    np.testing.assert_allclose(stored[chosen, :PRIMARY], stored[first, :PRIMARY], atol=0.02)
+    measured = np.asarray(hbr.middle_task.normalise(step.displacement))
+    np.testing.assert_allclose(measured, stored[chosen, :PRIMARY], atol=1e-3)
+
+
+def test_top_skills_replay_through_hierarchical_execution(tiny_run, robot, start):
+    """Deployment decodes a skill exactly as training did: same middle elites, same final position."""
+    hbr, top_task, _ = load_hbr(tiny_run / "hbr.npz")
+    filled = np.flatnonzero(np.asarray(hbr.top.filled))
+    batch = filled.size
+    starts = jax.tree.map(lambda x: jnp.broadcast_to(x, (batch, *x.shape)), start)
+    skill = execute_skill(robot, hbr, hbr.top.genotypes[filled], starts)
+    assert bool(skill.valid.all())
+    np.testing.assert_array_equal(np.asarray(skill.steps.middle_index).T, np.asarray(hbr.top.extras["middle_indices"])[filled])
+    np.testing.assert_allclose(np.asarray(top_task.normalise(skill.displacement[:, :2])),
+                               np.asarray(hbr.top.descriptors)[filled], atol=1e-4)
+
+
+def test_leg_primitives_hand_cases(robot, start):
+    """A leg that never lifts has height ~ 0; lifting and stroking legs are measured as such on every leg."""
+    still = [0.0, 0.3, 0.5, 0.0, 0.2, 0.5]  # zero amplitudes
+    lift = [0.0, 0.0, 0.5, 1.0, 0.0, 0.5]  # vertical signal only: the foot goes up and down
+    stroke = [1.0, 0.0, 0.5, 1.0, 0.25, 0.5]  # hip swing with the lift a quarter period later
+    genes = jnp.asarray([still] * 6 + [lift] * 6 + [stroke] * 6 + [[-1.0] * 6], jnp.float32)
+    task = BottomTask()
+    # A fixed key; the leg drawn for each row is recomputed the same way to check every leg is covered.
+    evaluation = jax.jit(lambda k, g: evaluate_bottom(robot, start, task, k, g))(jax.random.PRNGKey(7), genes)
+    legs = np.asarray(evaluation.extras["leg"])
+    desc = np.asarray(evaluation.descriptors)
+    swing = desc[:, 0] * 2 * task.swing_range - task.swing_range
+    height = desc[:, 1] * 2 * task.height_range - task.height_range
+    assert np.asarray(evaluation.valid)[:18].all()
+    assert np.abs(height[:6]).max() < 0.002 and np.abs(swing[:6]).max() < 0.002
+    assert (height[6:12] > 0.02).all()
+    assert np.abs(swing[6:12]).max() < 0.01  # no hip motion: no stroke
+    assert (np.abs(swing[12:18]) > 0.03).all() and np.ptp(swing[12:18]) < 0.02  # same stroke on every leg
+    fitness = np.asarray(evaluation.fitnesses)
+    assert fitness[:6].max() > fitness[6:12].max() > fitness[12:18].max()  # more motion, more activation
+    assert len(set(legs[:18].tolist())) > 1
+
+
+def test_hbr_files_are_checked_on_load(tiny_run, tmp_path):
+    arrays, header = read_checkpoint(tiny_run / "hbr.npz")
+    meta = header["metadata"]
+
+    def write(name, **changes):
+        path = tmp_path / f"{name}.npz"
+        save_checkpoint(path, {**arrays, **changes}, meta)
+        return path
+
+    with pytest.raises(CheckpointError, match="middle_genotypes has shape"):
+        load_hbr(write("shape", middle_genotypes=arrays["middle_genotypes"][:, :17]))
+    nan = arrays["top_fitnesses"].copy()
+    nan[0] = np.nan
+    with pytest.raises(CheckpointError, match="top_fitnesses holds NaN"):
+        load_hbr(write("nan", top_fitnesses=nan))
+    dangling = arrays["top_extra_middle_indices"].copy()
+    dangling[0, 0] = 10**6
+    with pytest.raises(CheckpointError, match="refer to middle elites"):
+        load_hbr(write("dangling", top_extra_middle_indices=dangling))
+    missing = {k: v for k, v in arrays.items() if k != "bottom_genotypes"}
+    path = tmp_path / "missing.npz"
+    save_checkpoint(path, missing, meta)
+    with pytest.raises(CheckpointError, match="missing 'bottom_genotypes'"):
+        load_hbr(path)
+    truncated = tmp_path / "truncated.npz"
+    truncated.write_bytes((tiny_run / "hbr.npz").read_bytes()[:500])
+    with pytest.raises(CheckpointError, match="truncated or corrupt"):
+        load_hbr(truncated)
+    with pytest.raises(CheckpointError, match="not an HBR file"):
+        load_hbr(tiny_run / "top" / "checkpoint.npz")
