@@ -68,5 +68,5 @@ def medoid_index(points: jax.Array) -> jax.Array:
     Ties go to the lowest index.
     """
     diff = points[..., :, None, :] - points[..., None, :, :]
-    total = jnp.sqrt((diff * diff).sum(-1) + 0.0).sum(-1)
+    total = jnp.sqrt((diff * diff).sum(-1)).sum(-1)
     return jnp.argmin(total, axis=-1)

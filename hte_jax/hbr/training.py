@@ -260,17 +260,19 @@ def _write_json(path: Path, data: dict) -> None:
 
 
 def _prepare(out: Path, config: HBRConfig, resume_run: bool) -> None:
+    """Start a run folder, or check that the run in it has this configuration."""
     config_path = out / "config.json"
+    wanted = json.loads(json.dumps(config.to_dict()))
     if config_path.exists():
         if not resume_run:
             raise ConfigError(f"{out} already holds a run; pass --resume to continue it or choose another --out")
         stored = json.loads(config_path.read_text())
-        if stored != json.loads(json.dumps(config.to_dict())):
-            changed = sorted(k for k in set(stored) | set(config.to_dict()) if stored.get(k) != json.loads(json.dumps(config.to_dict())).get(k))
+        changed = sorted(key for key in set(stored) | set(wanted) if stored.get(key) != wanted.get(key))
+        if changed:
             raise ConfigError(f"{out} was started with a different configuration (differs in: {', '.join(changed)})")
     else:
         out.mkdir(parents=True, exist_ok=True)
-        _write_json(config_path, config.to_dict())
+        _write_json(config_path, wanted)
 
 
 def train_hbr(
