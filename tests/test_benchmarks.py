@@ -63,3 +63,12 @@ def test_hbr_preset_benchmark(tmp_path):
     assert result["layers"]["top"]["evaluations"] == 64
     assert sum(layer["wall_time_s"] for layer in result["layers"].values()) <= result["total_wall_s"]
     assert (tmp_path / "run" / "hbr.npz").stat().st_size > 0
+
+
+def test_determinism_benchmark(tmp_path):
+    out = tmp_path / "det.json"
+    stdout = _run("determinism.py", "--preset", "tiny", "--generations", "1", "--out", str(out))
+    result = json.loads(out.read_text())
+    assert result["identical"] is True  # on the CPU a seed is bit-reproducible
+    assert result["elites"][0] == result["elites"][1] > 0 and len(result["wall_s"]) == 2
+    assert "identical=True" in stdout
