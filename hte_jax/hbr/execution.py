@@ -20,7 +20,7 @@ from flax import struct
 
 from hte_jax.hbr.geometry import compose_pose, planar_pose, relative_pose
 from hte_jax.hbr.middle import PRIMARY, MiddleTask, decode, leg_controllers, pattern_code
-from hte_jax.qd.archive import map_rows
+from hte_jax.qd.archive import map_rows, squared_distance
 from hte_jax.qd.repertoire import Repertoire
 from hte_jax.sim.robot import NUM_LEGS, Robot
 from hte_jax.sim.rollout import RolloutSpec, SimState, rollout
@@ -100,11 +100,7 @@ def select_middle(hbr: HBR, desired: jax.Array, pattern: jax.Array, chunk: int =
 
     def block(args):
         q, p = args
-        dist = jnp.zeros((q.shape[0], points.shape[0]), jnp.float32)
-        for d in range(PRIMARY):
-            diff = q[:, d, None] - points[None, :, d]
-            dist = dist + diff * diff
-        anywhere = jnp.where(filled[None, :], dist, jnp.inf)
+        anywhere = jnp.where(filled[None, :], squared_distance(q, points), jnp.inf)
         matching = jnp.where((p[:, None] < 0) | (hbr.middle_patterns[None, :] == p[:, None]), anywhere, jnp.inf)
         found = jnp.isfinite(matching).any(axis=-1)
         index = jnp.where(found, jnp.argmin(matching, axis=-1), jnp.argmin(anywhere, axis=-1))

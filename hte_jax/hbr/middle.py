@@ -26,7 +26,7 @@ import jax.numpy as jnp
 
 from hte_jax.errors import require_int, require_number
 from hte_jax.hbr.geometry import angle_error, medoid_index, planar_pose, relative_pose
-from hte_jax.qd.archive import map_rows
+from hte_jax.qd.archive import map_rows, squared_distance
 from hte_jax.qd.repertoire import Evaluation, Repertoire
 from hte_jax.sim.robot import NUM_LEGS, Robot
 from hte_jax.sim.rollout import RolloutSpec, SimState, rollout
@@ -85,11 +85,7 @@ def nearest_index(points: jax.Array, mask: jax.Array, queries: jax.Array, chunk:
 
     def block(args):
         (q,) = args
-        dist = jnp.zeros((q.shape[0], points.shape[0]), jnp.float32)
-        for d in range(points.shape[1]):
-            diff = q[:, d, None] - points[None, :, d]
-            dist = dist + diff * diff
-        dist = jnp.where(mask[None, :], dist, jnp.inf)
+        dist = jnp.where(mask[None, :], squared_distance(q, points), jnp.inf)
         return jnp.argmin(dist, axis=-1).astype(jnp.int32)
 
     index = map_rows(block, (flat,), (0.0,), chunk)

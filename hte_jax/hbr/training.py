@@ -63,13 +63,10 @@ class LayerSchedule:
     capacity: int = 1
 
     def __post_init__(self):
-        require_int("batch_size", self.batch_size)
-        require_int("init_size", self.init_size)
         require_int("generations", self.generations, minimum=0)
         require_int("block_size", self.block_size)
         require_int("capacity", self.capacity)
-        require_number("mutation_rate", self.mutation_rate, 0.0, 1.0)
-        require_number("eta_m", self.eta_m, 0.0)
+        self.map_elites_config(qd_offset=0.0)  # batch, init size and mutation checks live there
 
     @property
     def evaluations(self) -> int:
@@ -112,12 +109,6 @@ class HBRConfig:
         require_number("bottom_l", self.bottom_l, 0.0, open_low=True)
         require_number("middle_l", self.middle_l, 0.0, open_low=True)
         require_int("top_bins", self.top_bins)
-        for layer in LAYERS:
-            schedule = getattr(self, layer)
-            if schedule.init_size % schedule.batch_size:
-                raise ConfigError(
-                    f"{layer}.init_size={schedule.init_size} must be a multiple of {layer}.batch_size={schedule.batch_size}"
-                )
 
     @property
     def bottom_task(self) -> BottomTask:

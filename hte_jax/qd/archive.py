@@ -44,13 +44,18 @@ from hte_jax.qd.repertoire import (
 _BIG = jnp.inf
 
 
-def pairwise_distance(queries: jax.Array, points: jax.Array) -> jax.Array:
-    """(Q, D), (P, D) -> (Q, P) Euclidean distances, summed over D in index order."""
+def squared_distance(queries: jax.Array, points: jax.Array) -> jax.Array:
+    """(Q, D), (P, D) -> (Q, P) squared Euclidean distances, summed over D in index order."""
     total = jnp.zeros((queries.shape[0], points.shape[0]), jnp.float32)
     for d in range(queries.shape[1]):
         diff = queries[:, d, None] - points[None, :, d]
         total = total + diff * diff
-    return jnp.sqrt(total)
+    return total
+
+
+def pairwise_distance(queries: jax.Array, points: jax.Array) -> jax.Array:
+    """(Q, D), (P, D) -> (Q, P) Euclidean distances, summed over D in index order."""
+    return jnp.sqrt(squared_distance(queries, points))
 
 
 def map_rows(fn, arrays: tuple, fills: tuple, chunk: int):
