@@ -16,7 +16,7 @@ from hte_jax.errors import ConfigError
 from hte_jax.sim.controller import target_table, servo_command
 from hte_jax.sim.damage import DAMAGED_POSE, paper_damage_masks
 from hte_jax.sim.robot import load_robot, mj_model
-from hte_jax.sim.rollout import InvalidReason, RolloutSpec, SimState, initial_state, rollout, standing_state
+from hte_jax.sim.rollout import InvalidReason, RolloutSpec, initial_state, rollout, standing_state
 
 # Tripod gait of the 36-parameter controller, per leg (a, p, d) hip then (a, p, d) vertical.
 # Legs 0, 2, 4 lift together, 1, 3, 5 half a period later; the hip swing leads the vertical

@@ -3,6 +3,7 @@
 from hte_jax.hbr.analysis import hbr_statistics, pattern_histogram
 from hte_jax.hbr.bottom import BottomTask, evaluate_bottom
 from hte_jax.hbr.execution import HBR, SkillResult, StepResult, execute_skill, execute_step, select_middle, skill_waypoints
+from hte_jax.hbr.modulation import Modulation, modulate
 from hte_jax.hbr.middle import MiddleTask, evaluate_middle, leg_controllers, nearest_index, pattern_bits, pattern_code
 from hte_jax.hbr.store import load_hbr, save_hbr, shipped_hbr_path
 from hte_jax.hbr.top import TopTask, evaluate_top
@@ -15,6 +16,7 @@ __all__ = [
     "HBRConfig",
     "LayerSchedule",
     "MiddleTask",
+    "Modulation",
     "SkillResult",
     "StepResult",
     "TopTask",
@@ -26,6 +28,7 @@ __all__ = [
     "hbr_statistics",
     "leg_controllers",
     "load_hbr",
+    "modulate",
     "nearest_index",
     "pattern_bits",
     "pattern_code",

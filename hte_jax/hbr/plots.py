@@ -27,17 +27,27 @@ def _elites(repertoire):
     return np.asarray(repertoire.descriptors)[filled], np.asarray(repertoire.fitnesses)[filled]
 
 
+def draw_xy_map(fig, ax, image: np.ndarray, extent: float, title: str, colorbar: bool = True):
+    """A (bins, bins) x-y fitness image (NaN where empty) over [-extent, extent]^2 m on `ax`."""
+    e = extent
+    mesh = ax.imshow(image.T, origin="lower", extent=(-e, e, -e, e), cmap="viridis", vmin=-np.pi / 2, vmax=0)
+    if colorbar:
+        fig.colorbar(mesh, ax=ax, label="fitness (minus angle error, rad)")
+    ax.set(xlabel="final x (m)", ylabel="final y (m)", title=title)
+    return mesh
+
+
+def xy_title(name: str, image: np.ndarray) -> str:
+    filled = int(np.isfinite(image).sum())
+    mean = float(np.nanmean(image)) if filled else float("nan")
+    return f"{name}: {filled} of {image.size} cells, mean fitness {mean:.3f}"
+
+
 def plot_top(hbr: HBR, task: TopTask, path):
     """Top layer: final x-y position (metres) of every skill, coloured by fitness."""
     image = grid_projection(task.grid(), hbr.top)
     fig, ax = plt.subplots(figsize=(6, 5))
-    e = task.extent
-    mesh = ax.imshow(image.T, origin="lower", extent=(-e, e, -e, e), cmap="viridis", vmin=-np.pi / 2, vmax=0)
-    fig.colorbar(mesh, ax=ax, label="fitness (minus angle error, rad)")
-    filled = int(np.isfinite(image).sum())
-    mean = float(np.nanmean(image)) if filled else float("nan")
-    ax.set(xlabel="final x (m)", ylabel="final y (m)",
-           title=f"top layer: {filled} of {image.size} cells, mean fitness {mean:.3f}")
+    draw_xy_map(fig, ax, image, task.extent, xy_title("top layer", image))
     _save(fig, path)
 
 
@@ -96,3 +106,56 @@ def plot_hbr(hbr: HBR, task: TopTask, run_dir, plot_dir):
         if log.exists():
             fig = plot_metrics(log, title=f"{layer} layer", path=plot_dir / f"{layer}_metrics.png")
             plt.close(fig)
+
+
+def plot_modulation_map(modulation, path, extent: float = 1.5, radius: float | None = None):
+    """Paper Fig. 4: every skill at its final x-y, sized by the number of contact patterns that
+    show the wanted pattern and reach the skill's cell (or come within `radius` m of its final
+    position), coloured by the median position error over the executions showing the wanted pattern."""
+    counts = modulation.counts(radius)
+    reach = "reach their cell" if radius is None else f"end within {radius:g} m"
+    xy = modulation.target_xy
+    fig, ax = plt.subplots(figsize=(6.5, 5.5))
+    size = 4 + 60 * counts["both"] / max(1, modulation.patterns.size)
+    points = ax.scatter(xy[:, 0], xy[:, 1], s=size, c=counts["median_error"], marker="x", cmap="viridis_r",
+                        vmin=0, vmax=float(np.nanpercentile(counts["median_error"], 95)) if np.isfinite(counts["median_error"]).any() else 1)
+    fig.colorbar(points, ax=ax, label="median error to the skill's final x-y (m)")
+    ax.set_xlim(-extent, extent)
+    ax.set_ylim(-extent, extent)
+    ax.set_aspect("equal")
+    ax.set(xlabel="final x (m)", ylabel="final y (m)")
+    ax.set_title(f"{modulation.slots.size} skills x {modulation.patterns.size} contact patterns: "
+                 f"{counts['both'].mean():.2f} per skill show it and {reach}", fontsize=9)
+    _save(fig, path)
+
+
+def plot_modulation_grid(modulation, path, extent: float = 1.5):
+    """Paper Fig. 5: one subplot per wanted contact pattern with the final x-y of the executions
+    that showed it (legs not used in red, used in green; leg 0 first, top-left)."""
+    from hte_jax.hbr.middle import pattern_bits
+
+    shows = modulation.shows_pattern
+    error = modulation.error
+    count = modulation.patterns.size
+    cols = int(np.ceil(np.sqrt(count)))
+    rows = -(-count // cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(1.9 * cols, 1.9 * rows), squeeze=False, sharex=True, sharey=True)
+    vmax = float(np.nanpercentile(error[shows], 95)) if shows.any() else 1.0
+    for ax in axes.flat[count:]:
+        ax.axis("off")
+    for index, pattern in enumerate(modulation.patterns):
+        ax = axes.flat[index]
+        rows_shown = shows[:, index]
+        xy = modulation.final_xy[rows_shown, index]
+        ax.scatter(xy[:, 0], xy[:, 1], s=1, c=error[rows_shown, index], cmap="viridis_r", vmin=0, vmax=vmax)
+        bits = np.asarray(pattern_bits(pattern)).astype(bool)
+        ax.scatter(0.08 + 0.09 * np.arange(bits.size), np.full(bits.size, 0.9), s=14, transform=ax.transAxes,
+                   c=np.where(bits, "tab:green", "tab:red"), clip_on=False)
+        ax.set_title(f"{int(pattern)}: {int(rows_shown.sum())}", fontsize=7, pad=2)
+        ax.set_xlim(-extent, extent)
+        ax.set_ylim(-extent, extent)
+        ax.tick_params(labelsize=5)
+    fig.suptitle("final x-y per wanted contact pattern (dots: legs 0-5, red = not on the ground); "
+                 "title: pattern, skills showing it", fontsize=9)
+    fig.tight_layout()
+    _save(fig, path)

@@ -11,7 +11,6 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
-import jax.numpy as jnp
 import numpy as np
 
 from hte_jax.hbr import bottom as bottom_layer
@@ -20,8 +19,8 @@ from hte_jax.hbr import top as top_layer
 from hte_jax.hbr.execution import HBR, STEPS_PER_SKILL
 from hte_jax.hbr.middle import MiddleTask
 from hte_jax.hbr.top import TopTask
-from hte_jax.qd.io import CheckpointError, read_checkpoint, save_checkpoint
-from hte_jax.qd.repertoire import EMPTY_FITNESS, Repertoire
+from hte_jax.qd.io import CheckpointError, elite_arrays, read_checkpoint, rebuild_repertoire, save_checkpoint
+from hte_jax.qd.repertoire import Repertoire
 from hte_jax.sim.robot import assets_dir
 
 KIND = "hte_jax.hbr"
@@ -34,26 +33,11 @@ def shipped_hbr_path() -> Path:
     return assets_dir() / SHIPPED
 
 
-def _elites(repertoire: Repertoire) -> dict[str, np.ndarray]:
-    filled = np.asarray(repertoire.filled)
-    rows = np.flatnonzero(filled)
-    out = {
-        "slots": rows.astype(np.int32),
-        "genotypes": np.asarray(repertoire.genotypes)[rows],
-        "descriptors": np.asarray(repertoire.descriptors)[rows],
-        "fitnesses": np.asarray(repertoire.fitnesses)[rows],
-    }
-    for name, value in repertoire.extras.items():
-        out[f"extra_{name}"] = np.asarray(value)[rows]
-    return out
-
-
 def save_hbr(path: str | Path, hbr: HBR, top_task: TopTask, metadata: dict | None = None) -> None:
     """Atomically write `hbr` (compressed) with its tasks and any extra JSON-able `metadata`."""
     arrays = {}
     for layer in ("bottom", "middle", "top"):
-        for name, value in _elites(getattr(hbr, layer)).items():
-            arrays[f"{layer}_{name}"] = value
+        arrays.update(elite_arrays(getattr(hbr, layer), f"{layer}_"))
     header = {
         "kind": KIND,
         "kind_version": KIND_VERSION,
@@ -79,47 +63,7 @@ _LAYOUT = {
 
 def _rebuild(path, arrays, layer: str, capacity: int) -> Repertoire:
     genes, dims, extras = _LAYOUT[layer]
-    want = {"slots": ((), np.int32), "genotypes": ((genes,), np.float32), "descriptors": ((dims,), np.float32),
-            "fitnesses": ((), np.float32)}
-    want.update({f"extra_{name}": spec for name, spec in extras.items()})
-    columns = {}
-    rows = None
-    for name, (shape, dtype) in want.items():
-        key = f"{layer}_{name}"
-        if key not in arrays:
-            raise CheckpointError(f"{path}: not a complete HBR file: missing {key!r}")
-        value = arrays[key]
-        if rows is None:
-            rows = value.shape[0] if value.ndim else -1
-        if value.dtype != dtype or value.shape != (rows, *shape):
-            raise CheckpointError(
-                f"{path}: {key} has shape {value.shape} and dtype {value.dtype}, expected {(rows, *shape)} {np.dtype(dtype)}"
-            )
-        if value.dtype.kind == "f" and not np.isfinite(value).all():
-            raise CheckpointError(f"{path}: {key} holds NaN or inf values")
-        columns[name] = value
-    slots = columns["slots"]
-    if rows > capacity or (rows and (slots.min() < 0 or slots.max() >= capacity or len(np.unique(slots)) != rows)):
-        raise CheckpointError(f"{path}: {layer} slots are not unique indices below the capacity {capacity}")
-    if ((columns["genotypes"] < 0) | (columns["genotypes"] > 1)).any():
-        raise CheckpointError(f"{path}: {layer} genotypes outside [0, 1]")
-    if ((columns["descriptors"] < 0) | (columns["descriptors"] > 1)).any():
-        raise CheckpointError(f"{path}: {layer} descriptors outside [0, 1]")
-
-    def scatter(values, fill):
-        store = np.full((capacity, *values.shape[1:]), fill, values.dtype)
-        store[slots] = values
-        return jnp.asarray(store)
-
-    filled = np.zeros(capacity, bool)
-    filled[slots] = True
-    return Repertoire(
-        genotypes=scatter(columns["genotypes"], 0),
-        descriptors=scatter(columns["descriptors"], 0),
-        fitnesses=scatter(columns["fitnesses"], EMPTY_FITNESS),
-        filled=jnp.asarray(filled),
-        extras={name: scatter(columns[f"extra_{name}"], 0) for name in extras},
-    )
+    return rebuild_repertoire(path, arrays, f"{layer}_", capacity, genes, dims, extras)
 
 
 def load_hbr(path: str | Path | None = None) -> tuple[HBR, TopTask, dict]:
@@ -146,8 +90,7 @@ def load_hbr(path: str | Path | None = None) -> tuple[HBR, TopTask, dict]:
     used = np.asarray(arrays["top_extra_middle_indices"])
     if used.size and (used.min() < 0 or used.max() >= middle_count):
         raise CheckpointError(f"{path}: top elites refer to middle elites that are not in the file")
-    cells = np.asarray(top_task.grid().cell_index(jnp.asarray(arrays["top_descriptors"]))) if used.size else used
-    if used.size and not np.array_equal(cells, arrays["top_slots"]):
+    if not top_task.grid().cell_matches(arrays["top_descriptors"], arrays["top_slots"]).all():
         raise CheckpointError(f"{path}: top elites are not stored in the grid cells of their descriptors")
     hbr = HBR.build(layers["bottom"], layers["middle"], layers["top"], middle_task)
     return hbr, top_task, meta

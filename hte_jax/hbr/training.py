@@ -13,9 +13,7 @@ bit-identical repertoires for the same seed.
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
-import os
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -244,28 +242,6 @@ class TrainingOutcome:
     summary: dict
 
 
-def _write_json(path: Path, data: dict) -> None:
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    tmp.write_text(json.dumps(data, indent=2, sort_keys=True) + "\n")
-    os.replace(tmp, path)
-
-
-def _prepare(out: Path, config: HBRConfig, resume_run: bool) -> None:
-    """Start a run folder, or check that the run in it has this configuration."""
-    config_path = out / "config.json"
-    wanted = json.loads(json.dumps(config.to_dict()))
-    if config_path.exists():
-        if not resume_run:
-            raise ConfigError(f"{out} already holds a run; pass --resume to continue it or choose another --out")
-        stored = json.loads(config_path.read_text())
-        changed = sorted(key for key in set(stored) | set(wanted) if stored.get(key) != wanted.get(key))
-        if changed:
-            raise ConfigError(f"{out} was started with a different configuration (differs in: {', '.join(changed)})")
-    else:
-        out.mkdir(parents=True, exist_ok=True)
-        _write_json(config_path, wanted)
-
-
 def train_hbr(
     config: HBRConfig,
     out_dir: str | Path,
@@ -277,7 +253,7 @@ def train_hbr(
 ) -> TrainingOutcome:
     """Train (or finish training) the three layers; see the module docstring for the outputs."""
     out = Path(out_dir)
-    _prepare(out, config, resume_run)
+    io.prepare_run_dir(out, config.to_dict(), resume_run)
     robot = load_robot()
     start = standing_state(robot)
     keys = dict(zip(LAYERS, jax.random.split(jax.random.PRNGKey(config.seed), len(LAYERS))))
@@ -318,7 +294,7 @@ def train_hbr(
     summary["statistics"] = hbr_statistics(hbr)
     summary["devices"] = [str(d) for d in jax.devices()]
     save_hbr(out / "hbr.npz", hbr, config.top_task, {"training": summary})
-    _write_json(out / "summary.json", summary)
+    io.write_json(out / "summary.json", summary)
     if plots:
         plot_hbr(hbr, config.top_task, out, out / "plots")
     return TrainingOutcome(hbr=hbr, summary=summary)

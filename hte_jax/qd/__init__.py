@@ -1,6 +1,7 @@
 """Quality-Diversity engine: fixed-size containers, variation, the MAP-Elites loop, metrics, io, plots."""
 
 from hte_jax.qd.archive import Archive
+from hte_jax.qd.batched import BatchedMapElites
 from hte_jax.qd.grid import Grid
 from hte_jax.qd.io import CheckpointError, load_checkpoint, save_checkpoint
 from hte_jax.qd.loop import MapElites, MapElitesConfig, QDState, resume, run
@@ -9,6 +10,7 @@ from hte_jax.qd.repertoire import Evaluation, Insertion, Repertoire
 
 __all__ = [
     "Archive",
+    "BatchedMapElites",
     "CheckpointError",
     "Evaluation",
     "Grid",

@@ -82,9 +82,20 @@ class Grid:
         mesh = np.meshgrid(*axes, indexing="ij")
         return np.stack([m.reshape(-1) for m in mesh], axis=-1).astype(np.float32)
 
+    def cell_matches(self, descriptors: jax.Array, cells: jax.Array, tolerance: float = 1e-6) -> np.ndarray:
+        """(B,) bool: `cells` is the cell of `descriptors`, allowing a descriptor within `tolerance`
+        of a bin edge to sit on either side (float rounding may differ between programs)."""
+        descriptors = jnp.asarray(descriptors, jnp.float32)
+        cells = np.asarray(cells)
+        ok = np.zeros(cells.shape, bool)
+        for shift in (0.0, -tolerance, tolerance):
+            ok |= np.asarray(self.cell_index(descriptors + shift)) == cells
+        return ok
+
     def add(self, repertoire: Repertoire, genotypes: jax.Array, evaluation: Evaluation):
         """Insert a batch; returns (new repertoire, Insertion)."""
-        cell = self.cell_index(evaluation.descriptors)
+        # The cell is computed from the stored float32 descriptors, not from a fused recomputation.
+        cell = self.cell_index(jax.lax.optimization_barrier(evaluation.descriptors))
         ok = insertable(evaluation) & (cell >= 0)
         cell = jnp.where(ok, cell, self.capacity)  # rejected rows point past the last cell
         fitness = jnp.where(ok, evaluation.fitnesses, -jnp.inf)

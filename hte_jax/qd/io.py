@@ -17,7 +17,11 @@ from pathlib import Path
 from typing import Any
 
 import jax
+import jax.numpy as jnp
 import numpy as np
+
+from hte_jax.errors import ConfigError
+from hte_jax.qd.repertoire import EMPTY_FITNESS, Repertoire
 
 FORMAT = "hte_jax.checkpoint"
 FORMAT_VERSION = 1
@@ -119,9 +123,105 @@ def load_checkpoint(path: str | Path, template: Any, expected_metadata: dict | N
         restored.append(value)
     if arrays:
         raise CheckpointError(f"{path}: unexpected fields {sorted(arrays)}")
-    return jax.tree_util.tree_unflatten(treedef, [jax.numpy.asarray(v) for v in restored])
+    return jax.tree_util.tree_unflatten(treedef, [jnp.asarray(v) for v in restored])
 
 
 def _jsonable(value):
     """The value as it reads back from JSON (tuples become lists)."""
     return json.loads(json.dumps(value))
+
+
+def write_json(path: str | Path, data: dict) -> None:
+    """Atomically write `data` as indented JSON."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    tmp.write_text(json.dumps(data, indent=2, sort_keys=True) + "\n")
+    os.replace(tmp, path)
+
+
+def prepare_run_dir(out: str | Path, config: dict, resume_run: bool) -> Path:
+    """Start a run folder holding `config.json`, or check that the run already in it has `config`.
+
+    Raises ConfigError (naming the differing top-level keys) when the folder holds another run,
+    or holds a run and `resume_run` is False.
+    """
+    out = Path(out)
+    config_path = out / "config.json"
+    wanted = _jsonable(config)
+    if config_path.exists():
+        if not resume_run:
+            raise ConfigError(f"{out} already holds a run; pass --resume to continue it or choose another --out")
+        stored = json.loads(config_path.read_text())
+        changed = sorted(key for key in set(stored) | set(wanted) if stored.get(key) != wanted.get(key))
+        if changed:
+            raise ConfigError(f"{out} was started with a different configuration (differs in: {', '.join(changed)})")
+    else:
+        out.mkdir(parents=True, exist_ok=True)
+        write_json(config_path, wanted)
+    return out
+
+
+def elite_arrays(repertoire: Repertoire, prefix: str = "") -> dict[str, np.ndarray]:
+    """The filled rows of a Repertoire as flat arrays `<prefix>slots/genotypes/descriptors/fitnesses/extra_*`."""
+    filled = np.asarray(repertoire.filled)
+    rows = np.flatnonzero(filled)
+    out = {
+        "slots": rows.astype(np.int32),
+        "genotypes": np.asarray(repertoire.genotypes)[rows],
+        "descriptors": np.asarray(repertoire.descriptors)[rows],
+        "fitnesses": np.asarray(repertoire.fitnesses)[rows],
+    }
+    for name, value in repertoire.extras.items():
+        out[f"extra_{name}"] = np.asarray(value)[rows]
+    return {f"{prefix}{name}": value for name, value in out.items()}
+
+
+def rebuild_repertoire(path, arrays: dict, prefix: str, capacity: int, genes: int, dims: int, extras: dict) -> Repertoire:
+    """Inverse of `elite_arrays`: a fixed-size Repertoire, every array checked.
+
+    extras: {name: (shape without rows, numpy dtype)}. Raises CheckpointError naming the
+    missing or wrong-shaped array, non-finite values, genotypes or descriptors outside [0, 1],
+    or slots that are not unique indices below `capacity`.
+    """
+    want = {"slots": ((), np.int32), "genotypes": ((genes,), np.float32), "descriptors": ((dims,), np.float32),
+            "fitnesses": ((), np.float32)}
+    want.update({f"extra_{name}": spec for name, spec in extras.items()})
+    columns = {}
+    rows = None
+    for name, (shape, dtype) in want.items():
+        key = f"{prefix}{name}"
+        if key not in arrays:
+            raise CheckpointError(f"{path}: not a complete repertoire file: missing {key!r}")
+        value = arrays[key]
+        if rows is None:
+            rows = value.shape[0] if value.ndim else -1
+        if value.dtype != dtype or value.shape != (rows, *shape):
+            raise CheckpointError(
+                f"{path}: {key} has shape {value.shape} and dtype {value.dtype}, expected {(rows, *shape)} {np.dtype(dtype)}"
+            )
+        if value.dtype.kind == "f" and not np.isfinite(value).all():
+            raise CheckpointError(f"{path}: {key} holds NaN or inf values")
+        columns[name] = value
+    label = prefix.rstrip("_") or "repertoire"
+    slots = columns["slots"]
+    if rows > capacity or (rows and (slots.min() < 0 or slots.max() >= capacity or len(np.unique(slots)) != rows)):
+        raise CheckpointError(f"{path}: {label} slots are not unique indices below the capacity {capacity}")
+    if ((columns["genotypes"] < 0) | (columns["genotypes"] > 1)).any():
+        raise CheckpointError(f"{path}: {label} genotypes outside [0, 1]")
+    if ((columns["descriptors"] < 0) | (columns["descriptors"] > 1)).any():
+        raise CheckpointError(f"{path}: {label} descriptors outside [0, 1]")
+
+    def scatter(values, fill):
+        store = np.full((capacity, *values.shape[1:]), fill, values.dtype)
+        store[slots] = values
+        return jnp.asarray(store)
+
+    filled = np.zeros(capacity, bool)
+    filled[slots] = True
+    return Repertoire(
+        genotypes=scatter(columns["genotypes"], 0),
+        descriptors=scatter(columns["descriptors"], 0),
+        fitnesses=scatter(columns["fitnesses"], EMPTY_FITNESS),
+        filled=jnp.asarray(filled),
+        extras={name: scatter(columns[f"extra_{name}"], 0) for name in extras},
+    )

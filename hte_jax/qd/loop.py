@@ -23,7 +23,7 @@ from tqdm.auto import tqdm
 from hte_jax.errors import ConfigError, require_int, require_number
 from hte_jax.qd import io
 from hte_jax.qd.metrics import MetricsLog, RepertoireMetrics, repertoire_metrics
-from hte_jax.qd.repertoire import Evaluation, Insertion, Repertoire
+from hte_jax.qd.repertoire import Evaluation, Repertoire
 from hte_jax.qd.variation import polynomial_mutation, sbx_crossover, uniform_selection
 
 # evaluate(key, genotypes (B, G)) -> Evaluation with B rows; must be jittable.

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from flax import struct
 
 from hte_jax.qd.repertoire import Repertoire
@@ -93,3 +94,27 @@ class MetricsLog:
 def _plain(value):
     """Python scalar for CSV (JAX and NumPy scalars become int or float)."""
     return value.item() if hasattr(value, "item") else value
+
+
+def projected_statistics(descriptors, fitnesses, filled, bins: int) -> dict:
+    """The paper's Table 2 columns for one repertoire, on the host.
+
+    descriptors (C, D) whose first two dimensions are x, y in [0, 1]; fitnesses (C,); filled (C,).
+    Returns: "size" (elites), "effective_size" (cells of the bins x bins x-y grid holding at least
+    one elite), "mean_fitness" (mean over those cells of the best elite in each, i.e. the 2-D
+    repertoire a planner sees), "mean_fitness_all" (mean over all elites).
+    """
+    filled = np.asarray(filled, bool)
+    xy = np.asarray(descriptors, np.float64)[filled, :2]
+    fitness = np.asarray(fitnesses, np.float64)[filled]
+    cells = np.clip(np.floor(xy * bins).astype(np.int64), 0, bins - 1)
+    flat = cells[:, 0] * bins + cells[:, 1]
+    best = np.full(bins * bins, -np.inf)
+    np.maximum.at(best, flat, fitness)
+    best = best[np.isfinite(best)]
+    return {
+        "size": int(filled.sum()),
+        "effective_size": int(best.size),
+        "mean_fitness": float(best.mean()) if best.size else float("nan"),
+        "mean_fitness_all": float(fitness.mean()) if fitness.size else float("nan"),
+    }

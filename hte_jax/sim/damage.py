@@ -32,6 +32,11 @@ PAPER_DAMAGES: dict[str, tuple[int, ...]] = {
     "legs1+4": (1, 4),
 }
 DAMAGE_NAMES = ("none", *PAPER_DAMAGES)
+# APROL's prior conditions (paper section 5): the 6 single-leg and the 15 two-leg damages.
+APROL_DAMAGES: dict[str, tuple[int, ...]] = {
+    **{f"leg{i}": (i,) for i in range(NUM_LEGS)},
+    **{f"legs{i}+{j}": (i, j) for i in range(NUM_LEGS) for j in range(i + 1, NUM_LEGS)},
+}
 
 
 def damage_mask(legs: Iterable[int]) -> np.ndarray:
@@ -45,7 +50,7 @@ def damage_mask(legs: Iterable[int]) -> np.ndarray:
 
 
 def parse_damage(name: str | int) -> np.ndarray:
-    """Mask for a damage name ('none', 'leg0'..'leg5', 'legs1+4') or the original's -l index.
+    """Mask for a damage name ('none', 'leg0'..'leg5', 'legs<i>+<j>') or the original's -l index.
 
     The original code's indices are 0..5 for single legs, 6 for legs 1+4, -1 for none.
     """
@@ -60,12 +65,22 @@ def parse_damage(name: str | int) -> np.ndarray:
         return damage_mask(())
     if name in PAPER_DAMAGES:
         return damage_mask(PAPER_DAMAGES[name])
-    raise ConfigError(f"unknown damage {name!r}; expected one of {', '.join(DAMAGE_NAMES)}")
+    if name in APROL_DAMAGES:
+        return damage_mask(APROL_DAMAGES[name])
+    raise ConfigError(
+        f"unknown damage {name!r}; expected 'none', 'leg<i>' or 'legs<i>+<j>' with 0 <= i < j <= 5 "
+        f"(the paper's: {', '.join(DAMAGE_NAMES)})"
+    )
 
 
 def paper_damage_masks() -> np.ndarray:
     """(7, 6) bool masks of the paper's conditions, in `PAPER_DAMAGES` order."""
     return np.stack([damage_mask(legs) for legs in PAPER_DAMAGES.values()])
+
+
+def damage_masks(names: Iterable[str]) -> np.ndarray:
+    """(N, 6) bool masks of damage names (see `parse_damage`)."""
+    return np.stack([parse_damage(name) for name in names])
 
 
 def damaged_joint_mask(damage: jax.Array) -> jax.Array:

@@ -1,0 +1,93 @@
+"""A flat repertoire's evaluation: one 36-parameter controller run for 3 s (paper section 5; facts section 6).
+
+Descriptor, "2d": final (x, y) in the start frame normalised to [0, 1] over [-extent, extent] m
+(the HBR top layer's grid). "8d": the same (x, y) plus one contact bit per leg, 1 when the foot
+was on the ground more than `contact_threshold` of the 3 s (leg 0 first), i.e. the x-y grid
+times the 64 contact patterns. Fitness: the circular-trajectory angle error of the 3 s.
+The robot starts from the standing state of its own (possibly damaged) body.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+
+from hte_jax.errors import ConfigError, require_int, require_number
+from hte_jax.hbr.geometry import angle_error, planar_pose, relative_pose
+from hte_jax.hbr.top import TopTask
+from hte_jax.qd.grid import Grid
+from hte_jax.qd.repertoire import Evaluation
+from hte_jax.sim.controller import NUM_PARAMS
+from hte_jax.sim.robot import NUM_LEGS, Robot
+from hte_jax.sim.rollout import RolloutSpec, SimState, rollout
+
+GENES = NUM_PARAMS  # 36
+DESCRIPTOR_DIMS = {"2d": 2, "8d": 2 + NUM_LEGS}
+
+
+@dataclasses.dataclass(frozen=True)
+class FlatTask:
+    """What a flat repertoire measures (static, hashable).
+
+    descriptor: "2d" or "8d". bins: x-y cells per axis over [-extent, extent] m.
+    steps: control steps of the episode (100 per second). contact_threshold: fraction of the
+    episode a foot must be down for its contact bit (8d).
+    """
+
+    descriptor: str = "2d"
+    bins: int = 100
+    extent: float = 1.5
+    steps: int = 300
+    contact_threshold: float = 0.3
+
+    def __post_init__(self):
+        if self.descriptor not in DESCRIPTOR_DIMS:
+            raise ConfigError(f"descriptor must be one of {sorted(DESCRIPTOR_DIMS)}, got {self.descriptor!r}")
+        require_int("bins", self.bins)
+        require_number("extent", self.extent, 0.0, open_low=True)
+        require_int("steps", self.steps)
+        require_number("contact_threshold", self.contact_threshold, 0.0, 1.0)
+
+    @property
+    def descriptor_dim(self) -> int:
+        return DESCRIPTOR_DIMS[self.descriptor]
+
+    @property
+    def xy(self) -> TopTask:
+        """The x-y grid alone (shared with the HBR top layer)."""
+        return TopTask(bins=self.bins, extent=self.extent)
+
+    def grid(self) -> Grid:
+        bins = (self.bins, self.bins) + (2,) * (self.descriptor_dim - 2)
+        dims = len(bins)
+        return Grid(bins=bins, low=(0.0,) * dims, high=(1.0,) * dims)
+
+    def spec(self) -> RolloutSpec:
+        return RolloutSpec(num_steps=self.steps, pose_steps=(0, self.steps), record_contacts=True)
+
+
+def evaluate_flat(
+    robot: Robot, task: FlatTask, start: SimState, damage: jax.Array, key: jax.Array, genotypes: jax.Array
+) -> Evaluation:
+    """Evaluate (B, 36) controllers from `start` (unbatched) with damage (6,) (key unused: deterministic).
+
+    Extras: "arrival_yaw" (B,) rad in the start frame; "contact_fraction" (B, 6) per foot.
+    """
+    del key
+    result = rollout(robot, genotypes, damage, start, task.spec())
+    poses = planar_pose(result.base_pos, result.base_quat)
+    displacement = relative_pose(poses[:, 0], poses[:, 1])
+    xy = task.xy.normalise(displacement[:, :2])
+    fraction = result.foot_contacts.mean(axis=1)
+    descriptors = xy
+    if task.descriptor == "8d":
+        descriptors = jnp.concatenate([xy, (fraction > task.contact_threshold).astype(jnp.float32)], axis=-1)
+    in_range = jnp.all((xy >= 0.0) & (xy <= 1.0), axis=-1)
+    return Evaluation(
+        fitnesses=angle_error(displacement),
+        descriptors=descriptors,
+        valid=result.valid & in_range,
+        extras={"arrival_yaw": displacement[:, 2], "contact_fraction": fraction},
+    )

@@ -1,0 +1,170 @@
+"""Secondary-descriptor modulation (paper section 5, Fig. 4 and 5).
+
+Every top-layer skill is re-executed from the standing state with each contact pattern held for
+its 3 steps. Per skill we count the patterns for which the robot (i) showed the wanted pattern,
+measured over the whole 3 s (a foot is "on the ground" when down more than the middle layer's
+contact threshold), and (ii) ended in the skill's own x-y cell of the top grid.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from tqdm.auto import tqdm
+
+from hte_jax.hbr.execution import HBR, STEPS_PER_SKILL, execute_skill
+from hte_jax.hbr.middle import NUM_PATTERNS, pattern_code
+from hte_jax.hbr.top import TopTask
+from hte_jax.sim.robot import Robot
+from hte_jax.sim.rollout import SimState
+
+
+@dataclasses.dataclass(frozen=True)
+class Modulation:
+    """Re-executions of N skills with P contact patterns (host numpy arrays).
+
+    slots: (N,) top-grid cells of the skills. patterns: (P,) wanted patterns.
+    target_xy: (N, 2) m, the skills' stored final positions. final_xy: (N, P, 2) m reached.
+    measured: (N, P) int pattern shown over the 3 s. valid: (N, P) simulation stayed valid.
+    available: (N, P) a middle elite of the wanted pattern existed for all 3 steps.
+    final_cell: (N, P) top-grid cell reached (-1 outside the grid).
+    """
+
+    slots: np.ndarray
+    patterns: np.ndarray
+    target_xy: np.ndarray
+    final_xy: np.ndarray
+    measured: np.ndarray
+    valid: np.ndarray
+    available: np.ndarray
+    final_cell: np.ndarray
+
+    def save(self, path) -> None:
+        np.savez_compressed(path, **dataclasses.asdict(self))
+
+    @classmethod
+    def load(cls, path) -> Modulation:
+        with np.load(path) as data:
+            fields = [f.name for f in dataclasses.fields(cls)]
+            missing = [name for name in fields if name not in data.files]
+            if missing:
+                raise ValueError(f"{path}: not a modulation file (missing {missing})")
+            return cls(**{name: data[name] for name in fields})
+
+    @property
+    def shows_pattern(self) -> np.ndarray:
+        """(N, P) the robot showed the wanted contact pattern."""
+        return self.valid & (self.measured == self.patterns[None, :])
+
+    def reaches(self, radius: float | None = None) -> np.ndarray:
+        """(N, P) the robot ended in the skill's own cell (radius None), or within `radius` m of
+        the skill's stored final position."""
+        if radius is None:
+            return self.valid & (self.final_cell == self.slots[:, None])
+        return self.valid & (self.error <= radius)
+
+    @property
+    def error(self) -> np.ndarray:
+        """(N, P) distance (m) between the reached and the skill's stored final position."""
+        return np.linalg.norm(self.final_xy - self.target_xy[:, None, :], axis=-1)
+
+    def counts(self, radius: float | None = None) -> dict[str, np.ndarray]:
+        """Per skill (N,): "shows" (i), "reaches" (ii, see `reaches`), "both", and "median_error" (m)
+        over the executions that showed the wanted pattern (NaN where none did)."""
+        shows, reaches = self.shows_pattern, self.reaches(radius)
+        error = np.where(shows, self.error, np.nan)
+        some = shows.any(axis=1)
+        median = np.full(self.slots.size, np.nan)
+        median[some] = np.nanmedian(error[some], axis=1)
+        return {
+            "shows": shows.sum(axis=1),
+            "reaches": reaches.sum(axis=1),
+            "both": (shows & reaches).sum(axis=1),
+            "median_error": median,
+        }
+
+    def summary(self, radii: tuple[float, ...] = (0.05, 0.1, 0.2)) -> dict:
+        counts = self.counts()
+        per_pattern = self.shows_pattern.sum(axis=0)
+        within = {}
+        for radius in radii:
+            near = self.counts(radius)
+            within[f"{radius:g}"] = {"reaches": float(near["reaches"].mean()), "both": float(near["both"].mean())}
+        return {
+            "skills": int(self.slots.size),
+            "patterns": int(self.patterns.size),
+            "mean_patterns_shown_per_skill": float(counts["shows"].mean()),
+            "mean_patterns_reaching_cell_per_skill": float(counts["reaches"].mean()),
+            "mean_patterns_both_per_skill": float(counts["both"].mean()),
+            "skills_with_a_shown_pattern": int((counts["shows"] > 0).sum()),
+            "median_error_m": float(np.nanmedian(counts["median_error"])) if np.isfinite(counts["median_error"]).any()
+            else float("nan"),
+            "skills_showing_each_pattern": per_pattern.tolist(),
+            "feasible_patterns": int((per_pattern > 0).sum()),
+            "mean_patterns_per_skill_within_radius_m": within,
+        }
+
+
+def modulate(
+    robot: Robot,
+    hbr: HBR,
+    task: TopTask,
+    start: SimState,
+    *,
+    skills: np.ndarray | None = None,
+    patterns: np.ndarray | None = None,
+    chunk: int = 4096,
+    progress: bool = True,
+) -> Modulation:
+    """Re-execute top skills (default all; `skills` = top-grid cells) with each pattern (default all 64).
+
+    start: the unbatched standing state. Runs in fixed-size jitted chunks of `chunk` executions.
+    """
+    filled = np.flatnonzero(np.asarray(hbr.top.filled))
+    slots = filled if skills is None else np.asarray(skills, np.int64)
+    if not np.isin(slots, filled).all():
+        raise ValueError(f"skills {slots[~np.isin(slots, filled)].tolist()} are not filled cells of the top layer")
+    patterns = np.arange(NUM_PATTERNS) if patterns is None else np.asarray(patterns, np.int64)
+    if patterns.size == 0 or patterns.min() < 0 or patterns.max() >= NUM_PATTERNS:
+        raise ValueError(f"patterns must be in [0, {NUM_PATTERNS}), got {patterns.tolist()}")
+    genotypes = np.asarray(hbr.top.genotypes)[slots]
+    pair_genes = np.repeat(genotypes, patterns.size, axis=0)
+    pair_patterns = np.tile(patterns, slots.size)
+    total = pair_genes.shape[0]
+    chunk = min(chunk, total)
+    threshold = hbr.middle_task.contact_threshold
+    starts = jax.tree.map(lambda x: jnp.broadcast_to(x, (chunk, *x.shape)), start)
+
+    @jax.jit
+    def run_chunk(hbr, genes, wanted):
+        held = jnp.broadcast_to(wanted[:, None], (wanted.shape[0], STEPS_PER_SKILL))
+        skill = execute_skill(robot, hbr, genes, starts, patterns=held)
+        fraction = skill.steps.contact_fraction.mean(axis=0)  # (B, 6) over the 3 s
+        xy = skill.displacement[:, :2]
+        cell = task.grid().cell_index(task.normalise(xy))
+        return xy, pattern_code((fraction > threshold).astype(jnp.float32)), skill.valid, skill.steps.pattern_found.all(axis=0), cell
+
+    outputs = []
+    for begin in tqdm(range(0, total, chunk), disable=not progress, desc="modulation", unit="chunk"):
+        genes = pair_genes[begin:begin + chunk]
+        wanted = pair_patterns[begin:begin + chunk]
+        pad = chunk - genes.shape[0]
+        genes = np.concatenate([genes, np.repeat(genes[-1:], pad, axis=0)])
+        wanted = np.concatenate([wanted, np.repeat(wanted[-1:], pad)])
+        out = jax.device_get(run_chunk(hbr, jnp.asarray(genes), jnp.asarray(wanted, jnp.int32)))
+        outputs.append([np.asarray(o)[: chunk - pad] for o in out])
+    xy, measured, valid, available, cell = (np.concatenate(parts) for parts in zip(*outputs))
+    shape = (slots.size, patterns.size)
+    return Modulation(
+        slots=slots,
+        patterns=patterns,
+        target_xy=np.asarray(task.denormalise(np.asarray(hbr.top.descriptors)[slots])),
+        final_xy=xy.reshape(*shape, 2),
+        measured=measured.reshape(shape),
+        valid=valid.reshape(shape),
+        available=available.reshape(shape),
+        final_cell=cell.reshape(shape),
+    )

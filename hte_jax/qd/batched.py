@@ -1,0 +1,117 @@
+"""Several independent MAP-Elites runs in one jitted call, `vmap`-ped over a per-run condition.
+
+The runs share the container, genotype size and hyper-parameters and differ only by a
+condition passed to the evaluation: a damage mask and the damaged robot's start state for
+APROL's 21 repertoires, a task parameter, a seed... Run r behaves like `single(r)` run alone
+(the same PRNG keys; the vmapped physics may differ from an unbatched one in the last bits).
+`QDState` holds (R, ...) repertoires and (R, 2) keys with one shared scalar generation, so the
+host-side `loop.run` (progress, CSV, atomic checkpoints, resume) drives it unchanged.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from collections.abc import Callable
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+
+from hte_jax.errors import ConfigError
+from hte_jax.qd.loop import MapElites, MapElitesConfig, QDState
+from hte_jax.qd.metrics import RepertoireMetrics, repertoire_metrics
+from hte_jax.qd.repertoire import Evaluation
+
+# evaluate(key, genotypes (B, G), condition) -> Evaluation with B rows; condition is one run's slice.
+ConditionedEvaluateFn = Callable[[jax.Array, jax.Array, Any], Evaluation]
+
+# vmap axes of a batched QDState: per-run repertoire and key, shared generation counter.
+_STATE_AXES = QDState(repertoire=0, key=0, generation=None)
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class BatchedMapElites:
+    """R MAP-Elites runs, one per condition.
+
+    container, genotype_dim, config, extras: as in `MapElites`, shared by all runs.
+    evaluate: (key, genotypes, condition) -> Evaluation.
+    conditions: pytree of (R, ...) arrays, row r is run r's condition.
+    names: R labels of the runs (stored in checkpoints; a resume must use the same runs).
+    """
+
+    container: Any
+    evaluate: ConditionedEvaluateFn
+    genotype_dim: int
+    conditions: Any
+    names: tuple[str, ...]
+    config: MapElitesConfig = MapElitesConfig()
+    extras: Any = None
+
+    def __post_init__(self):
+        sizes = {int(x.shape[0]) for x in jax.tree.leaves(self.conditions)}
+        if sizes != {len(self.names)}:
+            raise ConfigError(f"conditions must all have {len(self.names)} rows (one per name), got {sorted(sizes)}")
+
+    @property
+    def num_runs(self) -> int:
+        return len(self.names)
+
+    def _algo(self, condition) -> MapElites:
+        return MapElites(
+            container=self.container,
+            evaluate=lambda key, genotypes: self.evaluate(key, genotypes, condition),
+            genotype_dim=self.genotype_dim,
+            config=self.config,
+            extras=self.extras,
+        )
+
+    def single(self, run: int) -> MapElites:
+        """Run `run` on its own (same keys as inside the batch: `run_keys(key)[run]`)."""
+        return self._algo(jax.tree.map(lambda x: x[run], self.conditions))
+
+    def run_keys(self, key: jax.Array) -> jax.Array:
+        """(R, 2) the key each run's `init` receives."""
+        return jax.random.split(key, self.num_runs)
+
+    def evaluations(self, state: QDState) -> int:
+        """Evaluations done so far over all runs (host int)."""
+        return self.num_runs * (self.config.init_size + int(state.generation) * self.config.batch_size)
+
+    def empty_state(self, key: jax.Array) -> QDState:
+        one = self.single(0).empty_state(key)
+        batched = jax.tree.map(lambda x: jnp.broadcast_to(x, (self.num_runs, *x.shape)), one.repertoire)
+        return QDState(repertoire=batched, key=self.run_keys(key), generation=jnp.int32(0))
+
+    @functools.partial(jax.jit, static_argnums=0)
+    def init(self, key: jax.Array) -> QDState:
+        def one(run_key, condition):
+            return self._algo(condition).init(run_key)
+
+        return jax.vmap(one, out_axes=_STATE_AXES)(self.run_keys(key), self.conditions)
+
+    def generation_step(self, state: QDState) -> tuple[QDState, jax.Array]:
+        def one(run_state, condition):
+            return self._algo(condition).generation_step(run_state)
+
+        new, accepted = jax.vmap(one, in_axes=(_STATE_AXES, 0), out_axes=(_STATE_AXES, 0))(state, self.conditions)
+        return new, accepted.sum()
+
+    @functools.partial(jax.jit, static_argnums=(0, 2))
+    def run_block(self, state: QDState, generations: int) -> tuple[QDState, jax.Array]:
+        state, accepted = jax.lax.scan(lambda s, _: self.generation_step(s), state, None, length=generations)
+        return state, accepted.sum()
+
+    @functools.partial(jax.jit, static_argnums=0)
+    def metrics(self, state: QDState) -> RepertoireMetrics:
+        """Metrics of all runs' elites pooled (coverage is the mean coverage)."""
+        pooled = jax.tree.map(lambda x: x.reshape(-1, *x.shape[2:]), state.repertoire)
+        return repertoire_metrics(pooled, self.config.qd_offset)
+
+    @functools.partial(jax.jit, static_argnums=0)
+    def run_metrics(self, state: QDState) -> RepertoireMetrics:
+        """(R,) metrics, one per run."""
+        return jax.vmap(lambda rep: repertoire_metrics(rep, self.config.qd_offset))(state.repertoire)
+
+    def checkpoint_metadata(self) -> dict:
+        return {**self.single(0).checkpoint_metadata(), "runs": list(self.names)}

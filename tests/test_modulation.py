@@ -1,0 +1,89 @@
+"""Secondary-descriptor modulation (paper Fig. 4 / 5): counts on hand-made cases and on real
+re-executions of shipped skills, checked against direct hierarchical execution."""
+
+import json
+
+import jax
+import jax.numpy as jnp
+import matplotlib.image
+import numpy as np
+import pytest
+
+from experiments.modulation import main as modulation_main
+from hte_jax.hbr.execution import STEPS_PER_SKILL, execute_skill
+from hte_jax.hbr.middle import pattern_code
+from hte_jax.hbr.modulation import Modulation
+from hte_jax.hbr.store import load_hbr
+from hte_jax.sim import load_robot, standing_state
+
+
+def _hand_case() -> Modulation:
+    # 2 skills in cells 5 and 7, 3 wanted patterns (63, 62, 0)
+    return Modulation(
+        slots=np.array([5, 7]),
+        patterns=np.array([63, 62, 0]),
+        target_xy=np.array([[0.0, 0.0], [1.0, 0.0]]),
+        final_xy=np.array([[[0.0, 0.03], [0.0, 0.5], [0.04, 0.0]], [[1.0, 0.2], [1.0, 0.0], [1.0, 0.06]]]),
+        measured=np.array([[63, 62, 3], [63, 63, 0]]),
+        valid=np.array([[True, True, True], [True, True, False]]),
+        available=np.ones((2, 3), bool),
+        final_cell=np.array([[5, 9, 5], [8, 7, -1]]),
+    )
+
+
+def test_counts_hand_case():
+    mod = _hand_case()
+    np.testing.assert_array_equal(mod.shows_pattern, [[True, True, False], [True, False, False]])
+    np.testing.assert_array_equal(mod.reaches(), [[True, False, True], [False, True, False]])
+    counts = mod.counts()
+    np.testing.assert_array_equal(counts["shows"], [2, 1])
+    np.testing.assert_array_equal(counts["reaches"], [2, 1])
+    np.testing.assert_array_equal(counts["both"], [1, 0])
+    np.testing.assert_allclose(counts["median_error"], [np.median([0.03, 0.5]), 0.2])
+    near = mod.counts(radius=0.05)  # within 5 cm instead of the same cell
+    np.testing.assert_array_equal(near["reaches"], [2, 1])  # the invalid execution never counts
+    np.testing.assert_array_equal(near["both"], [1, 0])
+    summary = mod.summary()
+    assert summary["skills_showing_each_pattern"] == [2, 1, 0] and summary["feasible_patterns"] == 2
+    assert summary["mean_patterns_both_per_skill"] == 0.5
+
+
+def test_reexecutions_match_direct_hierarchical_execution(tmp_path):
+    out = tmp_path / "mod"
+    assert modulation_main(["--max-skills", "2", "--chunk", "64", "--out", str(out), "--no-progress"]) == 0
+    mod = Modulation.load(out / "modulation.npz")
+    assert mod.final_xy.shape == (2, 64, 2) and mod.patterns.tolist() == list(range(64))
+    data = json.loads((out / "modulation.json").read_text())
+    assert data["per_skill"]["shows"] == mod.counts()["shows"].tolist()
+    assert data["summary"]["skills"] == 2
+    for name in ("modulation_map", "modulation_grid"):
+        image = matplotlib.image.imread(out / f"{name}.png")
+        assert image.ndim == 3 and image.std() > 0
+    # two (skill, pattern) pairs re-executed directly with the pattern held for the 3 steps
+    hbr, task, _ = load_hbr()
+    robot = load_robot()
+    pairs = [(0, 63), (1, 27)]
+    genes = hbr.top.genotypes[np.array([mod.slots[s] for s, _ in pairs])]
+    held = jnp.asarray([[p] * STEPS_PER_SKILL for _, p in pairs], jnp.int32)
+    start = jax.tree.map(lambda x: jnp.broadcast_to(x, (2, *x.shape)), standing_state(robot))
+    skill = execute_skill(robot, hbr, genes, start, patterns=held)
+    shown = np.asarray(pattern_code((skill.steps.contact_fraction.mean(axis=0) > 0.3).astype(jnp.float32)))
+    for row, (s, p) in enumerate(pairs):
+        np.testing.assert_allclose(mod.final_xy[s, p], np.asarray(skill.displacement[row, :2]), atol=2e-3)
+        assert mod.measured[s, p] == shown[row]
+    # the skills' stored final positions are their top-layer descriptors
+    np.testing.assert_allclose(mod.target_xy, np.asarray(task.denormalise(hbr.top.descriptors[mod.slots])), atol=1e-6)
+    # re-plotting from the saved data gives the same counts, with a radius
+    again = tmp_path / "again"
+    assert modulation_main(["--data", str(out / "modulation.npz"), "--radius", "0.1", "--out", str(again)]) == 0
+    assert json.loads((again / "modulation.json").read_text())["per_skill"]["shows"] == data["per_skill"]["shows"]
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--max-skills", "0"], "--max-skills"),
+    (["--radius", "-1"], "--radius"),
+    (["--hbr", "/nowhere/hbr.npz"], "no such checkpoint"),
+])
+def test_modulation_cli_errors(args, message, tmp_path, capsys):
+    assert modulation_main([*args, "--out", str(tmp_path)]) == 2
+    assert message in capsys.readouterr().err
