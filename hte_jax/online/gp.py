@@ -1,0 +1,140 @@
+"""Jitted Gaussian processes on fixed-capacity, masked observation buffers (facts section 7).
+
+A `GPData` buffer has room for `capacity` observations and a mask of the filled rows, so adding
+points never changes an array shape and never retraces. Padded rows are decoupled from the real
+ones (zero covariance, unit diagonal), which makes the posterior exactly that of the unpadded GP.
+When the buffer is full the oldest observation is overwritten (ring buffer).
+
+Outputs share one kernel (as in limbo): the posterior variance is the same for every output.
+The prior mean is either given per observation and per query (RTE: the repertoire's prediction)
+or the mean of the observed targets (limbo's `mean::Data`, HTE's secondary GP).
+Linear algebra runs in float32 under `jax.default_matmul_precision("highest")`: GPU tensor cores
+would otherwise round matrix products to TF32.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+from hte_jax.errors import ConfigError, require_int, require_number
+
+KERNELS = ("squared_exponential", "matern52")
+
+
+@dataclasses.dataclass(frozen=True)
+class Kernel:
+    """A stationary kernel k(a, b) = variance * f(|a - b| / length_scale), observation noise `noise`.
+
+    kind: "squared_exponential" (limbo Exp: exp(-r^2 / 2)) or "matern52"
+    ((1 + sqrt5 r + 5 r^2 / 3) exp(-sqrt5 r)).
+    """
+
+    kind: str
+    length_scale: float
+    variance: float
+    noise: float
+
+    def __post_init__(self):
+        if self.kind not in KERNELS:
+            raise ConfigError(f"kernel kind must be one of {KERNELS}, got {self.kind!r}")
+        require_number("kernel length_scale", self.length_scale, 0.0, open_low=True)
+        require_number("kernel variance", self.variance, 0.0, open_low=True)
+        require_number("kernel noise", self.noise, 0.0)
+
+    def __call__(self, a: jax.Array, b: jax.Array) -> jax.Array:
+        """(A, D), (B, D) -> (A, B) covariances."""
+        diff = a[:, None, :] - b[None, :, :]
+        r2 = jnp.sum(diff * diff, axis=-1) / self.length_scale**2
+        if self.kind == "squared_exponential":
+            return self.variance * jnp.exp(-0.5 * r2)
+        r = jnp.sqrt(jnp.maximum(r2, 1e-30)) * (r2 > 0)
+        s5r = jnp.sqrt(5.0) * r
+        return self.variance * (1.0 + s5r + 5.0 * r2 / 3.0) * jnp.exp(-s5r)
+
+
+# The two GPs of the paper (facts 7.1 and 7.3).
+RTE_KERNEL = Kernel("squared_exponential", length_scale=0.03, variance=0.01, noise=0.001)
+HTE_KERNEL = Kernel("matern52", length_scale=1.0, variance=0.05, noise=0.001)
+
+
+@struct.dataclass
+class GPData:
+    """Observations of a GP with N = capacity slots, inputs of size D, outputs of size O.
+
+    inputs: (N, D) float32. targets: (N, O) float32 observed values.
+    prior: (N, O) float32 prior mean at each input (ignored when the GP uses the data mean).
+    mask: (N,) bool filled slots. count: () int32 observations ever added (next slot = count % N).
+    """
+
+    inputs: jax.Array
+    targets: jax.Array
+    prior: jax.Array
+    mask: jax.Array
+    count: jax.Array
+
+    @property
+    def capacity(self) -> int:
+        return self.mask.shape[-1]
+
+
+def empty_gp(capacity: int, input_dim: int, output_dim: int) -> GPData:
+    require_int("GP capacity", capacity)
+    return GPData(
+        inputs=jnp.zeros((capacity, input_dim), jnp.float32),
+        targets=jnp.zeros((capacity, output_dim), jnp.float32),
+        prior=jnp.zeros((capacity, output_dim), jnp.float32),
+        mask=jnp.zeros((capacity,), bool),
+        count=jnp.int32(0),
+    )
+
+
+def add_observation(data: GPData, x: jax.Array, y: jax.Array, prior: jax.Array | None = None) -> GPData:
+    """Add one observation x (D,), y (O,) with prior mean `prior` (O,) at x (default 0)."""
+    slot = data.count % data.capacity
+    prior = jnp.zeros_like(y) if prior is None else prior
+    return data.replace(
+        inputs=data.inputs.at[slot].set(x.astype(jnp.float32)),
+        targets=data.targets.at[slot].set(y.astype(jnp.float32)),
+        prior=data.prior.at[slot].set(prior.astype(jnp.float32)),
+        mask=data.mask.at[slot].set(True),
+        count=data.count + 1,
+    )
+
+
+def data_mean(data: GPData) -> jax.Array:
+    """(O,) mean of the observed targets (0 when empty)."""
+    weight = data.mask.astype(jnp.float32)[:, None]
+    return jnp.sum(data.targets * weight, axis=0) / jnp.maximum(weight.sum(), 1.0)
+
+
+def posterior(
+    kernel: Kernel, data: GPData, queries: jax.Array, query_prior: jax.Array | None = None
+) -> tuple[jax.Array, jax.Array]:
+    """Posterior mean (Q, O) and variance (Q,) at queries (Q, D).
+
+    query_prior (Q, O): the prior mean at the queries, with `data.prior` at the observations;
+    None: the prior mean is the mean of the observed targets everywhere (limbo `mean::Data`).
+    """
+    with jax.default_matmul_precision("highest"):
+        mask = data.mask
+        if query_prior is None:
+            constant = data_mean(data)
+            residual = data.targets - constant
+            query_prior = jnp.broadcast_to(constant, (queries.shape[0], constant.shape[0]))
+        else:
+            residual = data.targets - data.prior
+        pair = mask[:, None] & mask[None, :]
+        gram = jnp.where(pair, kernel(data.inputs, data.inputs), 0.0)
+        gram = gram + jnp.diag(jnp.where(mask, kernel.noise, 1.0))
+        chol = jnp.linalg.cholesky(gram)
+        residual = jnp.where(mask[:, None], residual, 0.0)
+        alpha = jax.scipy.linalg.cho_solve((chol, True), residual)
+        cross = jnp.where(mask[None, :], kernel(queries.astype(jnp.float32), data.inputs), 0.0)  # (Q, N)
+        mean = query_prior + cross @ alpha
+        v = jax.scipy.linalg.solve_triangular(chol, cross.T, lower=True)  # (N, Q)
+        variance = kernel.variance - jnp.sum(v * v, axis=0)
+    return mean, jnp.maximum(variance, 0.0)

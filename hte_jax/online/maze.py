@@ -1,0 +1,191 @@
+"""The maze of the paper's experiment (facts section 9) and the planner's 2-D geometry.
+
+Obstacles are axis-aligned boxes (x1, y1, x2, y2). The robot is a disc for the planner: a point
+collides when the disc of radius r overlaps a box; a move collides when the disc swept along the
+segment does (exact test). `distance_field` is the breadth-first distance, in grid steps, from
+every cell of a grid to the goal's cell through free cells (8-connected, every step costs 1, as
+the original's A*), the guide of the planner's expansion.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from hte_jax.errors import ConfigError, require_number
+
+Box = tuple[float, float, float, float]
+
+PAPER_BOXES: tuple[Box, ...] = (
+    (-0.20, 3.06, 0.75, 4.00),
+    (2.20, -0.30, 2.70, 0.625),
+    (1.73, 1.84, 2.73, 2.34),
+    (2.73, 1.84, 3.23, 2.84),
+    (3.15, 1.84, 4.50, 4.04),
+)
+PAPER_WALLS: tuple[Box, ...] = (
+    (-0.2, -0.31, 4.5, -0.3),
+    (-0.21, -0.3, -0.2, 4.0),
+    (4.5, -0.3, 4.51, 4.0),
+    (-0.2, 4.0, 4.5, 4.01),
+)
+
+
+@dataclasses.dataclass(frozen=True)
+class Maze:
+    """A navigation task (static, hashable).
+
+    obstacles: boxes (x1, y1, x2, y2) in metres (boxes and walls). bounds: (x_min, y_min, x_max,
+    y_max) of the planner's map; leaving it is a failure. start: (x, y, yaw). goal: (x, y);
+    reached within goal_radius. robot_radius: the planner's disc.
+    """
+
+    obstacles: tuple[Box, ...] = PAPER_BOXES + PAPER_WALLS
+    bounds: Box = (0.0, 0.0, 4.5, 4.0)
+    start: tuple[float, float, float] = (2.32, 3.27, float(np.pi))
+    goal: tuple[float, float] = (3.79, 0.424)
+    goal_radius: float = 0.25
+    robot_radius: float = 0.25
+
+    def __post_init__(self):
+        for box in (*self.obstacles, self.bounds):
+            if len(box) != 4 or not (box[0] < box[2] and box[1] < box[3]):
+                raise ConfigError(f"box {box!r} must be (x1, y1, x2, y2) with x1 < x2 and y1 < y2")
+        require_number("goal_radius", self.goal_radius, 0.0, open_low=True)
+        require_number("robot_radius", self.robot_radius, 0.0)
+
+    @property
+    def boxes(self) -> np.ndarray:
+        return np.asarray(self.obstacles, np.float32).reshape(-1, 4)
+
+
+PAPER_MAZE = Maze()
+
+
+def point_box_distance(points: jax.Array, boxes: np.ndarray) -> jax.Array:
+    """(..., 2) points, (K, 4) boxes -> (..., K) Euclidean distance to each box (0 inside)."""
+    p = points[..., None, :]
+    low, high = jnp.asarray(boxes[:, :2]), jnp.asarray(boxes[:, 2:])
+    gap = jnp.maximum(jnp.maximum(low - p, p - high), 0.0)
+    return jnp.sqrt(jnp.sum(gap * gap, axis=-1))
+
+
+def _point_segment_distance(points: jax.Array, a: jax.Array, b: jax.Array) -> jax.Array:
+    """points (..., M, 2) to segments a, b (..., 2) -> (..., M)."""
+    ab = (b - a)[..., None, :]
+    ap = points - a[..., None, :]
+    t = jnp.clip(jnp.sum(ap * ab, -1) / jnp.maximum(jnp.sum(ab * ab, -1), 1e-12), 0.0, 1.0)
+    d = ap - t[..., None] * ab
+    return jnp.sqrt(jnp.sum(d * d, axis=-1))
+
+
+def _segment_crosses_box(a: jax.Array, b: jax.Array, boxes: np.ndarray) -> jax.Array:
+    """Slab test: does segment a-b (..., 2) meet each box? -> (..., K)."""
+    low, high = jnp.asarray(boxes[:, :2]), jnp.asarray(boxes[:, 2:])
+    a, d = a[..., None, :], (b - a)[..., None, :]
+    safe = jnp.where(jnp.abs(d) < 1e-12, 1e-12, d)
+    t1, t2 = (low - a) / safe, (high - a) / safe
+    inside = (a >= low) & (a <= high)  # for axis-parallel segments
+    t_near = jnp.where(jnp.abs(d) < 1e-12, jnp.where(inside, -jnp.inf, jnp.inf), jnp.minimum(t1, t2))
+    t_far = jnp.where(jnp.abs(d) < 1e-12, jnp.where(inside, jnp.inf, -jnp.inf), jnp.maximum(t1, t2))
+    enter = jnp.max(t_near, axis=-1)
+    leave = jnp.min(t_far, axis=-1)
+    return (enter <= leave) & (leave >= 0.0) & (enter <= 1.0)
+
+
+def segment_box_distance(a: jax.Array, b: jax.Array, boxes: np.ndarray) -> jax.Array:
+    """(..., 2) segment ends, (K, 4) boxes -> (..., K) distance between segment and box (0 if they meet).
+
+    Disjoint convex shapes in the plane are closest at a vertex of one of them: an end of the
+    segment or a corner of the box.
+    """
+    ends = jnp.minimum(point_box_distance(a, boxes), point_box_distance(b, boxes))
+    corners = jnp.stack([boxes[:, [0, 1]], boxes[:, [0, 3]], boxes[:, [2, 1]], boxes[:, [2, 3]]], axis=1)  # (K, 4, 2)
+    flat = jnp.asarray(corners.reshape(-1, 2))
+    batch = a.shape[:-1]
+    to_corners = _point_segment_distance(jnp.broadcast_to(flat, (*batch, *flat.shape)), a, b)
+    to_corners = to_corners.reshape(*batch, boxes.shape[0], 4).min(axis=-1)
+    distance = jnp.minimum(ends, to_corners)
+    return jnp.where(_segment_crosses_box(a, b, boxes), 0.0, distance)
+
+
+def point_collides(maze: Maze, points: jax.Array, radius: float | None = None) -> jax.Array:
+    """(..., 2) -> (...,) the disc overlaps an obstacle."""
+    radius = maze.robot_radius if radius is None else radius
+    return jnp.any(point_box_distance(points, maze.boxes) < radius, axis=-1)
+
+
+def move_collides(maze: Maze, start: jax.Array, end: jax.Array, radius: float | None = None) -> jax.Array:
+    """(..., 2), (..., 2) -> (...,) the disc swept from start to end overlaps an obstacle."""
+    radius = maze.robot_radius if radius is None else radius
+    return jnp.any(segment_box_distance(start, end, maze.boxes) < radius, axis=-1)
+
+
+def in_bounds(maze: Maze, points: jax.Array) -> jax.Array:
+    x0, y0, x1, y1 = maze.bounds
+    return (points[..., 0] >= x0) & (points[..., 0] < x1) & (points[..., 1] >= y0) & (points[..., 1] < y1)
+
+
+def reached_goal(maze: Maze, points: jax.Array) -> jax.Array:
+    return jnp.linalg.norm(points - jnp.asarray(maze.goal), axis=-1) < maze.goal_radius
+
+
+@dataclasses.dataclass(frozen=True)
+class GridSpec:
+    """A planning grid over the maze bounds: node (i, j) at (x_min + i cell, y_min + j cell)."""
+
+    cell: float = 0.5
+    radius_factor: float = 1.3  # a step between nodes is blocked if the swept disc of
+    # radius_factor * robot_radius collides (the original's A* inflation)
+
+    def shape(self, maze: Maze) -> tuple[int, int]:
+        x0, y0, x1, y1 = maze.bounds
+        return int(np.floor((x1 - x0) / self.cell + 1e-9)), int(np.floor((y1 - y0) / self.cell + 1e-9))
+
+    def nodes(self, maze: Maze) -> np.ndarray:
+        nx, ny = self.shape(maze)
+        i, j = np.meshgrid(np.arange(nx), np.arange(ny), indexing="ij")
+        return np.stack([maze.bounds[0] + i * self.cell, maze.bounds[1] + j * self.cell], -1).astype(np.float32)
+
+    def node_of(self, maze: Maze, points: jax.Array) -> jax.Array:
+        nx, ny = self.shape(maze)
+        ij = jnp.round((points - jnp.asarray(maze.bounds[:2])) / self.cell).astype(jnp.int32)
+        return jnp.clip(ij, 0, jnp.asarray([nx - 1, ny - 1]))
+
+
+NEIGHBOURS = np.array([(di, dj) for di in (-1, 0, 1) for dj in (-1, 0, 1) if (di, dj) != (0, 0)], np.int32)
+
+
+def edge_free(maze: Maze, grid: GridSpec) -> np.ndarray:
+    """(nx, ny, 8) bool: the step from each node to each neighbour stays free and on the grid."""
+    nodes = grid.nodes(maze)
+    nx, ny = nodes.shape[:2]
+    radius = grid.radius_factor * maze.robot_radius
+    targets = nodes[:, :, None, :] + NEIGHBOURS[None, None] * grid.cell
+    ij = np.stack(np.meshgrid(np.arange(nx), np.arange(ny), indexing="ij"), -1)[:, :, None, :] + NEIGHBOURS
+    on_grid = (ij[..., 0] >= 0) & (ij[..., 0] < nx) & (ij[..., 1] >= 0) & (ij[..., 1] < ny)
+    start = np.broadcast_to(nodes[:, :, None, :], targets.shape)
+    blocked = np.asarray(move_collides(maze, jnp.asarray(start), jnp.asarray(targets), radius))
+    return on_grid & ~blocked
+
+
+def distance_field(maze: Maze, grid: GridSpec = GridSpec()) -> jax.Array:
+    """(nx, ny) int32 fewest grid steps from each node to the goal's node (-1 if unreachable)."""
+    free = jnp.asarray(edge_free(maze, grid))
+    nx, ny = free.shape[:2]
+    goal = grid.node_of(maze, jnp.asarray(maze.goal, jnp.float32))
+    unreached = nx * ny + 1
+    dist = jnp.full((nx, ny), unreached, jnp.int32).at[goal[0], goal[1]].set(0)
+    padded_index = np.stack(np.meshgrid(np.arange(nx), np.arange(ny), indexing="ij"), -1)[:, :, None, :] + NEIGHBOURS
+    ni = jnp.asarray(np.clip(padded_index[..., 0], 0, nx - 1))
+    nj = jnp.asarray(np.clip(padded_index[..., 1], 0, ny - 1))
+
+    def relax(_, d):
+        through = jnp.where(free, d[ni, nj] + 1, unreached)  # step i->neighbour is free both ways
+        return jnp.minimum(d, through.min(axis=-1))
+
+    dist = jax.lax.fori_loop(0, nx * ny, relax, dist)
+    return jnp.where(dist >= unreached, -1, dist)

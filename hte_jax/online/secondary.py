@@ -1,0 +1,63 @@
+"""HTE's choice of secondary descriptor (contact pattern) by GP-UCB on the error measure (facts 7.3).
+
+Before each 1 s step the robot picks, among the allowed contact patterns, the one whose middle
+elite is predicted to deviate least from its stored primary descriptor. A GP (Matern-5/2,
+input: the elite's 9-D descriptor, output: the three relative errors of x, y, yaw) learns the
+errors on the damaged robot; the score of a candidate is ||exp(-k max(0, mu))||_2 + beta_t var
+(k = 4, 4, 3), with the GP-UCB schedule beta_t of the original.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import jax.numpy as jnp
+import jax
+
+from hte_jax.hbr.middle import NUM_PATTERNS
+from hte_jax.sim.robot import NUM_LEGS
+
+ERROR_SCALE = np.array([4.0, 4.0, 3.0], np.float32)  # k for x, y, yaw (paper: k = 4; code: 3 for yaw)
+ERROR_CENTRE = 0.5  # c: the normalised descriptor of "no motion"
+ERROR_GUARD = 0.001
+UCB_DELTA = 0.1
+
+
+def legs_down(pattern: int) -> list[int]:
+    """Legs on the ground in a pattern (leg 0 = most significant bit)."""
+    return [leg for leg in range(NUM_LEGS) if pattern >> (NUM_LEGS - 1 - leg) & 1]
+
+
+def allowed_patterns() -> np.ndarray:
+    """The original's 36 candidate patterns, ascending: at least three feet down, and not three
+    consecutive legs around the body ring 0-1-2-3-4-5-0 (the robot cannot stand on those)."""
+    allowed = []
+    for pattern in range(NUM_PATTERNS):
+        down = legs_down(pattern)
+        consecutive = len(down) == 3 and any(
+            set(down) == {i % NUM_LEGS, (i + 1) % NUM_LEGS, (i + 2) % NUM_LEGS} for i in range(NUM_LEGS)
+        )
+        if len(down) >= 3 and not consecutive:
+            allowed.append(pattern)
+    return np.asarray(allowed, np.int32)
+
+
+def oracle_pattern(damage: np.ndarray) -> int:
+    """Perfect HTE: the pattern with exactly the intact legs down (63 for the intact robot)."""
+    return int(sum(1 << (NUM_LEGS - 1 - leg) for leg in range(NUM_LEGS) if not damage[leg]))
+
+
+def relative_error(expected: jax.Array, observed: jax.Array) -> jax.Array:
+    """(..., 3) normalised primary descriptors -> (..., 3) errors |bd' - bd| / (2 |bd - c| + guard)."""
+    return jnp.abs(observed - expected) / (2.0 * jnp.abs(expected - ERROR_CENTRE) + ERROR_GUARD)
+
+
+def ucb_beta(t: jax.Array, candidates: int = 36) -> jax.Array:
+    """GP-UCB exploration weight at step t >= 1: sqrt(log(1.5 |C| t^2 pi^2 / (6 delta)))."""
+    t = jnp.asarray(t, jnp.float32)
+    return jnp.sqrt(jnp.log(1.5 * candidates * t**2 * jnp.pi**2 / (6.0 * UCB_DELTA)))
+
+
+def acquisition(mean: jax.Array, variance: jax.Array, beta: jax.Array) -> jax.Array:
+    """(C, 3) predicted errors and (C,) variance -> (C,) UCB scores (higher is better)."""
+    score = jnp.exp(-jnp.asarray(ERROR_SCALE) * jnp.maximum(mean, 0.0))
+    return jnp.linalg.norm(score, axis=-1) + beta * variance

@@ -1,0 +1,104 @@
+"""The online GPs: posterior against a float64 NumPy reference, masked = unpadded, no retracing."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from hte_jax.errors import ConfigError
+from hte_jax.online.gp import HTE_KERNEL, RTE_KERNEL, Kernel, add_observation, empty_gp, posterior
+
+
+def _numpy_kernel(kernel, a, b):
+    r2 = ((a[:, None, :] - b[None, :, :]) ** 2).sum(-1) / kernel.length_scale**2
+    if kernel.kind == "squared_exponential":
+        return kernel.variance * np.exp(-0.5 * r2)
+    r = np.sqrt(r2)
+    return kernel.variance * (1 + np.sqrt(5) * r + 5 * r2 / 3) * np.exp(-np.sqrt(5) * r)
+
+
+def _numpy_posterior(kernel, x, y, prior_x, q, prior_q):
+    """Textbook GP regression in float64."""
+    x, y, q = (np.asarray(v, np.float64) for v in (x, y, q))
+    gram = _numpy_kernel(kernel, x, x) + kernel.noise * np.eye(len(x))
+    cross = _numpy_kernel(kernel, q, x)
+    mean = prior_q + cross @ np.linalg.solve(gram, y - prior_x)
+    variance = kernel.variance - np.einsum("qn,nq->q", cross, np.linalg.solve(gram, cross.T))
+    return mean, variance
+
+
+def _fill(capacity, x, y, prior=None):
+    data = empty_gp(capacity, x.shape[1], y.shape[1])
+    for i in range(len(x)):
+        data = add_observation(data, jnp.asarray(x[i]), jnp.asarray(y[i]), None if prior is None else jnp.asarray(prior[i]))
+    return data
+
+
+@pytest.mark.parametrize("kernel, dim, scale", [(RTE_KERNEL, 2, 0.05), (HTE_KERNEL, 9, 1.0)])
+def test_posterior_matches_float64_numpy(kernel, dim, scale):
+    rng = np.random.default_rng(0)
+    x = rng.uniform(0, scale, (9, dim)).astype(np.float32)
+    y = rng.normal(size=(9, 4)).astype(np.float32)
+    prior_x = rng.normal(size=(9, 4)).astype(np.float32)
+    q = np.concatenate([x[:3], rng.uniform(0, scale, (20, dim))]).astype(np.float32)
+    prior_q = rng.normal(size=(23, 4)).astype(np.float32)
+    data = _fill(16, x, y, prior_x)
+    mean, variance = posterior(kernel, data, jnp.asarray(q), jnp.asarray(prior_q))
+    want_mean, want_var = _numpy_posterior(kernel, x, y, prior_x, q, prior_q)
+    np.testing.assert_allclose(np.asarray(mean), want_mean, atol=2e-4, rtol=1e-4)
+    np.testing.assert_allclose(np.asarray(variance), np.maximum(want_var, 0), atol=2e-6 * kernel.variance / 0.01)
+    # data-mean prior (limbo mean::Data): the constant is the mean of the observed targets
+    mean, variance = posterior(kernel, data, jnp.asarray(q))
+    constant = y.astype(np.float64).mean(axis=0)
+    want_mean, _ = _numpy_posterior(kernel, x, y, np.broadcast_to(constant, y.shape), q, np.broadcast_to(constant, (23, 4)))
+    np.testing.assert_allclose(np.asarray(mean), want_mean, atol=2e-4, rtol=1e-4)
+
+
+def test_masked_buffer_equals_the_unpadded_gp_and_forgets_the_oldest():
+    rng = np.random.default_rng(1)
+    x = rng.uniform(0, 0.1, (6, 2)).astype(np.float32)
+    y = rng.normal(size=(6, 4)).astype(np.float32)
+    q = jnp.asarray(rng.uniform(0, 0.1, (11, 2)), jnp.float32)
+    prior_q = jnp.zeros((11, 4))
+    exact = posterior(RTE_KERNEL, _fill(6, x, y), q, prior_q)
+    padded = posterior(RTE_KERNEL, _fill(64, x, y), q, prior_q)
+    for got, want in zip(padded, exact):
+        np.testing.assert_allclose(np.asarray(got), np.asarray(want), atol=1e-6)
+    ring = posterior(RTE_KERNEL, _fill(4, x, y), q, prior_q)  # keeps the last 4 observations
+    last = posterior(RTE_KERNEL, _fill(4, x[2:], y[2:]), q, prior_q)
+    for got, want in zip(ring, last):
+        np.testing.assert_allclose(np.asarray(got), np.asarray(want), atol=1e-6)
+    empty_mean, empty_var = posterior(RTE_KERNEL, empty_gp(8, 2, 4), q, prior_q + 3.0)
+    np.testing.assert_allclose(np.asarray(empty_mean), 3.0)
+    np.testing.assert_allclose(np.asarray(empty_var), RTE_KERNEL.variance)
+
+
+def test_adding_points_never_retraces():
+    traces = {"add": 0, "posterior": 0}
+
+    @jax.jit
+    def add(data, x, y):
+        traces["add"] += 1
+        return add_observation(data, x, y)
+
+    @jax.jit
+    def predict(data, q):
+        traces["posterior"] += 1
+        return posterior(HTE_KERNEL, data, q)
+
+    data = empty_gp(32, 9, 3)
+    q = jnp.linspace(0, 1, 90).reshape(10, 9)
+    for i in range(20):
+        data = add(data, jnp.full((9,), i / 20.0), jnp.full((3,), float(i)))
+        predict(data, q)
+    assert traces == {"add": 1, "posterior": 1}
+    assert int(data.count) == 20 and int(data.mask.sum()) == 20
+
+
+def test_kernel_settings_are_checked():
+    with pytest.raises(ConfigError, match="kernel kind"):
+        Kernel("rbf", 1.0, 1.0, 0.0)
+    with pytest.raises(ConfigError, match="length_scale"):
+        Kernel("matern52", 0.0, 1.0, 0.0)
+    with pytest.raises(ConfigError, match="GP capacity"):
+        empty_gp(0, 2, 2)

@@ -1,0 +1,86 @@
+"""Maze geometry for the planner: exact disc-vs-box checks and the BFS distance field."""
+
+from collections import deque
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from hte_jax.errors import ConfigError
+from hte_jax.online.maze import (
+    NEIGHBOURS,
+    PAPER_MAZE,
+    GridSpec,
+    Maze,
+    distance_field,
+    edge_free,
+    in_bounds,
+    move_collides,
+    point_box_distance,
+    point_collides,
+    reached_goal,
+    segment_box_distance,
+)
+
+
+def test_start_and_goal_are_free_and_boxes_block():
+    start, goal = jnp.asarray(PAPER_MAZE.start[:2]), jnp.asarray(PAPER_MAZE.goal)
+    assert not bool(point_collides(PAPER_MAZE, start)) and not bool(point_collides(PAPER_MAZE, goal))
+    assert bool(point_collides(PAPER_MAZE, jnp.asarray([2.45, 0.2])))  # inside box 2
+    assert bool(point_collides(PAPER_MAZE, jnp.asarray([2.45, 0.8])))  # 0.175 m above box 2
+    assert not bool(point_collides(PAPER_MAZE, jnp.asarray([2.45, 0.9])))  # 0.275 m above it
+    assert bool(reached_goal(PAPER_MAZE, goal + 0.1)) and not bool(reached_goal(PAPER_MAZE, goal + 0.2))
+    assert bool(in_bounds(PAPER_MAZE, start)) and not bool(in_bounds(PAPER_MAZE, jnp.asarray([-0.1, 1.0])))
+    # straight from the start to the goal crosses the central boxes
+    assert bool(move_collides(PAPER_MAZE, start, goal))
+    with pytest.raises(ConfigError, match="must be \\(x1, y1, x2, y2\\)"):
+        Maze(obstacles=((1.0, 0.0, 0.0, 1.0),))
+
+
+def test_swept_disc_distance_matches_dense_sampling():
+    rng = np.random.default_rng(0)
+    boxes = PAPER_MAZE.boxes
+    a = rng.uniform([-0.5, -0.5], [5.0, 4.5], (400, 2)).astype(np.float32)
+    b = (a + rng.normal(0, 0.6, (400, 2))).astype(np.float32)
+    exact = np.asarray(segment_box_distance(jnp.asarray(a), jnp.asarray(b), boxes))
+    t = np.linspace(0, 1, 2001)[:, None, None]
+    samples = a[None] + t * (b - a)[None]  # (T, 400, 2)
+    sampled = np.asarray(point_box_distance(jnp.asarray(samples), boxes)).min(axis=0)
+    step = np.linalg.norm(b - a, axis=-1)[:, None] / 2000
+    assert (exact <= sampled + 1e-5).all()
+    assert (sampled - exact <= step / 2 + 1e-5).all()
+    # a segment passing 0.2 m beside a box corner: free for radius 0.15, blocked for radius 0.25
+    maze = Maze(obstacles=((0.0, 0.0, 1.0, 1.0),))
+    c = 2.0 + 0.2 * np.sqrt(2.0)  # the line x + y = c passes 0.2 m from the corner (1, 1)
+    p0, p1 = jnp.asarray([c, 0.0]), jnp.asarray([0.0, c])
+    assert not bool(move_collides(maze, p0, p1, 0.15)) and bool(move_collides(maze, p0, p1, 0.25))
+
+
+def _numpy_bfs(free, goal):
+    nx, ny = free.shape[:2]
+    dist = -np.ones((nx, ny), int)
+    dist[goal] = 0
+    queue = deque([goal])
+    while queue:
+        i, j = queue.popleft()
+        for k, (di, dj) in enumerate(NEIGHBOURS):
+            a, b = i + di, j + dj
+            # a step a->(i, j) must be free from the neighbour's side
+            back = [idx for idx, (ei, ej) in enumerate(NEIGHBOURS) if (ei, ej) == (-di, -dj)][0]
+            if 0 <= a < nx and 0 <= b < ny and dist[a, b] < 0 and free[a, b, back]:
+                dist[a, b] = dist[i, j] + 1
+                queue.append((a, b))
+    return dist
+
+
+@pytest.mark.parametrize("cell", [0.5, 0.25])
+def test_distance_field_matches_numpy_bfs(cell):
+    grid = GridSpec(cell=cell)
+    free = edge_free(PAPER_MAZE, grid)
+    goal = tuple(np.asarray(grid.node_of(PAPER_MAZE, jnp.asarray(PAPER_MAZE.goal))))
+    want = _numpy_bfs(free, goal)
+    got = np.asarray(distance_field(PAPER_MAZE, grid))
+    np.testing.assert_array_equal(got, want)
+    start = tuple(np.asarray(grid.node_of(PAPER_MAZE, jnp.asarray(PAPER_MAZE.start[:2]))))
+    assert got[start] > 0  # the start reaches the goal around the boxes
+    assert (got >= -1).all() and (got == -1).any()  # nodes inside boxes are unreachable
