@@ -1,14 +1,17 @@
-"""Session-wide settings: a persistent XLA compilation cache shared by all tests of a session.
+"""Session-wide settings: a persistent XLA compilation cache shared by all tests of a session, and
+in-memory compiled programs released after each test module.
 
 MJX programs take 15-30 s to compile on a CPU; tests that build the same program again (a
 resumed training run, a re-simulation) then load it from the cache instead of recompiling.
 """
 
+import gc
 import os
 import shutil
 import tempfile
 
 import jax
+import pytest
 
 _CACHE = tempfile.mkdtemp(prefix="hte-jax-xla-cache-")
 # Subprocesses started by tests (benchmark scripts, CLIs) share the cache through the environment.
@@ -25,3 +28,12 @@ def pytest_configure(config):
 
 def pytest_unconfigure(config):
     shutil.rmtree(_CACHE, ignore_errors=True)
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _free_compiled_programs():
+    """Drop each module's compiled programs when it ends: a whole session's MJX executables held in
+    memory at once outgrow a 24 GB CI machine (the persistent cache above still saves recompiling)."""
+    yield
+    jax.clear_caches()
+    gc.collect()

@@ -1,0 +1,256 @@
+"""RTE's planner: Monte-Carlo tree search over the repertoire's actions, jitted and batched (facts 7.2).
+
+Each tree grows by progressive widening (a node gets a new action when visits^a > children),
+selects children by UCT (Q/N + 2c sqrt(ln(N_parent + 1) / N)), expands with the best of
+`candidates` random actions as ranked by the maze's distance field, estimates leaves by a random
+rollout (uniform actions, discount gamma, depth limit), and backs the discounted return up the
+path. Transitions compose the state with the action's predicted displacement (the GP mean; the
+original's outcome noise has a standard deviation of at most 0.01 m and is left out). Leaving
+the map or colliding gives `collision_reward` and ends the branch; reaching the goal gives
+`goal_reward` and ends it. `roots` independent trees are merged by summing their root
+statistics per action (root parallelisation); the action with the best mean value is returned.
+Everything has a fixed size: one tree holds iterations + 1 nodes and at most K children per node.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import math
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+from hte_jax.errors import require_int, require_number
+from hte_jax.hbr.geometry import compose_pose
+from hte_jax.online.maze import GridSpec, Maze, distance_field, in_bounds, move_collides, point_collides, reached_goal
+
+
+@dataclasses.dataclass(frozen=True)
+class PlannerConfig:
+    """MCTS settings (the original's values as defaults, except iterations and roots: 6000 x 32 there).
+
+    iterations: simulations per tree. roots: independent trees per decision. exploration: UCT c.
+    widening: progressive-widening exponent a. gamma: discount. depth: longest simulated path.
+    candidates: random actions ranked at each expansion. collision_reward / goal_reward: terminal rewards.
+    """
+
+    iterations: int = 1000
+    roots: int = 4
+    exploration: float = 100.0
+    widening: float = 0.5
+    gamma: float = 0.9
+    depth: int = 20
+    candidates: int = 100
+    collision_reward: float = -1000.0
+    goal_reward: float = 100.0
+
+    def __post_init__(self):
+        require_int("iterations", self.iterations)
+        require_int("roots", self.roots)
+        require_int("depth", self.depth)
+        require_int("candidates", self.candidates)
+        require_number("exploration", self.exploration, 0.0)
+        require_number("widening", self.widening, 0.0, 1.0, open_low=True)
+        require_number("gamma", self.gamma, 0.0, 1.0)
+
+    @property
+    def max_children(self) -> int:
+        return int(math.ceil((self.iterations + 1) ** self.widening)) + 1
+
+
+@struct.dataclass
+class Tree:
+    """One search tree, M = iterations + 1 nodes (node 0 is the root), K = max children.
+
+    state: (M, 3) x, y, yaw. parent: (M,) int32 (-1 at the root). action: (M,) int32 action that
+    led to the node (-1 at the root).
+    reward: (M,) reward of entering the node. terminal: (M,) bool. depth: (M,) int32.
+    visits: (M,) int32. value: (M,) float32 summed discounted returns from entering the node.
+    children: (M, K) int32 child nodes (-1 empty). num_children: (M,) int32. size: () int32 nodes used.
+    """
+
+    state: jax.Array
+    parent: jax.Array
+    action: jax.Array
+    reward: jax.Array
+    terminal: jax.Array
+    depth: jax.Array
+    visits: jax.Array
+    value: jax.Array
+    children: jax.Array
+    num_children: jax.Array
+    size: jax.Array
+
+
+@struct.dataclass
+class World:
+    """What a plan needs besides the state: A actions and the maze's distance field.
+
+    displacement: (A, 3) predicted (dx, dy, dyaw) of each action in the robot's frame.
+    mask: (A,) bool usable actions. field: (nx, ny) int32 grid steps to the goal (-1 unreachable).
+    """
+
+    displacement: jax.Array
+    mask: jax.Array
+    field: jax.Array
+
+
+def _empty_tree(config: PlannerConfig, state: jax.Array) -> Tree:
+    m, k = config.iterations + 1, config.max_children
+    return Tree(
+        state=jnp.zeros((m, 3), jnp.float32).at[0].set(state),
+        parent=jnp.full((m,), -1, jnp.int32),
+        action=jnp.full((m,), -1, jnp.int32),
+        reward=jnp.zeros((m,), jnp.float32),
+        terminal=jnp.zeros((m,), bool),
+        depth=jnp.zeros((m,), jnp.int32),
+        visits=jnp.zeros((m,), jnp.int32),
+        value=jnp.zeros((m,), jnp.float32),
+        children=jnp.full((m, k), -1, jnp.int32),
+        num_children=jnp.zeros((m,), jnp.int32),
+        size=jnp.int32(1),
+    )
+
+
+def transition(maze: Maze, config: PlannerConfig, world: World, state: jax.Array, action: jax.Array):
+    """(..., 3) state, (...,) action -> next state, reward, terminal."""
+    nxt = compose_pose(state, world.displacement[action])
+    bad = (
+        ~in_bounds(maze, nxt[..., :2])
+        | point_collides(maze, nxt[..., :2])
+        | move_collides(maze, state[..., :2], nxt[..., :2])
+    )
+    goal = reached_goal(maze, nxt[..., :2]) & ~bad
+    reward = jnp.where(bad, config.collision_reward, jnp.where(goal, config.goal_reward, 0.0))
+    return nxt, reward, bad | goal
+
+
+def geodesic_cost(maze: Maze, grid: GridSpec, field: jax.Array, points: jax.Array) -> jax.Array:
+    """(..., 2) -> (...,) estimated path length to the goal through the grid (inf if unreachable)."""
+    node = grid.node_of(maze, points)
+    steps = field[node[..., 0], node[..., 1]]
+    node_xy = jnp.asarray(maze.bounds[:2]) + node * grid.cell
+    cost = steps * grid.cell + jnp.linalg.norm(points - node_xy, axis=-1)
+    near = jnp.linalg.norm(points - jnp.asarray(maze.goal), axis=-1)
+    cost = jnp.where(steps == 0, near, cost)
+    return jnp.where((steps < 0) | ~in_bounds(maze, points), jnp.inf, cost)
+
+
+def _sample_actions(key, mask, num):
+    logits = jnp.where(mask, 0.0, -jnp.inf)
+    return jax.random.categorical(key, logits, shape=(num,)).astype(jnp.int32)
+
+
+def _search(maze: Maze, grid: GridSpec, config: PlannerConfig, world: World, key: jax.Array, state: jax.Array) -> Tree:
+    """Grow one tree from `state` for config.iterations simulations."""
+    depth_limit = config.depth
+
+    def expand_action(key, tree, node):
+        candidates = _sample_actions(key, world.mask, config.candidates)
+        ends, reward, _ = transition(maze, config, world, jnp.broadcast_to(tree.state[node], (config.candidates, 3)),
+                                     candidates)
+        cost = jnp.where(reward < 0, jnp.inf, geodesic_cost(maze, grid, world.field, ends[:, :2]))
+        return candidates[jnp.argmin(cost)]
+
+    def uct_child(tree, node):
+        kids = tree.children[node]
+        valid = kids >= 0
+        safe = jnp.where(valid, kids, 0)
+        n = jnp.maximum(tree.visits[safe], 1).astype(jnp.float32)
+        parent = tree.visits[node].astype(jnp.float32)
+        score = tree.value[safe] / n + 2.0 * config.exploration * jnp.sqrt(jnp.log(parent + 1.0) / n)
+        return safe[jnp.argmax(jnp.where(valid, score, -jnp.inf))]
+
+    def simulate(i, carry):
+        tree, key = carry
+        key, key_expand, key_roll = jax.random.split(key, 3)
+        def descend_cond(c):
+            tree, node, length, stop = c
+            return ~stop
+
+        def descend(c):
+            tree, node, length, _ = c
+            leaf = tree.terminal[node] | (tree.depth[node] >= depth_limit)
+            count = tree.num_children[node]
+            widen = ((count == 0) | (tree.visits[node].astype(jnp.float32) ** config.widening > count)) & (
+                count < config.max_children
+            )
+
+            def add_child(tree):
+                action = expand_action(key_expand, tree, node)
+                nxt, reward, terminal = transition(maze, config, world, tree.state[node], action)
+                new = tree.size
+                tree = tree.replace(
+                    state=tree.state.at[new].set(nxt),
+                    parent=tree.parent.at[new].set(node),
+                    action=tree.action.at[new].set(action),
+                    reward=tree.reward.at[new].set(reward),
+                    terminal=tree.terminal.at[new].set(terminal),
+                    depth=tree.depth.at[new].set(tree.depth[node] + 1),
+                    children=tree.children.at[node, count].set(new),
+                    num_children=tree.num_children.at[node].add(1),
+                    size=tree.size + 1,
+                )
+                return tree, new
+
+            expand = ~leaf & widen
+            tree, child = jax.lax.cond(expand, add_child, lambda t: (t, uct_child(t, node)), tree)
+            moved = ~leaf
+            node_next = jnp.where(moved, child, node)
+            stop = leaf | expand
+            return tree, node_next, length + moved.astype(jnp.int32), stop
+
+        tree, leaf, _, _ = jax.lax.while_loop(descend_cond, descend, (tree, jnp.int32(0), jnp.int32(0), False))
+
+        # rollout from the leaf: uniform random actions, discounted
+        def roll(carry, key_step):
+            state, alive, discount, total, d = carry
+            action = _sample_actions(key_step, world.mask, 1)[0]
+            nxt, reward, terminal = transition(maze, config, world, state, action)
+            go = alive & (d < depth_limit)
+            total = total + jnp.where(go, discount * reward, 0.0)
+            return (jnp.where(go, nxt, state), go & ~terminal, discount * config.gamma, total, d + 1), None
+
+        start = (tree.state[leaf], ~tree.terminal[leaf], jnp.float32(1.0), jnp.float32(0.0), tree.depth[leaf])
+        (_, _, _, rollout_return, _), _ = jax.lax.scan(roll, start, jax.random.split(key_roll, depth_limit))
+
+        # back up: from the leaf to the root's child, then the root
+        def backup(c):
+            tree, node, g = c
+            g = tree.reward[node] + config.gamma * g
+            tree = tree.replace(visits=tree.visits.at[node].add(1), value=tree.value.at[node].add(g))
+            return tree, tree.parent[node], g
+
+        tree, _, _ = jax.lax.while_loop(lambda c: c[1] > 0, backup, (tree, leaf, rollout_return))
+        tree = tree.replace(visits=tree.visits.at[0].add(1))
+        return tree, key
+
+    tree, _ = jax.lax.fori_loop(0, config.iterations, simulate, (_empty_tree(config, state), key))
+    return tree
+
+
+@functools.partial(jax.jit, static_argnames=("maze", "grid", "config"))
+def plan(maze: Maze, grid: GridSpec, config: PlannerConfig, world: World, key: jax.Array, state: jax.Array):
+    """Best action index for the robot at `state` (3,), its mean value, and the merged root visits (A,)."""
+    trees = jax.vmap(lambda k: _search(maze, grid, config, world, k, state))(jax.random.split(key, config.roots))
+    root_children = trees.children[:, 0]  # (R, K)
+    valid = root_children >= 0
+    safe = jnp.where(valid, root_children, 0)
+    actions = jnp.take_along_axis(trees.action, safe, axis=1)
+    visits = jnp.where(valid, jnp.take_along_axis(trees.visits, safe, axis=1), 0)
+    values = jnp.where(valid, jnp.take_along_axis(trees.value, safe, axis=1), 0.0)
+    num_actions = world.mask.shape[0]
+    target = jnp.where(valid, actions, num_actions)
+    merged_visits = jax.ops.segment_sum(visits.reshape(-1), target.reshape(-1), num_segments=num_actions + 1)[:-1]
+    merged_values = jax.ops.segment_sum(values.reshape(-1), target.reshape(-1), num_segments=num_actions + 1)[:-1]
+    mean = jnp.where(merged_visits > 0, merged_values / jnp.maximum(merged_visits, 1), -jnp.inf)
+    best = jnp.argmax(mean).astype(jnp.int32)
+    return best, mean[best], merged_visits
+
+
+def make_world(maze: Maze, grid: GridSpec, displacement: jax.Array, mask: jax.Array) -> World:
+    """A World for `plan`: predicted displacements (A, 3), usable actions (A,), and the maze's distance field."""
+    return World(displacement=jnp.asarray(displacement, jnp.float32), mask=jnp.asarray(mask, bool),
+                 field=distance_field(maze, grid))
