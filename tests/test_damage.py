@@ -22,7 +22,7 @@ def test_parse_damage(name, legs):
     np.testing.assert_array_equal(np.flatnonzero(damage.parse_damage(name)), legs)
 
 
-@pytest.mark.parametrize("bad", ["leg6", "legs2+5", "", 7, -2])
+@pytest.mark.parametrize("bad", ["leg6", "legs5+2", "legs2+2", "", 7, -2])
 def test_unknown_damage_is_a_clear_error(bad):
     with pytest.raises(ConfigError, match="unknown damage"):
         damage.parse_damage(bad)

@@ -40,7 +40,7 @@ def test_open_field_reaches_the_goal_in_the_fewest_actions():
     assert int(visits.sum()) == CONFIG.roots * CONFIG.iterations
 
 
-@pytest.mark.parametrize("start", [(2.32, 3.27, np.pi), (2.2, 1.55, 0.0), (1.0, 2.75, np.pi / 2), (3.9, 0.9, -np.pi / 2)])
+@pytest.mark.parametrize("start", [(2.32, 3.27, np.pi), (3.9, 0.9, -np.pi / 2)])
 def test_maze_plans_never_hit_a_wall(start):
     hbr, task, _ = load_hbr()
     actions = action_set(hbr.top, task.extent)
