@@ -30,3 +30,14 @@ def require_bounds(name: str, low, high, dims: int | None = None) -> None:
     for i, (lo, hi) in enumerate(zip(low, high)):
         if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
             raise ConfigError(f"{name} dimension {i}: need finite low < high, got [{lo}, {hi}]")
+
+
+def convert_setting(key: str, current, value):
+    """`value` read as the type of the setting's `current` value (a CLI string, say)."""
+    kind = type(current)
+    if isinstance(value, kind):
+        return value
+    try:
+        return kind(value)
+    except (TypeError, ValueError):
+        raise ConfigError(f"setting {key!r}: cannot read {value!r} as {kind.__name__}") from None

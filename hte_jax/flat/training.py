@@ -24,7 +24,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from hte_jax.errors import ConfigError, require_int, require_number
+from hte_jax.errors import ConfigError, convert_setting, require_int, require_number
 from hte_jax.flat.plots import plot_flat
 from hte_jax.flat.store import FlatRepertoires, save_flat
 from hte_jax.flat.task import GENES, FlatTask, evaluate_flat
@@ -133,11 +133,7 @@ def with_overrides(config: FlatConfig, overrides: dict[str, Any]) -> FlatConfig:
     for key, value in overrides.items():
         if key not in data:
             raise ConfigError(f"unknown setting {key!r}")
-        kind = type(data[key])
-        try:
-            data[key] = value if isinstance(value, kind) else kind(value)
-        except (TypeError, ValueError):
-            raise ConfigError(f"setting {key!r}: cannot read {value!r} as {kind.__name__}") from None
+        data[key] = convert_setting(key, data[key], value)
     return FlatConfig(**data)
 
 

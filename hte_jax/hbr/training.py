@@ -22,7 +22,7 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
-from hte_jax.errors import ConfigError, require_int, require_number
+from hte_jax.errors import ConfigError, convert_setting, require_int, require_number
 from hte_jax.hbr import bottom as bottom_layer
 from hte_jax.hbr import middle as middle_layer
 from hte_jax.hbr import top as top_layer
@@ -190,11 +190,7 @@ def with_overrides(config: HBRConfig, overrides: dict[str, Any]) -> HBRConfig:
         field = parts[-1]
         if field not in target or isinstance(target[field], dict):
             raise ConfigError(f"unknown setting {key!r}")
-        kind = type(target[field])
-        try:
-            target[field] = kind(value) if not isinstance(value, kind) else value
-        except (TypeError, ValueError):
-            raise ConfigError(f"setting {key!r}: cannot read {value!r} as {kind.__name__}") from None
+        target[field] = convert_setting(key, target[field], value)
     return HBRConfig.from_dict(data)
 
 

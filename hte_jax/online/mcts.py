@@ -166,12 +166,12 @@ def _search(maze: Maze, grid: GridSpec, config: PlannerConfig, world: World, key
     def simulate(i, carry):
         tree, key = carry
         key, key_expand, key_roll = jax.random.split(key, 3)
+
         def descend_cond(c):
-            tree, node, length, stop = c
-            return ~stop
+            return ~c[2]
 
         def descend(c):
-            tree, node, length, _ = c
+            tree, node, _ = c
             leaf = tree.terminal[node] | (tree.depth[node] >= depth_limit)
             count = tree.num_children[node]
             widen = ((count == 0) | (tree.visits[node].astype(jnp.float32) ** config.widening > count)) & (
@@ -200,9 +200,9 @@ def _search(maze: Maze, grid: GridSpec, config: PlannerConfig, world: World, key
             moved = ~leaf
             node_next = jnp.where(moved, child, node)
             stop = leaf | expand
-            return tree, node_next, length + moved.astype(jnp.int32), stop
+            return tree, node_next, stop
 
-        tree, leaf, _, _ = jax.lax.while_loop(descend_cond, descend, (tree, jnp.int32(0), jnp.int32(0), False))
+        tree, leaf, _ = jax.lax.while_loop(descend_cond, descend, (tree, jnp.int32(0), False))
 
         # rollout from the leaf: uniform random actions, discounted
         def roll(carry, key_step):
