@@ -1,8 +1,10 @@
-"""Session-wide settings: a persistent XLA compilation cache shared by all tests of a session, and
-in-memory compiled programs released after each test module.
+"""Session-wide settings: a persistent XLA compilation cache shared by all tests of a session (and
+by pytest-xdist workers), in-memory compiled programs released after each test module, and the
+benchmark-script tests run last.
 
 MJX programs take 15-30 s to compile on a CPU; tests that build the same program again (a
-resumed training run, a re-simulation) then load it from the cache instead of recompiling.
+resumed training run, a re-simulation, a benchmark script re-running a training preset) then
+load it from the cache instead of recompiling.
 """
 
 import gc
@@ -13,7 +15,9 @@ import tempfile
 import jax
 import pytest
 
-_CACHE = tempfile.mkdtemp(prefix="hte-jax-xla-cache-")
+# The controller process makes the folder; xdist workers inherit it through the environment.
+_OWNER = "HTE_JAX_TEST_XLA_CACHE" not in os.environ
+_CACHE = os.environ.setdefault("HTE_JAX_TEST_XLA_CACHE", tempfile.mkdtemp(prefix="hte-jax-xla-cache-"))
 # Subprocesses started by tests (benchmark scripts, CLIs) share the cache through the environment.
 os.environ["JAX_COMPILATION_CACHE_DIR"] = _CACHE
 os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0"
@@ -27,7 +31,16 @@ def pytest_configure(config):
 
 
 def pytest_unconfigure(config):
-    shutil.rmtree(_CACHE, ignore_errors=True)
+    if _OWNER:
+        shutil.rmtree(_CACHE, ignore_errors=True)
+
+
+# Benchmark scripts re-run programs (a training preset, say) that other tests compile first.
+_LAST = ("test_benchmarks.py",)
+
+
+def pytest_collection_modifyitems(session, config, items):
+    items.sort(key=lambda item: item.path.name in _LAST)
 
 
 @pytest.fixture(autouse=True, scope="module")

@@ -72,3 +72,15 @@ def test_determinism_benchmark(tmp_path):
     assert result["identical"] is True  # on the CPU a seed is bit-reproducible
     assert result["elites"][0] == result["elites"][1] > 0 and len(result["wall_s"]) == 2
     assert "identical=True" in stdout
+
+
+def test_adaptation_benchmark(tmp_path):
+    out = tmp_path / "adapt.json"
+    stdout = _run("adaptation.py", "--batch-sizes", "2", "--max-actions", "2", "--iterations", "10", "--roots", "1",
+                  "--repeats", "1", "--out", str(out))
+    result = json.loads(out.read_text())
+    (row,) = result["rows"]
+    assert row["episodes"] == 2 and row["plan_median_s"] > 0 and row["plan_p95_s"] >= row["plan_median_s"]
+    assert row["actions_per_run"] == [2] and len(row["runs"][0]["plan_s"]) == 2
+    assert result["settings"]["iterations"] == 10 and result["repertoire"]["kind"] == "hbr"
+    assert "plan med s" in stdout

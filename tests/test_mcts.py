@@ -30,14 +30,25 @@ def test_open_field_reaches_the_goal_in_the_fewest_actions():
     fewest = int(np.ceil((2.5 - maze.goal_radius) / 0.5))  # 5 moves of at most 0.5 m
     for count in range(1, fewest + 3):
         key, sub = jax.random.split(key)
-        action, value, visits = plan(maze, grid, CONFIG, world, sub, state)
-        state, reward, terminal = transition(maze, CONFIG, world, state, action)  # perfect model
+        result = plan(maze, grid, CONFIG, world, sub, state)
+        if count == 1:
+            first_path = result
+        state, reward, terminal = transition(maze, CONFIG, world, state, result.action)  # perfect model
         assert float(reward) >= 0
         if bool(terminal):
             break
     assert float(reward) == CONFIG.goal_reward
     assert count <= fewest + 1
-    assert int(visits.sum()) == CONFIG.roots * CONFIG.iterations
+    assert int(result.visits.sum()) == CONFIG.roots * CONFIG.iterations
+    # The first plan's path starts at the start, goes through the chosen action, and every later
+    # point is one of the 80 moves away from the previous one.
+    path = np.asarray(first_path.path)[: int(first_path.path_length)]
+    np.testing.assert_allclose(path[0], maze.start, atol=1e-6)
+    np.testing.assert_allclose(path[1, :2], np.asarray(maze.start[:2]) + actions[int(first_path.action), :2], atol=1e-5)
+    steps = np.diff(path[:, :2], axis=0)
+    moves = actions[:, :2]
+    assert len(path) >= 3
+    assert all(np.abs(moves - step).sum(axis=1).min() < 1e-4 for step in steps)
 
 
 @pytest.mark.parametrize("start", [(2.32, 3.27, np.pi), (3.9, 0.9, -np.pi / 2)])
@@ -50,8 +61,8 @@ def test_maze_plans_never_hit_a_wall(start):
     state = jnp.asarray(start, jnp.float32)
     _, reward, _ = transition(PAPER_MAZE, CONFIG, world, jnp.broadcast_to(state, (actions.size, 3)), jnp.arange(actions.size))
     assert (np.asarray(reward) >= 0).any()  # a free action exists
-    action, value, _ = plan(PAPER_MAZE, grid, CONFIG, world, jax.random.PRNGKey(1), state)
-    assert float(reward[action]) >= 0 and float(value) > CONFIG.collision_reward / 2
+    result = plan(PAPER_MAZE, grid, CONFIG, world, jax.random.PRNGKey(1), state)
+    assert float(reward[result.action]) >= 0 and float(result.value) > CONFIG.collision_reward / 2
 
 
 def test_planner_settings_are_checked():

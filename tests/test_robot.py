@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from hte_jax.errors import ConfigError
-from hte_jax.sim.robot import FLOOR_BIT, RobotConfig, load_robot, mj_model
+from hte_jax.sim.robot import WALL_BIT, RobotConfig, load_robot, mj_model
 
 
 @pytest.fixture(scope="module")
@@ -80,14 +80,22 @@ def _contacts_with_wall(config):
     return {model.geom(g1 if g2 == wall else g2).name for g1, g2 in pairs if wall in (g1, g2)}
 
 
-def test_wall_collisions_are_switchable():
-    wall = ((-0.05, -0.05, 0.05, 0.05),)  # a post straight through the body, clear of the feet
-    with_body = _contacts_with_wall(RobotConfig(walls=wall, body_wall_collisions=True))
-    assert "base_link" in with_body
-    without_body = _contacts_with_wall(RobotConfig(walls=wall, body_wall_collisions=False))
-    assert without_body == set()  # no foot is inside this wall, and links are ignored
-    model = mj_model(RobotConfig(walls=wall))
-    assert model.geom("wall_0").conaffinity & FLOOR_BIT  # feet always collide with walls
+def test_wall_contact_modes():
+    post = ((-0.05, -0.05, 0.05, 0.05),)  # a post straight through the body, clear of the feet
+    assert "base_link" in _contacts_with_wall(RobotConfig(walls=post, wall_contact="links"))
+    assert _contacts_with_wall(RobotConfig(walls=post, wall_contact="feet")) == set()
+    assert _contacts_with_wall(RobotConfig(walls=post, wall_contact="bumper")) == {"bumper"}
+    # The bumper reaches 0.25 m from the body's centre: a box 0.2 m away touches it, one 0.3 m away does not.
+    near = ((0.2, -0.5, 0.4, 0.5),)
+    far = ((0.3, -0.5, 0.5, 0.5),)
+    assert _contacts_with_wall(RobotConfig(walls=near)) == {"bumper"}
+    assert _contacts_with_wall(RobotConfig(walls=far)) == set()
+    # The bumper is massless and meets nothing but walls.
+    plain, bumped = mj_model(RobotConfig()), mj_model(RobotConfig(walls=far))
+    assert bumped.body_mass.sum() == pytest.approx(plain.body_mass.sum())
+    bumper = bumped.geom("bumper")
+    assert bumper.contype[0] == WALL_BIT and bumper.conaffinity[0] == 0
+    assert bumped.geom("wall_0").conaffinity[0] == WALL_BIT
 
 
 def test_config_changes_compile_options():
@@ -108,6 +116,8 @@ def test_config_changes_compile_options():
         ({"servo_gain": float("nan")}, "servo_gain"),
         ({"armature": -1.0}, "armature"),
         ({"walls": ((1.0, 0.0, 0.5, 1.0),)}, "wall"),
+        ({"wall_contact": "legs"}, "wall_contact"),
+        ({"bumper_radius": 0.0}, "bumper_radius"),
     ],
 )
 def test_bad_config_is_a_clear_error(kwargs, match):

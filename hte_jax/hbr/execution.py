@@ -23,7 +23,7 @@ from hte_jax.hbr.middle import PRIMARY, MiddleTask, decode, leg_controllers, pat
 from hte_jax.qd.archive import map_rows, squared_distance
 from hte_jax.qd.repertoire import Repertoire
 from hte_jax.sim.robot import NUM_LEGS, Robot
-from hte_jax.sim.rollout import RolloutSpec, SimState, rollout
+from hte_jax.sim.rollout import RolloutSpec, SimState, ValidityLimits, rollout
 
 STEPS_PER_SKILL = 3
 ANY_PATTERN = -1
@@ -60,7 +60,8 @@ class HBR:
 class StepResult:
     """One 1 s step of B robots.
 
-    state: SimState (B, ...) after the step. valid: (B,) bool.
+    state: SimState (B, ...) after the step. valid: (B,) bool. invalid_reason: (B,) int32
+      `InvalidReason` bits (0 if valid).
     middle_index: (B,) int32 middle elite executed. pattern_found: (B,) bool, False when no elite
       has the requested pattern (then the nearest elite of any pattern ran).
     displacement: (B, 3) (x, y, yaw) in the frame of the pose at the start of the step.
@@ -69,6 +70,7 @@ class StepResult:
 
     state: SimState
     valid: jax.Array
+    invalid_reason: jax.Array
     middle_index: jax.Array
     pattern_found: jax.Array
     displacement: jax.Array
@@ -109,12 +111,13 @@ def select_middle(hbr: HBR, desired: jax.Array, pattern: jax.Array, chunk: int =
     return map_rows(block, (desired, pattern.astype(jnp.int32)), (0.0, ANY_PATTERN), chunk)
 
 
-def _step_spec(steps: int) -> RolloutSpec:
-    return RolloutSpec(num_steps=steps, pose_steps=(0, steps), record_contacts=True)
+def _step_spec(steps: int, limits: ValidityLimits) -> RolloutSpec:
+    return RolloutSpec(num_steps=steps, pose_steps=(0, steps), record_contacts=True, limits=limits)
 
 
 def execute_step(
-    robot: Robot, hbr: HBR, state: SimState, damage: jax.Array, target: jax.Array, pattern: jax.Array
+    robot: Robot, hbr: HBR, state: SimState, damage: jax.Array, target: jax.Array, pattern: jax.Array,
+    limits: ValidityLimits = ValidityLimits(),
 ) -> StepResult:
     """Walk one second towards the world pose `target` (B, 3) with contact `pattern` (B,) (-1: any)."""
     task = hbr.middle_task
@@ -122,11 +125,12 @@ def execute_step(
     here = planar_pose(qpos[:, :3], qpos[:, 3:7])
     desired = task.normalise(relative_pose(here, target))
     index, found = select_middle(hbr, desired, pattern)
-    result = rollout(robot, hbr.middle_params[index], damage, state, _step_spec(task.steps))
+    result = rollout(robot, hbr.middle_params[index], damage, state, _step_spec(task.steps, limits))
     poses = planar_pose(result.base_pos, result.base_quat)
     return StepResult(
         state=result.final_state,
         valid=result.valid,
+        invalid_reason=result.invalid_reason,
         middle_index=index,
         pattern_found=found,
         displacement=relative_pose(poses[:, 0], poses[:, 1]),

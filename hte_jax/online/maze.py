@@ -133,6 +133,23 @@ def reached_goal(maze: Maze, points: jax.Array) -> jax.Array:
     return jnp.linalg.norm(points - jnp.asarray(maze.goal), axis=-1) < maze.goal_radius
 
 
+# Offsets tried when the robot stands where the planner's disc overlaps an obstacle (facts 9).
+_ESCAPES = np.array(sorted(((dx, dy) for dx in (-0.5, 0.0, 0.5) for dy in (-0.5, 0.0, 0.5)),
+                           key=lambda o: (o[0] ** 2 + o[1] ** 2, o)), np.float32)
+
+
+def planning_start(maze: Maze, points: jax.Array) -> jax.Array:
+    """(..., 2) measured positions -> (..., 2) where the planner starts: the position itself if the
+    disc is free and on the map, else the nearest free on-map point among the +-0.5 m offsets (the
+    original's rule), else the position itself."""
+    offsets = jnp.asarray(_ESCAPES)  # (9, 2), (0, 0) first
+    tries = points[..., None, :] + offsets
+    free = ~point_collides(maze, tries) & in_bounds(maze, tries)
+    first = jnp.argmax(free, axis=-1)
+    chosen = jnp.take_along_axis(tries, first[..., None, None], axis=-2)[..., 0, :]
+    return jnp.where(free.any(axis=-1)[..., None], chosen, points)
+
+
 @dataclasses.dataclass(frozen=True)
 class GridSpec:
     """A planning grid over the maze bounds: node (i, j) at (x_min + i cell, y_min + j cell)."""

@@ -90,11 +90,14 @@ class World:
 
     displacement: (A, 3) predicted (dx, dy, dyaw) of each action in the robot's frame.
     mask: (A,) bool usable actions. field: (nx, ny) int32 grid steps to the goal (-1 unreachable).
+    usable: (A,) int32 action indices, the usable ones first. count: () int32 usable actions.
     """
 
     displacement: jax.Array
     mask: jax.Array
     field: jax.Array
+    usable: jax.Array
+    count: jax.Array
 
 
 def _empty_tree(config: PlannerConfig, state: jax.Array) -> Tree:
@@ -138,9 +141,9 @@ def geodesic_cost(maze: Maze, grid: GridSpec, field: jax.Array, points: jax.Arra
     return jnp.where((steps < 0) | ~in_bounds(maze, points), jnp.inf, cost)
 
 
-def _sample_actions(key, mask, num):
-    logits = jnp.where(mask, 0.0, -jnp.inf)
-    return jax.random.categorical(key, logits, shape=(num,)).astype(jnp.int32)
+def _sample_actions(key, world: World, num: int) -> jax.Array:
+    """`num` uniform draws among the usable actions (O(num), whatever the number of actions)."""
+    return world.usable[jax.random.randint(key, (num,), 0, jnp.maximum(world.count, 1))]
 
 
 def _search(maze: Maze, grid: GridSpec, config: PlannerConfig, world: World, key: jax.Array, state: jax.Array) -> Tree:
@@ -148,7 +151,7 @@ def _search(maze: Maze, grid: GridSpec, config: PlannerConfig, world: World, key
     depth_limit = config.depth
 
     def expand_action(key, tree, node):
-        candidates = _sample_actions(key, world.mask, config.candidates)
+        candidates = _sample_actions(key, world, config.candidates)
         ends, reward, _ = transition(maze, config, world, jnp.broadcast_to(tree.state[node], (config.candidates, 3)),
                                      candidates)
         cost = jnp.where(reward < 0, jnp.inf, geodesic_cost(maze, grid, world.field, ends[:, :2]))
@@ -207,7 +210,7 @@ def _search(maze: Maze, grid: GridSpec, config: PlannerConfig, world: World, key
         # rollout from the leaf: uniform random actions, discounted
         def roll(carry, key_step):
             state, alive, discount, total, d = carry
-            action = _sample_actions(key_step, world.mask, 1)[0]
+            action = _sample_actions(key_step, world, 1)[0]
             nxt, reward, terminal = transition(maze, config, world, state, action)
             go = alive & (d < depth_limit)
             total = total + jnp.where(go, discount * reward, 0.0)
@@ -231,9 +234,45 @@ def _search(maze: Maze, grid: GridSpec, config: PlannerConfig, world: World, key
     return tree
 
 
+@struct.dataclass
+class PlanResult:
+    """One decision, A actions, D = config.depth.
+
+    action: () int32 the action with the best mean value over the merged root statistics.
+    value: () float32 that mean value. visits: (A,) int32 merged root visits per action.
+    path: (D + 1, 3) the planned path: the start state, the chosen action's end state, then the
+      most-visited branch below it (in the tree that visited the chosen action most).
+    path_length: () int32 valid rows of `path` (the rest repeat the last state).
+    """
+
+    action: jax.Array
+    value: jax.Array
+    visits: jax.Array
+    path: jax.Array
+    path_length: jax.Array
+
+
+def _principal_path(tree: Tree, first: jax.Array, depth: int) -> tuple[jax.Array, jax.Array]:
+    """States from the root through node `first` and then its most-visited descendants."""
+
+    def follow(carry, _):
+        node, length = carry
+        kids = tree.children[node]
+        valid = kids >= 0
+        safe = jnp.where(valid, kids, 0)
+        child = safe[jnp.argmax(jnp.where(valid, tree.visits[safe], -1))]
+        go = valid.any()
+        node = jnp.where(go, child, node)
+        return (node, length + go), tree.state[node]
+
+    (_, length), rest = jax.lax.scan(follow, (first, jnp.int32(2)), None, length=depth - 1)
+    path = jnp.concatenate([tree.state[:1], tree.state[first][None], rest], axis=0)
+    return path, length
+
+
 @functools.partial(jax.jit, static_argnames=("maze", "grid", "config"))
-def plan(maze: Maze, grid: GridSpec, config: PlannerConfig, world: World, key: jax.Array, state: jax.Array):
-    """Best action index for the robot at `state` (3,), its mean value, and the merged root visits (A,)."""
+def plan(maze: Maze, grid: GridSpec, config: PlannerConfig, world: World, key: jax.Array, state: jax.Array) -> PlanResult:
+    """Plan from `state` (3,): `config.roots` trees merged at the root (see the module docstring)."""
     trees = jax.vmap(lambda k: _search(maze, grid, config, world, k, state))(jax.random.split(key, config.roots))
     root_children = trees.children[:, 0]  # (R, K)
     valid = root_children >= 0
@@ -247,10 +286,27 @@ def plan(maze: Maze, grid: GridSpec, config: PlannerConfig, world: World, key: j
     merged_values = jax.ops.segment_sum(values.reshape(-1), target.reshape(-1), num_segments=num_actions + 1)[:-1]
     mean = jnp.where(merged_visits > 0, merged_values / jnp.maximum(merged_visits, 1), -jnp.inf)
     best = jnp.argmax(mean).astype(jnp.int32)
-    return best, mean[best], merged_visits
+    # The planned path: in the tree that visited the chosen action most, follow its node down.
+    on_best = jnp.where(valid & (actions == best), visits, -1)  # (R, K)
+    tree_index = jnp.argmax(on_best.max(axis=1))
+    first = safe[tree_index, jnp.argmax(on_best[tree_index])]
+    tree = jax.tree.map(lambda x: x[tree_index], trees)
+    path, length = _principal_path(tree, first, config.depth)
+    return PlanResult(action=best, value=mean[best], visits=merged_visits, path=path, path_length=length)
+
+
+def world_of(displacement: jax.Array, mask: jax.Array, field: jax.Array) -> World:
+    """A World from predicted displacements (A, 3), usable actions (A,) and a distance field (jittable)."""
+    mask = jnp.asarray(mask, bool)
+    return World(
+        displacement=jnp.asarray(displacement, jnp.float32),
+        mask=mask,
+        field=field,
+        usable=jnp.argsort(~mask, stable=True).astype(jnp.int32),
+        count=mask.sum().astype(jnp.int32),
+    )
 
 
 def make_world(maze: Maze, grid: GridSpec, displacement: jax.Array, mask: jax.Array) -> World:
     """A World for `plan`: predicted displacements (A, 3), usable actions (A,), and the maze's distance field."""
-    return World(displacement=jnp.asarray(displacement, jnp.float32), mask=jnp.asarray(mask, bool),
-                 field=distance_field(maze, grid))
+    return world_of(displacement, mask, distance_field(maze, grid))

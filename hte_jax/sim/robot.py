@@ -27,6 +27,7 @@ LEG_NAMES = ("front-right", "middle-right", "rear-right", "rear-left", "middle-l
 FLOOR_BIT = 1
 WALL_BIT = 2
 WALL_HEIGHT = 0.9
+WALL_CONTACTS = ("bumper", "links", "feet")
 
 
 def assets_dir() -> Path:
@@ -53,7 +54,14 @@ class RobotConfig:
     max_torque / max_joint_velocity: servo torque (N m) and commanded-velocity (rad/s) limits.
     joint_limits: enforce the +-pi/2 joint ranges.
     walls: axis-aligned boxes (x1, y1, x2, y2) in metres, 0.9 m high, added to the world.
-    body_wall_collisions: whether body and leg links (not only feet) collide with walls.
+    wall_contact: what of the robot touches walls. "bumper" (default): one invisible, massless
+      sphere of `bumper_radius` around the body's centre, the planner's disc made solid (MJX
+      sphere-box contacts are cheap). "links": the body box, every link box and the feet (exact
+      shape, but 171 box-box pairs with the maze's 9 boxes make MJX about 25x slower). "feet":
+      the foot spheres only.
+    bumper_radius: radius of the bumper sphere in metres (the planner's robot radius).
+    body_floor_contact: the body and link boxes collide with the floor too (not only the feet);
+      the online phase turns it on so that a damaged robot that tips over lands on its body.
     """
 
     timestep: float = 0.01
@@ -66,7 +74,9 @@ class RobotConfig:
     max_joint_velocity: float = 5.0
     joint_limits: bool = True
     walls: tuple[tuple[float, float, float, float], ...] = ()
-    body_wall_collisions: bool = True
+    wall_contact: str = "bumper"
+    bumper_radius: float = 0.25
+    body_floor_contact: bool = False
 
     def __post_init__(self):
         for name in ("timestep", "control_dt", "servo_gain", "max_torque", "max_joint_velocity"):
@@ -79,6 +89,9 @@ class RobotConfig:
         require_int("solver_iterations", self.solver_iterations)
         require_int("ls_iterations", self.ls_iterations)
         require_number("armature", self.armature, 0.0)
+        if self.wall_contact not in WALL_CONTACTS:
+            raise ConfigError(f"wall_contact must be one of {WALL_CONTACTS}, got {self.wall_contact!r}")
+        require_number("bumper_radius", self.bumper_radius, 0.0, open_low=True)
         for wall in self.walls:
             if len(wall) != 4 or not (wall[0] < wall[2] and wall[1] < wall[3]):
                 raise ConfigError(f"wall {wall!r} must be (x1, y1, x2, y2) with x1 < x2 and y1 < y2")
@@ -138,7 +151,25 @@ def build_spec(config: RobotConfig) -> mujoco.MjSpec:
         actuator.forcerange = [-config.max_torque, config.max_torque]
         actuator.ctrllimited = mujoco.mjtLimited.mjLIMITED_TRUE
         actuator.forcelimited = mujoco.mjtLimited.mjLIMITED_TRUE
-    affinity = FLOOR_BIT | (WALL_BIT if config.body_wall_collisions else 0)
+    if config.walls and config.wall_contact == "bumper":
+        for geom in spec.geoms:
+            if geom.contype & WALL_BIT:
+                geom.contype = geom.contype & ~WALL_BIT  # links: floor-blind already, now wall-blind too
+        spec.body("base_link").add_geom(
+            name="bumper",
+            type=mujoco.mjtGeom.mjGEOM_SPHERE,
+            size=[config.bumper_radius, 0.0, 0.0],
+            contype=WALL_BIT,
+            conaffinity=0,
+            mass=0.0,
+            group=3,
+            rgba=[0.0, 0.0, 0.0, 0.0],
+        )
+    if config.body_floor_contact:
+        for geom in spec.geoms:
+            if geom.name == "base_link" or geom.name.startswith("leg_"):
+                geom.contype = geom.contype | FLOOR_BIT
+    affinity = {"bumper": WALL_BIT, "links": FLOOR_BIT | WALL_BIT, "feet": FLOOR_BIT}[config.wall_contact]
     for i, (x1, y1, x2, y2) in enumerate(config.walls):
         spec.worldbody.add_geom(
             name=f"wall_{i}",

@@ -45,12 +45,15 @@ class ValidityLimits:
     min_base_height / max_base_height: allowed base-origin height in metres (the belly
       touches the floor at 0.021 m; no gait of the controller lowers the base below 0.079 m).
     max_speed: largest allowed |qvel| entry (m/s or rad/s).
+    body_on_floor: a body corner below the floor is invalid (turn off when the body collides
+      with the floor, `RobotConfig.body_floor_contact`).
     """
 
     max_tilt: float = math.pi / 4
     min_base_height: float = 0.04
     max_base_height: float = 1.0
     max_speed: float = 100.0
+    body_on_floor: bool = True
 
 
 @dataclasses.dataclass(frozen=True)
@@ -163,7 +166,7 @@ def _check(qpos: jax.Array, qvel: jax.Array, limits: ValidityLimits) -> jax.Arra
     up_z = 1.0 - 2.0 * (qpos[4] ** 2 + qpos[5] ** 2)  # world z of the body's z axis
     flipped = up_z < math.cos(limits.max_tilt)
     height = (qpos[2] < limits.min_base_height) | (qpos[2] > limits.max_base_height)
-    on_floor = _world_z_of(qpos, _BODY_BOTTOM).min() < 0.0
+    on_floor = (_world_z_of(qpos, _BODY_BOTTOM).min() < 0.0) & limits.body_on_floor
     return (
         jnp.where(finite, 0, InvalidReason.NON_FINITE)
         | jnp.where(exploded, InvalidReason.EXPLODED, 0)

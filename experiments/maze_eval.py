@@ -1,0 +1,129 @@
+"""Damage recovery in the maze: RTE / HTE variants adapt online, reset-free, many episodes per batch.
+
+    python -m experiments.maze_eval                                  # HTE, 7 damages, cpu preset
+    python -m experiments.maze_eval --variant hte,perfect-hte,rte --damage leg1 --replicates 3
+    python -m experiments.maze_eval --variant 2d-rte,8d-rte          # RTE on the shipped flat repertoires
+    python -m experiments.maze_eval --preset gpu --variant hte,perfect-hte,random-hte,rte
+    python -m experiments.maze_eval --repertoire runs/hbr-gpu/hbr.npz --damage none,0,6
+
+Variants: hte, perfect-hte, random-hte, rte (on an HBR: the shipped one or --repertoire; rte
+also on a flat file), 2d-rte, 8d-rte (shipped flat repertoires). Damages: all (the paper's 7),
+or names / indices (none, leg0..leg5 = 0..5, legs1+4 = 6, any legs<i>+<j>).
+Writes config.json, episodes.json (one record per episode), summary.json, episodes_<k>.npz
+(trajectories, plans, patterns of batch k) and plots/ under --out (default runs/maze-eval).
+Bad values give a one-line error and exit status 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from hte_jax.errors import ConfigError
+from hte_jax.online.evaluation import (
+    PRESETS,
+    EvalConfig,
+    batches,
+    episode_records,
+    prediction_errors,
+    preset,
+    run_batch,
+    summarise,
+    with_overrides,
+)
+from hte_jax.online.maze import PAPER_MAZE
+from hte_jax.online.plots import plot_actions, plot_episodes, plot_prediction_error
+from hte_jax.qd.io import CheckpointError, save_checkpoint, write_json
+
+SETTINGS = [f.name for f in dataclasses.fields(EvalConfig)]
+ALIASES = {"variants": "--variant", "damages": "--damage"}
+
+
+def parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--preset", default="cpu", help=f"one of {', '.join(PRESETS)} (default cpu)")
+    p.add_argument("--out", default="runs/maze-eval", help="output folder (default runs/maze-eval)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--show-config", action="store_true", help="print the resolved configuration and exit")
+    for key in SETTINGS:
+        flag = ALIASES.get(key, "--" + key.replace("_", "-"))
+        p.add_argument(flag, dest=key, default=None, metavar="V", help=f"override {key}")
+    return p
+
+
+def main(argv=None) -> int:
+    args = parser().parse_args(argv)
+    try:
+        config = with_overrides(preset(args.preset), {k: getattr(args, k) for k in SETTINGS if getattr(args, k) is not None})
+        if args.show_config:
+            print(json.dumps(config.to_dict(), indent=2))
+            return 0
+        out = Path(args.out)
+        out.mkdir(parents=True, exist_ok=True)
+        write_json(out / "config.json", {"preset": args.preset, **config.to_dict()})
+        records, curves = [], {}
+        for k, (path, variants) in enumerate(batches(config)):
+            result = run_batch(config, path, variants, progress=not args.no_progress)
+            rows = episode_records(result, config.max_actions)
+            records += rows
+            _save_batch(out / f"episodes_{k}.npz", result)
+            _plot_batch(out / "plots", result, curves)
+            print(f"batch {k} ({'/'.join(variants)} on {result.repertoire['path']}, {result.repertoire['actions']} actions): "
+                  f"{len(rows)} episodes in {result.timings.total:.1f} s, "
+                  f"planning median {np.median(result.timings.plan):.2f} s per action")
+    except (ConfigError, CheckpointError) as error:
+        print(f"error: {error}", file=sys.stderr)
+        return 2
+    summary = summarise(records, config.max_actions)
+    write_json(out / "episodes.json", {"episodes": records})
+    write_json(out / "summary.json", summary)
+    plot_prediction_error(out / "plots" / "prediction_error.png", curves)
+    plot_actions(out / "plots" / "actions.png", records, config.max_actions)
+    print(f"{'variant':<12} {'damage':<8} {'rep':>3} {'actions':>7}  result")
+    for r in records:
+        result = "goal" if r["reached"] else ("flipped" if r["broken"] else "failed")
+        print(f"{r['variant']:<12} {r['damage']:<8} {r['replicate']:>3} {r['actions']:>7}  {result}")
+    for variant, s in summary["variants"].items():
+        print(f"{variant}: {s['reached']}/{s['episodes']} reached the goal; actions 25/50/75 % = "
+              f"{s['actions_p25']:.0f} / {s['actions_median']:.0f} / {s['actions_p75']:.0f}")
+    print(f"wrote {out}")
+    return 0
+
+
+def _save_batch(path: Path, result) -> None:
+    ep = result.episodes
+    arrays = {
+        "trajectory": ep.trajectory, "taken": ep.taken, "reached": ep.reached, "broken": ep.broken,
+        "damage": ep.damage, "action": ep.history.action, "start": ep.history.start,
+        "predicted": ep.history.predicted, "observed": ep.history.observed, "value": ep.history.value,
+        "path": ep.history.path, "path_length": ep.history.path_length, "patterns": ep.history.patterns,
+        "errors": ep.history.errors,
+    }
+    labels = {"variants": result.variants, "damages": result.damages, "replicates": result.replicates,
+              "repertoire": result.repertoire, "plan_seconds": result.timings.plan, "act_seconds": result.timings.act}
+    save_checkpoint(path, arrays, labels, compress=True)
+
+
+def _plot_batch(plot_dir: Path, result, curves: dict) -> None:
+    ep = result.episodes
+    errors = prediction_errors(ep)
+    taken = np.asarray(ep.taken)
+    for variant in dict.fromkeys(result.variants):
+        rows = [i for i, v in enumerate(result.variants) if v == variant]
+        first = [i for i in rows if result.replicates[i] == 0]  # one episode per damage
+        labels = [f"{result.damages[i]}: {'goal' if bool(ep.reached[i]) else 'failed'} in {int(taken[i])}" for i in first]
+        plot_episodes(plot_dir / f"maze_{variant}.png", PAPER_MAZE, ep, first, labels,
+                      f"{variant}: first replicate per damage", plan_of=first[0])
+        masked = np.full((len(rows), errors.shape[1]), np.nan)
+        for j, i in enumerate(rows):
+            masked[j, : taken[i]] = errors[i, : taken[i]]
+        curves[variant] = masked
+
+
+if __name__ == "__main__":
+    sys.exit(main())

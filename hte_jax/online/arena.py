@@ -1,0 +1,77 @@
+"""The maze in MJX: a robot model with the maze's walls, and damaged robots standing at the start.
+
+The walls are the maze's boxes, 0.9 m high. The robot touches them with its bumper (see
+`RobotConfig.wall_contact`): a sphere of the planner's robot radius around the body, so the
+simulated robot is stopped by a wall exactly where the planner's disc would touch it. Its body
+and links also collide with the floor (`body_floor_contact`): a damaged robot that tips while
+trying a contact pattern lands on its body and goes on, as in the original's simulator.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+
+from hte_jax.hbr.geometry import heading
+from hte_jax.online.maze import Maze
+from hte_jax.sim.robot import Robot, RobotConfig, load_robot
+from hte_jax.sim.rollout import SimState, standing_state
+
+
+def maze_config(maze: Maze, base: RobotConfig = RobotConfig()) -> RobotConfig:
+    """`base` with the maze's boxes as walls and a bumper of the planner's robot radius."""
+    return dataclasses.replace(base, walls=maze.obstacles, wall_contact="bumper", bumper_radius=maze.robot_radius,
+                               body_floor_contact=True)
+
+
+def maze_robot(maze: Maze, base: RobotConfig = RobotConfig()) -> Robot:
+    return load_robot(maze_config(maze, base))
+
+
+def _yaw_quaternion(yaw: jax.Array) -> jax.Array:
+    return jnp.stack([jnp.cos(yaw / 2), jnp.zeros_like(yaw), jnp.zeros_like(yaw), jnp.sin(yaw / 2)], axis=-1)
+
+
+def _quaternion_product(a: jax.Array, b: jax.Array) -> jax.Array:
+    aw, ax, ay, az = a[..., 0], a[..., 1], a[..., 2], a[..., 3]
+    bw, bx, by, bz = b[..., 0], b[..., 1], b[..., 2], b[..., 3]
+    return jnp.stack(
+        [
+            aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+        ],
+        axis=-1,
+    )
+
+
+def place(state: SimState, pose: jax.Array) -> SimState:
+    """Move robots `state` (B, ...) so that their planar pose becomes `pose` (B, 3) (x, y, heading).
+
+    The body is turned about the vertical axis: quaternion, world-frame linear velocity and its
+    warm start turn with it; body-frame angular velocity and joints are unchanged.
+    """
+    qpos, qvel, warm = state.qpos, state.qvel, state.qacc_warmstart
+    turn = pose[:, 2] - heading(qpos[:, 3:7])
+    c, s = jnp.cos(turn)[:, None], jnp.sin(turn)[:, None]
+
+    def rotate(v):
+        return jnp.concatenate([c * v[:, :1] - s * v[:, 1:2], s * v[:, :1] + c * v[:, 1:2], v[:, 2:]], axis=-1)
+
+    quat = _quaternion_product(_yaw_quaternion(turn), qpos[:, 3:7])
+    qpos = jnp.concatenate([pose[:, :2], qpos[:, 2:3], quat, qpos[:, 7:]], axis=-1)
+    qvel = jnp.concatenate([rotate(qvel[:, :3]), qvel[:, 3:]], axis=-1)
+    warm = jnp.concatenate([rotate(warm[:, :3]), warm[:, 3:]], axis=-1)
+    return SimState(qpos=qpos, qvel=qvel, qacc_warmstart=warm)
+
+
+def start_states(maze: Maze, damages: jax.Array, base: RobotConfig = RobotConfig()) -> SimState:
+    """Robots with damages (B, 6), settled standing (away from walls) and placed at the maze's start."""
+    damages = jnp.asarray(damages, bool)
+    plain = load_robot(dataclasses.replace(base, walls=()))
+    settled = standing_state(plain, damages)
+    pose = jnp.broadcast_to(jnp.asarray(maze.start, jnp.float32), (damages.shape[0], 3))
+    return place(settled, pose)

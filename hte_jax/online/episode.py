@@ -1,0 +1,308 @@
+"""Reset-free adaptation episodes in the maze, B at once (paper section 4; facts sections 7 and 9).
+
+Each action: the RTE GP predicts every action's outcome (repertoire prior + observed
+corrections), MCTS plans from the robot's measured pose on those predictions, the chosen skill
+runs on the simulated damaged robot from wherever it stands (`execute`), and the measured
+displacement (dx, dy, dyaw) in the pre-action frame is added to the RTE GP. An episode ends when
+the robot is within the goal radius after an action (success), after `max_actions` actions
+(failure) or when its simulation goes invalid (a flipped robot: failure). Wall contacts do not
+end an episode; a robot standing where the planner's disc overlaps a wall plans from the nearest
+free +-0.5 m offset.
+
+`plan_step` and `act_step` are jitted over the whole batch; `run_episodes` calls them once per
+action until every episode has ended, so planning latency can be measured on its own.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+from tqdm.auto import tqdm
+
+from hte_jax.errors import ConfigError, require_int
+from hte_jax.hbr.execution import STEPS_PER_SKILL
+from hte_jax.hbr.geometry import planar_pose
+from hte_jax.online.actions import OUTCOME_DIM, displacement_of, observe, predict
+from hte_jax.online.execute import (
+    ANY_PATTERN_MODE,
+    ERROR_DIM,
+    ORACLE_MODE,
+    RANDOM_MODE,
+    SECONDARY_DIM,
+    SECONDS_PER_ACTION,
+    UCB_MODE,
+    Skills,
+    execute_flat,
+    execute_hbr,
+)
+from hte_jax.online.gp import GPData, empty_gp
+from hte_jax.online.maze import GridSpec, Maze, distance_field, planning_start, reached_goal
+from hte_jax.online.mcts import PlannerConfig, PlanResult, plan, world_of
+from hte_jax.online.secondary import oracle_pattern
+from hte_jax.sim.robot import Robot
+from hte_jax.sim.rollout import SimState
+
+# variant -> how each 1 s step picks its contact pattern (flat repertoires: only "rte")
+VARIANT_MODES = {"rte": ANY_PATTERN_MODE, "hte": UCB_MODE, "perfect-hte": ORACLE_MODE, "random-hte": RANDOM_MODE}
+
+
+@dataclasses.dataclass(frozen=True)
+class AdaptationConfig:
+    """Settings of an adaptation run (hashable: a static jit argument).
+
+    max_actions: actions before an episode counts as failed (paper 80).
+    planner: MCTS settings. grid: the planner's distance-field grid.
+    """
+
+    max_actions: int = 80
+    planner: PlannerConfig = PlannerConfig()
+    grid: GridSpec = GridSpec()
+
+    def __post_init__(self):
+        require_int("max_actions", self.max_actions)
+
+
+@struct.dataclass
+class History:
+    """What happened at each action of B episodes, L = max_actions, D = planner depth.
+
+    action: (B, L) int32 chosen action (-1 after the episode ended). start: (B, L, 3) the pose
+    the planner started from. predicted: (B, L, 3) the GP's predicted displacement of the chosen
+    action. observed: (B, L, 3) the measured displacement. value: (B, L) the plan's value.
+    path: (B, L, D + 1, 3) the planned path (world frame). path_length: (B, L) int32.
+    patterns: (B, L, 3) int32 contact pattern of each step (-1: any). errors: (B, L, 3, 3)
+    relative errors of each step (x, y, yaw).
+    """
+
+    action: jax.Array
+    start: jax.Array
+    predicted: jax.Array
+    observed: jax.Array
+    value: jax.Array
+    path: jax.Array
+    path_length: jax.Array
+    patterns: jax.Array
+    errors: jax.Array
+
+
+@struct.dataclass
+class Episodes:
+    """B adaptation episodes.
+
+    sim: SimState (B, ...) the robots. damage: (B, 6) bool. mode: (B,) int32 secondary mode.
+    oracle: (B,) int32 the true damage's pattern. rte: GPData (B, L, D, 4), the action model.
+    secondary: GPData (B, 3 L, 9, 3), HTE's error model. key: (B, 2) PRNG keys.
+    taken: (B,) int32 actions so far. reached: (B,) bool at the goal. broken: (B,) bool the
+    simulation went invalid; reason: (B,) int32 its `InvalidReason` bits (0 if not broken). trajectory: (B, 4 L + 1, 3) world pose (x, y, yaw) every second,
+    the last pose repeated after the end. history: History.
+    """
+
+    sim: SimState
+    damage: jax.Array
+    mode: jax.Array
+    oracle: jax.Array
+    rte: GPData
+    secondary: GPData
+    key: jax.Array
+    taken: jax.Array
+    reached: jax.Array
+    broken: jax.Array
+    reason: jax.Array
+    trajectory: jax.Array
+    history: History
+
+    @property
+    def done(self) -> jax.Array:
+        return self.reached | self.broken | (self.taken >= self.history.action.shape[1])
+
+    @property
+    def pose(self) -> jax.Array:
+        return planar_pose(self.sim.qpos[:, :3], self.sim.qpos[:, 3:7])
+
+
+def variant_mode(variant: str, hierarchical: bool) -> int:
+    if variant not in VARIANT_MODES:
+        raise ConfigError(f"unknown variant {variant!r}; expected one of {sorted(VARIANT_MODES)}")
+    if not hierarchical and variant != "rte":
+        raise ConfigError(f"variant {variant!r} needs an HBR (a flat repertoire has no secondary descriptor)")
+    return VARIANT_MODES[variant]
+
+
+def start_episodes(
+    config: AdaptationConfig, skills: Skills, start: SimState, damages: np.ndarray, modes: np.ndarray, key: jax.Array
+) -> Episodes:
+    """B fresh episodes: robots `start` (B, ...) with `damages` (B, 6), secondary `modes` (B,)."""
+    damages = np.asarray(damages, bool)
+    batch, length = damages.shape[0], config.max_actions
+    depth = config.planner.depth
+    pose = planar_pose(start.qpos[:, :3], start.qpos[:, 3:7])
+
+    def stacked(gp):
+        return jax.tree.map(lambda x: jnp.broadcast_to(x, (batch, *x.shape)), gp)
+
+    history = History(
+        action=jnp.full((batch, length), -1, jnp.int32),
+        start=jnp.zeros((batch, length, 3), jnp.float32),
+        predicted=jnp.zeros((batch, length, 3), jnp.float32),
+        observed=jnp.zeros((batch, length, 3), jnp.float32),
+        value=jnp.zeros((batch, length), jnp.float32),
+        path=jnp.zeros((batch, length, depth + 1, 3), jnp.float32),
+        path_length=jnp.zeros((batch, length), jnp.int32),
+        patterns=jnp.full((batch, length, STEPS_PER_SKILL), -1, jnp.int32),
+        errors=jnp.zeros((batch, length, STEPS_PER_SKILL, ERROR_DIM), jnp.float32),
+    )
+    return Episodes(
+        sim=start,
+        damage=jnp.asarray(damages),
+        mode=jnp.asarray(modes, jnp.int32),
+        oracle=jnp.asarray([oracle_pattern(d) for d in damages], jnp.int32),
+        rte=stacked(empty_gp(length, skills.actions.inputs.shape[1], OUTCOME_DIM)),
+        secondary=stacked(empty_gp(STEPS_PER_SKILL * length, SECONDARY_DIM, ERROR_DIM)),
+        key=jax.random.split(key, batch),
+        taken=jnp.zeros(batch, jnp.int32),
+        reached=jnp.zeros(batch, bool),
+        broken=jnp.zeros(batch, bool),
+        reason=jnp.zeros(batch, jnp.int32),
+        trajectory=jnp.broadcast_to(pose[:, None, :], (batch, SECONDS_PER_ACTION * length + 1, 3)),
+        history=history,
+    )
+
+
+@struct.dataclass
+class Decision:
+    """The next action of B episodes.
+
+    plan: PlanResult with leading B. start: (B, 3) pose the planner started from. predicted:
+    (B, 3) the GP's predicted displacement of the chosen action. keys: (B, 2) keys for executing it.
+    """
+
+    plan: PlanResult
+    start: jax.Array
+    predicted: jax.Array
+    keys: jax.Array
+
+
+@functools.partial(jax.jit, static_argnames=("maze", "config"))
+def plan_step(maze: Maze, config: AdaptationConfig, skills: Skills, field: jax.Array, episodes: Episodes) -> Decision:
+    """Plan the next action of every episode on the RTE GP's predictions."""
+    mean, _ = jax.vmap(lambda gp: predict(gp, skills.actions))(episodes.rte)  # (B, A, 4)
+    displacement = displacement_of(mean)
+    pose = episodes.pose
+    start = jnp.concatenate([planning_start(maze, pose[:, :2]), pose[:, 2:]], axis=-1)
+    keys = jax.vmap(lambda k: jax.random.split(k, 3))(episodes.key)  # (B, 3, 2): next, plan, act
+
+    def one(displacement, key, state):
+        world = world_of(displacement, skills.actions.mask, field)
+        return plan(maze, config.grid, config.planner, world, key, state)
+
+    result = jax.vmap(one)(displacement, keys[:, 1], start)
+    predicted = jnp.take_along_axis(displacement, result.action[:, None, None], axis=1)[:, 0]
+    return Decision(plan=result, start=start, predicted=predicted, keys=keys)
+
+
+@functools.partial(jax.jit, static_argnames=("maze", "config"))
+def act_step(maze: Maze, config: AdaptationConfig, robot: Robot, skills: Skills, episodes: Episodes,
+             decision: Decision) -> Episodes:
+    """Execute every active episode's planned action, learn from it, and record it."""
+    active = ~episodes.done
+    index = decision.plan.action
+    keys = decision.keys
+    if skills.hierarchical:
+        outcome = execute_hbr(robot, skills, index, episodes.sim, episodes.damage, episodes.secondary,
+                              episodes.mode, episodes.oracle, episodes.taken, keys[:, 2])
+    else:
+        outcome = execute_flat(robot, skills, index, episodes.sim, episodes.damage, episodes.secondary)
+    rte = jax.vmap(lambda gp, i, d: observe(gp, skills.actions, i, d))(episodes.rte, index, outcome.displacement)
+
+    def keep(new, old):
+        """New values for active episodes, old ones for ended episodes."""
+        return jax.tree.map(lambda n, o: jnp.where(active.reshape(-1, *([1] * (n.ndim - 1))), n, o), new, old)
+
+    rows = jnp.arange(index.shape[0])
+    slot = jnp.minimum(episodes.taken, config.max_actions - 1)
+    h = episodes.history
+    recorded = History(
+        action=h.action.at[rows, slot].set(index),
+        start=h.start.at[rows, slot].set(decision.start),
+        predicted=h.predicted.at[rows, slot].set(decision.predicted),
+        observed=h.observed.at[rows, slot].set(outcome.displacement),
+        value=h.value.at[rows, slot].set(decision.plan.value),
+        path=h.path.at[rows, slot].set(decision.plan.path),
+        path_length=h.path_length.at[rows, slot].set(decision.plan.path_length),
+        patterns=h.patterns.at[rows, slot].set(outcome.patterns),
+        errors=h.errors.at[rows, slot].set(outcome.errors),
+    )
+    first = SECONDS_PER_ACTION * episodes.taken + 1
+    trajectory = episodes.trajectory
+    for second in range(SECONDS_PER_ACTION):
+        trajectory = trajectory.at[rows, first + second].set(outcome.poses[:, second])
+    # Later slots hold the latest pose until they are written (the plot shows a still robot).
+    later = jnp.arange(trajectory.shape[1])[None, :] >= (first + SECONDS_PER_ACTION)[:, None]
+    trajectory = jnp.where(later[..., None], outcome.poses[:, -1:, :], trajectory)
+    end = planar_pose(outcome.state.qpos[:, :3], outcome.state.qpos[:, 3:7])
+    updated = episodes.replace(
+        sim=outcome.state,
+        rte=rte,
+        secondary=outcome.secondary,
+        key=keys[:, 0],
+        taken=episodes.taken + 1,
+        reached=reached_goal(maze, end[:, :2]) & outcome.valid,
+        broken=~outcome.valid,
+        reason=outcome.invalid_reason,
+        trajectory=trajectory,
+        history=recorded,
+    )
+    return keep(updated, episodes)
+
+
+@dataclasses.dataclass
+class RunTimings:
+    """Wall-clock seconds of each call of a run (the first of each includes compilation)."""
+
+    plan: list[float] = dataclasses.field(default_factory=list)
+    act: list[float] = dataclasses.field(default_factory=list)
+    total: float = 0.0
+
+
+def run_episodes(
+    maze: Maze,
+    config: AdaptationConfig,
+    robot: Robot,
+    skills: Skills,
+    episodes: Episodes,
+    progress: bool = True,
+    description: str = "episodes",
+    max_steps: int | None = None,
+) -> tuple[Episodes, RunTimings]:
+    """Run the batch until every episode has ended (or for `max_steps` actions); returns the
+    episodes and timings."""
+    # Commit every input to the default device: jit keys its cache on committed-ness, so uncommitted
+    # first inputs would compile each step function twice.
+    device = jax.devices()[0]
+    field = jax.device_put(distance_field(maze, config.grid), device)
+    skills, robot, episodes = jax.device_put((skills, robot, episodes), device)
+    timings = RunTimings()
+    begin = time.perf_counter()
+    bar = tqdm(total=config.max_actions, desc=description, unit="action", disable=not progress)
+    for _ in range(config.max_actions if max_steps is None else min(max_steps, config.max_actions)):
+        if bool(episodes.done.all()):
+            break
+        tick = time.perf_counter()
+        decision = plan_step(maze, config, skills, field, episodes)
+        jax.block_until_ready(decision)
+        timings.plan.append(time.perf_counter() - tick)
+        tick = time.perf_counter()
+        episodes = act_step(maze, config, robot, skills, episodes, decision)
+        jax.block_until_ready(episodes)
+        timings.act.append(time.perf_counter() - tick)
+        bar.update(1)
+        bar.set_postfix(reached=int(episodes.reached.sum()), running=int((~episodes.done).sum()))
+    bar.close()
+    timings.total = time.perf_counter() - begin
+    return episodes, timings

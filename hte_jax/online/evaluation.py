@@ -1,0 +1,252 @@
+"""Adaptation experiments in the maze: which repertoire, which variants, damages and replicates,
+run as batched episodes, summarised and saved (the library side of `experiments.maze_eval`).
+
+Variants: "hte", "perfect-hte", "random-hte" and "rte" plan on an HBR's top layer (its file, or
+the shipped one); "rte" on a flat repertoire file plans on its elites; "2d-rte" and "8d-rte" are
+RTE on the shipped flat repertoires. All HBR variants share one batch (the secondary mode is
+per episode); each flat repertoire is its own batch.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from typing import Any
+
+import jax
+import numpy as np
+
+from hte_jax.errors import ConfigError, convert_setting, require_int
+from hte_jax.flat.store import load_flat, shipped_flat_path
+from hte_jax.hbr.store import load_hbr
+from hte_jax.online.arena import maze_robot, start_states
+from hte_jax.online.episode import AdaptationConfig, Episodes, RunTimings, run_episodes, start_episodes, variant_mode
+from hte_jax.online.execute import Skills, flat_skills, hbr_skills
+from hte_jax.online.maze import PAPER_MAZE, Maze
+from hte_jax.online.mcts import PlannerConfig
+from hte_jax.qd.io import CheckpointError, read_checkpoint
+from hte_jax.sim.damage import PAPER_DAMAGES, parse_damage
+
+HBR_VARIANTS = ("hte", "perfect-hte", "random-hte", "rte")
+FLAT_VARIANTS = {"2d-rte": "2d", "8d-rte": "8d"}
+VARIANTS = HBR_VARIANTS + tuple(FLAT_VARIANTS)
+
+
+@dataclasses.dataclass(frozen=True)
+class EvalConfig:
+    """An adaptation experiment. Every field can be overridden from the CLI.
+
+    variants: comma-separated variant names. damages: "all" (the paper's 7), or comma-separated
+    names ("none", "leg1", "legs1+4") or the original's indices 0..6. replicates: episodes per
+    (variant, damage). repertoire: an HBR or single flat repertoire file for the HBR variants and
+    "rte" ("" = the shipped HBR). max_actions: the failure cap. iterations, roots, candidates,
+    exploration, widening, gamma, depth: MCTS settings (see PlannerConfig). seed: PRNG seed.
+    """
+
+    variants: str = "hte"
+    damages: str = "all"
+    replicates: int = 1
+    repertoire: str = ""
+    max_actions: int = 80
+    iterations: int = 200
+    roots: int = 2
+    candidates: int = 100
+    exploration: float = 100.0
+    widening: float = 0.5
+    gamma: float = 0.9
+    depth: int = 20
+    seed: int = 0
+
+    def __post_init__(self):
+        require_int("replicates", self.replicates)
+        require_int("seed", self.seed, 0)
+        for name in self.variant_list:
+            if name not in VARIANTS:
+                raise ConfigError(f"unknown variant {name!r}; choose from {', '.join(VARIANTS)}")
+        self.damage_list  # noqa: B018 (validates the names)
+        self.adaptation  # noqa: B018 (validates the planner settings)
+
+    @property
+    def variant_list(self) -> tuple[str, ...]:
+        names = tuple(v.strip() for v in self.variants.split(",") if v.strip())
+        if not names:
+            raise ConfigError("variants: give at least one variant")
+        if len(set(names)) != len(names):
+            raise ConfigError(f"variants: {self.variants!r} names a variant twice")
+        return names
+
+    @property
+    def damage_list(self) -> tuple[str, ...]:
+        """Damage names in order (indices 0..6 become the paper's names)."""
+        if self.damages.strip() == "all":
+            return tuple(PAPER_DAMAGES)
+        names = []
+        for item in (d.strip() for d in self.damages.split(",") if d.strip()):
+            if item.lstrip("-").isdigit():
+                index = int(item)
+                parse_damage(index)
+                names.append("none" if index == -1 else list(PAPER_DAMAGES)[index])
+            else:
+                parse_damage(item)
+                names.append(item)
+        if not names:
+            raise ConfigError("damages: give 'all' or at least one damage")
+        return tuple(names)
+
+    @property
+    def adaptation(self) -> AdaptationConfig:
+        planner = PlannerConfig(
+            iterations=self.iterations, roots=self.roots, exploration=self.exploration, widening=self.widening,
+            gamma=self.gamma, depth=self.depth, candidates=self.candidates,
+        )
+        return AdaptationConfig(max_actions=self.max_actions, planner=planner)
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+# cpu: 7 episodes per variant, minutes on 2 cores; gpu: the paper's 30 replicates with RTE's
+# original planner (1000 iterations x 4 trees); paper: HTE's original 6000 iterations x 32 trees.
+PRESETS = {
+    "cpu": EvalConfig(),
+    "gpu": EvalConfig(replicates=30, iterations=1000, roots=4),
+    "paper": EvalConfig(replicates=30, iterations=6000, roots=32),
+}
+
+
+def preset(name: str) -> EvalConfig:
+    if name not in PRESETS:
+        raise ConfigError(f"unknown preset {name!r}; choose one of {sorted(PRESETS)}")
+    return PRESETS[name]
+
+
+def with_overrides(config: EvalConfig, overrides: dict[str, Any]) -> EvalConfig:
+    data = config.to_dict()
+    for key, value in overrides.items():
+        if key not in data:
+            raise ConfigError(f"unknown setting {key!r}")
+        data[key] = convert_setting(key, data[key], value)
+    return EvalConfig(**data)
+
+
+def load_skills(path: str | Path | None) -> tuple[Skills, dict]:
+    """Actions of an HBR file (its top layer) or of a file holding one flat repertoire; None: the shipped HBR."""
+    if path is None or str(path) == "":
+        hbr, task, _ = load_hbr()
+        skills = hbr_skills(hbr, task)
+        return skills, {"kind": "hbr", "path": "shipped", "actions": int(skills.actions.mask.sum())}
+    _, header = read_checkpoint(path)
+    kind = header.get("metadata", {}).get("kind")
+    if kind == "hte_jax.hbr":
+        hbr, task, _ = load_hbr(path)
+        skills = hbr_skills(hbr, task)
+        return skills, {"kind": "hbr", "path": str(path), "actions": int(skills.actions.mask.sum())}
+    if kind == "hte_jax.flat":
+        count = len(header["metadata"].get("damages", ()))
+        if count != 1:
+            raise CheckpointError(f"{path}: holds {count} repertoires (an APROL set); RTE needs a file with one")
+        flat, _ = load_flat(path)
+        skills = flat_skills(flat[0], flat.task.extent)
+        return skills, {"kind": f"flat-{flat.task.descriptor}", "path": str(path), "actions": int(skills.actions.mask.sum())}
+    raise CheckpointError(f"{path}: neither an HBR nor a flat repertoire file (kind {kind!r})")
+
+
+@dataclasses.dataclass
+class BatchResult:
+    """One batch of episodes on one repertoire: labels per episode and the final `Episodes`."""
+
+    repertoire: dict
+    variants: list[str]
+    damages: list[str]
+    replicates: list[int]
+    episodes: Episodes
+    timings: RunTimings
+
+
+def batches(config: EvalConfig) -> list[tuple[str | None, list[str]]]:
+    """(repertoire path or None for the shipped HBR, variants) for each batch to run."""
+    hbr = [v for v in config.variant_list if v in HBR_VARIANTS]
+    out = []
+    if hbr:
+        out.append((config.repertoire or None, hbr))
+    for variant in config.variant_list:
+        if variant in FLAT_VARIANTS:
+            out.append((str(shipped_flat_path(FLAT_VARIANTS[variant])), [variant]))
+    return out
+
+
+def run_batch(config: EvalConfig, path: str | None, variants: list[str], maze: Maze = PAPER_MAZE,
+              progress: bool = True, key: jax.Array | None = None) -> BatchResult:
+    """Every (variant, damage, replicate) of `variants` on one repertoire, as one batch of episodes."""
+    skills, info = load_skills(path)
+    labels = [(v, d, r) for v in variants for d in config.damage_list for r in range(config.replicates)]
+    modes = np.array([variant_mode("rte" if v in FLAT_VARIANTS else v, skills.hierarchical) for v, _, _ in labels])
+    damages = np.stack([parse_damage(d) for _, d, _ in labels])
+    adaptation = config.adaptation
+    start = start_states(maze, damages)
+    key = jax.random.PRNGKey(config.seed) if key is None else key
+    episodes = start_episodes(adaptation, skills, start, damages, modes, key)
+    robot = maze_robot(maze)
+    episodes, timings = run_episodes(maze, adaptation, robot, skills, episodes, progress=progress,
+                                     description="/".join(variants))
+    return BatchResult(
+        repertoire=info,
+        variants=[v for v, _, _ in labels],
+        damages=[d for _, d, _ in labels],
+        replicates=[r for _, _, r in labels],
+        episodes=episodes,
+        timings=timings,
+    )
+
+
+def episode_records(result: BatchResult, max_actions: int) -> list[dict]:
+    """One JSON-able record per episode: actions (the cap when failed), success and the prediction errors."""
+    ep = result.episodes
+    taken = np.asarray(ep.taken)
+    reached = np.asarray(ep.reached)
+    broken = np.asarray(ep.broken)
+    error = prediction_errors(ep)
+    records = []
+    for i, (variant, damage, replicate) in enumerate(zip(result.variants, result.damages, result.replicates)):
+        records.append({
+            "variant": variant,
+            "damage": damage,
+            "replicate": replicate,
+            "reached": bool(reached[i]),
+            "broken": bool(broken[i]),
+            "actions": int(taken[i]) if reached[i] else max_actions,
+            "actions_taken": int(taken[i]),
+            "prediction_error": [round(float(e), 4) for e in error[i, : taken[i]]],
+        })
+    return records
+
+
+def prediction_errors(episodes: Episodes) -> np.ndarray:
+    """(B, L) distance (m) between the RTE GP's predicted and the measured end position of each action."""
+    h = episodes.history
+    return np.linalg.norm(np.asarray(h.predicted)[..., :2] - np.asarray(h.observed)[..., :2], axis=-1)
+
+
+def summarise(records: list[dict], max_actions: int) -> dict:
+    """Per variant and per (variant, damage): episodes, successes, and the 25/50/75th percentiles of actions."""
+
+    def stats(rows):
+        actions = np.array([r["actions"] for r in rows])
+        return {
+            "episodes": len(rows),
+            "reached": int(sum(r["reached"] for r in rows)),
+            "failure_rate": float(np.mean([not r["reached"] for r in rows])),
+            "actions_p25": float(np.percentile(actions, 25, method="nearest")),
+            "actions_median": float(np.percentile(actions, 50, method="nearest")),
+            "actions_p75": float(np.percentile(actions, 75, method="nearest")),
+            "broken": int(sum(r["broken"] for r in rows)),
+        }
+
+    out = {"max_actions": max_actions, "variants": {}}
+    for variant in dict.fromkeys(r["variant"] for r in records):
+        rows = [r for r in records if r["variant"] == variant]
+        out["variants"][variant] = {
+            **stats(rows),
+            "damages": {d: stats([r for r in rows if r["damage"] == d]) for d in dict.fromkeys(r["damage"] for r in rows)},
+        }
+    return out

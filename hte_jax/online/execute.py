@@ -1,0 +1,231 @@
+"""Running the planner's chosen actions on the simulated, damaged robots: reset-free, batched.
+
+An action is a 3 s skill followed by 1 s of the neutral pose (all controller parameters 0).
+A flat repertoire's skill is its 36-parameter controller run for 3 s. An HBR's skill is a
+top-layer genotype executed step by step (`hbr.execution.execute_step`); before each 1 s step
+the contact pattern of the middle elite is chosen by the episode's secondary mode:
+
+- `ANY_PATTERN_MODE` (RTE on an HBR): the nearest elite in primary descriptor, any pattern,
+  exactly as in training;
+- `UCB_MODE` (HTE): GP-UCB over the 36 allowed patterns, on the secondary GP's predicted errors;
+- `ORACLE_MODE` (Perfect HTE): the pattern of the true damage (the intact legs down);
+- `RANDOM_MODE` (Random HTE): a uniform pattern among the allowed ones the repertoire holds.
+
+Rollouts here use `ONLINE_LIMITS`: the robot of the online phase has its body collide with the
+floor, so a body on the floor is no longer an error, and only a robot tilted past 90 degrees (on
+its side or back: it cannot get up), a non-finite or an exploding state ends an episode.
+
+After each step the relative error between the executed elite's stored primary descriptor and
+what the robot did is added to the secondary GP (in every mode, so that all variants report it).
+"""
+
+from __future__ import annotations
+
+import math
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+from hte_jax.hbr.execution import ANY_PATTERN, HBR, STEPS_PER_SKILL, execute_step, select_middle, skill_waypoints
+from hte_jax.hbr.geometry import compose_pose, planar_pose, relative_pose
+from hte_jax.hbr.top import TopTask
+from hte_jax.online.actions import ActionSet, action_set
+from hte_jax.online.gp import HTE_KERNEL, GPData, add_observation, posterior
+from hte_jax.online.secondary import acquisition, allowed_patterns, relative_error, ucb_beta
+from hte_jax.qd.repertoire import Repertoire
+from hte_jax.sim.controller import NUM_PARAMS
+from hte_jax.sim.robot import Robot
+from hte_jax.sim.rollout import RolloutSpec, SimState, ValidityLimits, rollout
+
+ANY_PATTERN_MODE, UCB_MODE, ORACLE_MODE, RANDOM_MODE = 0, 1, 2, 3
+STEP_CONTROL_STEPS = 100  # one second
+NEUTRAL_CONTROL_STEPS = 100  # the 1 s neutral pose after each skill
+SECONDS_PER_ACTION = STEPS_PER_SKILL + 1
+CANDIDATE_PATTERNS = allowed_patterns()  # (36,)
+SECONDARY_DIM = 9  # the middle descriptor: x, y, yaw, 6 contact bits
+ERROR_DIM = 3
+ONLINE_LIMITS = ValidityLimits(max_tilt=math.pi / 2, min_base_height=0.0, body_on_floor=False)
+
+
+@struct.dataclass
+class Skills:
+    """The A actions an episode batch plans with.
+
+    actions: ActionSet (A,) with the RTE GP's inputs and prior.
+    genotypes: (A, G) top-layer genotypes (G = 9) of an HBR, or controllers (G = 36) of a flat repertoire.
+    hbr: the HBR the top genotypes belong to, or None for a flat repertoire.
+    """
+
+    actions: ActionSet
+    genotypes: jax.Array
+    hbr: HBR | None = None
+
+    @property
+    def hierarchical(self) -> bool:
+        return self.hbr is not None
+
+
+def hbr_skills(hbr: HBR, top_task: TopTask, pad_to: int | None = None) -> Skills:
+    """The filled top-layer cells of an HBR as actions."""
+    actions = action_set(hbr.top, top_task.extent, pad_to)
+    genotypes = hbr.top.genotypes[jnp.maximum(actions.slots, 0)]
+    return Skills(actions=actions, genotypes=genotypes, hbr=hbr)
+
+
+def flat_skills(repertoire: Repertoire, extent: float, pad_to: int | None = None) -> Skills:
+    """The elites of a flat repertoire (2-D or 8-D descriptors) as actions."""
+    actions = action_set(repertoire, extent, pad_to)
+    genotypes = repertoire.genotypes[jnp.maximum(actions.slots, 0)]
+    if genotypes.shape[-1] != NUM_PARAMS:
+        raise ValueError(f"a flat repertoire holds {NUM_PARAMS}-parameter controllers, got {genotypes.shape[-1]} genes")
+    return Skills(actions=actions, genotypes=genotypes)
+
+
+@struct.dataclass
+class ActionOutcome:
+    """B robots after one action (3 s skill + 1 s neutral).
+
+    state: SimState (B, ...) at the end. valid: (B,) bool, no rollout of the action went invalid.
+    invalid_reason: (B,) int32 `InvalidReason` bits of the action's rollouts (0 if valid).
+    poses: (B, 4, 3) world planar pose after each second. displacement: (B, 3) (dx, dy, dyaw) in the
+    pre-action frame. patterns: (B, 3) int32 contact pattern asked for at each step (-1: any, and
+    for flat skills). middle_index: (B, 3) int32 executed middle elite (-1 for flat skills).
+    errors: (B, 3, 3) relative error (x, y, yaw) of each step (0 for flat skills).
+    secondary: GPData (B, ...) the secondary GP after this action's observations.
+    """
+
+    state: SimState
+    valid: jax.Array
+    invalid_reason: jax.Array
+    poses: jax.Array
+    displacement: jax.Array
+    patterns: jax.Array
+    middle_index: jax.Array
+    errors: jax.Array
+    secondary: GPData
+
+
+def _pose(state: SimState) -> jax.Array:
+    return planar_pose(state.qpos[:, :3], state.qpos[:, 3:7])
+
+
+def _neutral(robot: Robot, state: SimState, damage: jax.Array):
+    spec = RolloutSpec(num_steps=NEUTRAL_CONTROL_STEPS, record_contacts=False, limits=ONLINE_LIMITS)
+    return rollout(robot, jnp.zeros((state.qpos.shape[0], NUM_PARAMS)), damage, state, spec)
+
+
+def candidate_elites(hbr: HBR, desired: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """For desired primary descriptors (B, 3): the middle elite each candidate pattern would execute.
+
+    Returns index (B, C) and found (B, C) (False where the repertoire has no elite with that pattern).
+    """
+    batch, count = desired.shape[0], CANDIDATE_PATTERNS.size
+    queries = jnp.repeat(desired, count, axis=0)
+    patterns = jnp.tile(jnp.asarray(CANDIDATE_PATTERNS), batch)
+    index, found = select_middle(hbr, queries, patterns)
+    return index.reshape(batch, count), found.reshape(batch, count)
+
+
+def choose_patterns(
+    hbr: HBR, mode: jax.Array, oracle: jax.Array, secondary: GPData, desired: jax.Array, t: jax.Array, keys: jax.Array
+) -> jax.Array:
+    """Contact pattern (B,) for the next step of each robot (see the module docstring).
+
+    mode, oracle: (B,) int32. secondary: GPData (B, ...). desired: (B, 3) normalised primary
+    descriptor the step aims at. t: (B,) GP-UCB step count (>= 1). keys: (B, 2) PRNG keys.
+    """
+    index, found = candidate_elites(hbr, desired)
+    inputs = hbr.middle.descriptors[index]  # (B, C, 9)
+    mean, variance = jax.vmap(lambda gp, x: posterior(HTE_KERNEL, gp, x))(secondary, inputs)
+    score = acquisition(mean, variance, ucb_beta(t)[:, None])
+    candidates = jnp.asarray(CANDIDATE_PATTERNS)
+    ucb = candidates[jnp.argmax(jnp.where(found, score, -jnp.inf), axis=-1)]  # ties: the lowest pattern
+    logits = jnp.where(found, 0.0, -jnp.inf)
+    random = candidates[jax.vmap(jax.random.categorical)(keys, logits)]
+    anything = found.any(axis=-1)
+    choice = jnp.select(
+        [mode == UCB_MODE, mode == ORACLE_MODE, mode == RANDOM_MODE],
+        [jnp.where(anything, ucb, ANY_PATTERN), oracle, jnp.where(anything, random, ANY_PATTERN)],
+        ANY_PATTERN,
+    )
+    return choice.astype(jnp.int32)
+
+
+def execute_flat(robot: Robot, skills: Skills, index: jax.Array, state: SimState, damage: jax.Array,
+                 secondary: GPData) -> ActionOutcome:
+    """Run flat actions `index` (B,): each controller for 3 s, then 1 s neutral, in one rollout."""
+    params = skills.genotypes[index]
+    segments = jnp.stack([params] * STEPS_PER_SKILL + [jnp.zeros_like(params)], axis=1)  # (B, 4, 36)
+    total = SECONDS_PER_ACTION * STEP_CONTROL_STEPS
+    spec = RolloutSpec(num_steps=total, pose_steps=tuple(range(0, total + 1, STEP_CONTROL_STEPS)), record_contacts=False,
+                       limits=ONLINE_LIMITS)
+    # A controller's clock restarts with each 1 s segment; its period is 1 s, so 3 segments are one 3 s run.
+    result = rollout(robot, segments, damage, state, spec)
+    poses = planar_pose(result.base_pos, result.base_quat)  # (B, 5, 3)
+    batch = index.shape[0]
+    return ActionOutcome(
+        state=result.final_state,
+        valid=result.valid,
+        invalid_reason=result.invalid_reason,
+        poses=poses[:, 1:],
+        displacement=relative_pose(poses[:, 0], poses[:, -1]),
+        patterns=jnp.full((batch, STEPS_PER_SKILL), ANY_PATTERN, jnp.int32),
+        middle_index=jnp.full((batch, STEPS_PER_SKILL), -1, jnp.int32),
+        errors=jnp.zeros((batch, STEPS_PER_SKILL, ERROR_DIM), jnp.float32),
+        secondary=secondary,
+    )
+
+
+def execute_hbr(
+    robot: Robot,
+    skills: Skills,
+    index: jax.Array,
+    state: SimState,
+    damage: jax.Array,
+    secondary: GPData,
+    mode: jax.Array,
+    oracle: jax.Array,
+    action_number: jax.Array,
+    keys: jax.Array,
+) -> ActionOutcome:
+    """Run HBR skills `index` (B,) step by step, choosing each step's contact pattern, then 1 s neutral.
+
+    action_number: (B,) int32 actions already taken (the GP-UCB count is t = 1 + step + 3 action_number).
+    keys: (B, 2) PRNG keys (random patterns).
+    """
+    hbr = skills.hbr
+    task = hbr.middle_task
+    origin = _pose(state)
+    targets = compose_pose(origin[:, None, :], skill_waypoints(task, skills.genotypes[index]))  # (B, 3, 3)
+
+    def one_step(carry, xs):
+        state, gp = carry
+        target, step, step_keys = xs
+        desired = task.normalise(relative_pose(_pose(state), target))
+        t = 1 + step + STEPS_PER_SKILL * action_number
+        pattern = choose_patterns(hbr, mode, oracle, gp, desired, t, step_keys)
+        result = execute_step(robot, hbr, state, damage, target, pattern, ONLINE_LIMITS)
+        executed = hbr.middle.descriptors[result.middle_index]  # (B, 9)
+        error = relative_error(executed[:, :3], task.normalise(result.displacement))
+        gp = jax.vmap(add_observation)(gp, executed, error)
+        return (result.state, gp), (pattern, result.middle_index, error, result.invalid_reason, _pose(result.state))
+
+    steps = jnp.arange(STEPS_PER_SKILL, dtype=jnp.int32)
+    step_keys = jnp.swapaxes(jax.vmap(lambda k: jax.random.split(k, STEPS_PER_SKILL))(keys), 0, 1)  # (3, B, 2)
+    xs = (jnp.swapaxes(targets, 0, 1), steps, step_keys)
+    (state, secondary), (patterns, middle, errors, reasons, poses) = jax.lax.scan(one_step, (state, secondary), xs)
+    rest = _neutral(robot, state, damage)
+    end = _pose(rest.final_state)
+    return ActionOutcome(
+        state=rest.final_state,
+        valid=(reasons == 0).all(axis=0) & rest.valid,
+        invalid_reason=jnp.bitwise_or.reduce(reasons, axis=0) | rest.invalid_reason,
+        poses=jnp.concatenate([jnp.swapaxes(poses, 0, 1), end[:, None]], axis=1),
+        displacement=relative_pose(origin, end),
+        patterns=patterns.T,
+        middle_index=middle.T,
+        errors=jnp.swapaxes(errors, 0, 1),
+        secondary=secondary,
+    )
+

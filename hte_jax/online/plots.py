@@ -1,0 +1,102 @@
+"""Figures of adaptation runs: the maze with trajectories and planned paths, GP prediction error
+over actions, and the actions each variant needed."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+from matplotlib.patches import Circle, Rectangle  # noqa: E402
+
+from hte_jax.online.episode import SECONDS_PER_ACTION, Episodes  # noqa: E402
+from hte_jax.online.maze import Maze  # noqa: E402
+
+
+def _save(fig, path):
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120, bbox_inches="tight")
+    plt.close(fig)
+
+
+def draw_maze(ax, maze: Maze) -> None:
+    """Obstacles, the planner's map bounds, the start (arrow) and the goal disc."""
+    for x1, y1, x2, y2 in maze.obstacles:
+        ax.add_patch(Rectangle((x1, y1), x2 - x1, y2 - y1, color="0.35"))
+    x0, y0, x1, y1 = maze.bounds
+    ax.add_patch(Rectangle((x0, y0), x1 - x0, y1 - y0, fill=False, ls=":", ec="0.6"))
+    ax.add_patch(Circle(maze.goal, maze.goal_radius, color="tab:green", alpha=0.35))
+    sx, sy, syaw = maze.start
+    ax.annotate("", xy=(sx + 0.3 * np.cos(syaw), sy + 0.3 * np.sin(syaw)), xytext=(sx, sy),
+                arrowprops={"arrowstyle": "->", "color": "k"})
+    pad = 0.3
+    ax.set_xlim(min(b[0] for b in maze.obstacles + (maze.bounds,)) - pad, max(b[2] for b in maze.obstacles + (maze.bounds,)) + pad)
+    ax.set_ylim(min(b[1] for b in maze.obstacles + (maze.bounds,)) - pad, max(b[3] for b in maze.obstacles + (maze.bounds,)) + pad)
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+
+
+def episode_track(episodes: Episodes, index: int) -> np.ndarray:
+    """(4 n + 1, 3) poses of episode `index`, one per second of its n actions."""
+    taken = int(episodes.taken[index])
+    return np.asarray(episodes.trajectory[index, : SECONDS_PER_ACTION * taken + 1])
+
+
+def plot_episodes(path, maze: Maze, episodes: Episodes, indices, labels, title: str, plan_of: int | None = None) -> None:
+    """Trajectories of the episodes `indices` (one colour each, dots at action ends), and the first
+    planned path of episode `plan_of` (dashed)."""
+    fig, ax = plt.subplots(figsize=(6, 5.5))
+    draw_maze(ax, maze)
+    colours = plt.cm.viridis(np.linspace(0, 0.9, max(len(indices), 1)))
+    for colour, index, label in zip(colours, indices, labels):
+        track = episode_track(episodes, index)
+        ax.plot(track[:, 0], track[:, 1], color=colour, lw=1.2, label=label)
+        ax.plot(track[::SECONDS_PER_ACTION, 0], track[::SECONDS_PER_ACTION, 1], "o", color=colour, ms=2.5)
+    if plan_of is not None:
+        length = int(episodes.history.path_length[plan_of, 0])
+        planned = np.asarray(episodes.history.path[plan_of, 0, :length])
+        ax.plot(planned[:, 0], planned[:, 1], "--", color="tab:red", lw=1.5, marker="x", ms=4,
+                label="first plan")
+    ax.set_title(title)
+    if len(indices) <= 12:
+        ax.legend(fontsize=6, loc="lower left")
+    _save(fig, path)
+
+
+def plot_prediction_error(path, curves: dict[str, np.ndarray]) -> None:
+    """Median and inter-quartile band of the RTE GP's prediction error (m) against the action index.
+
+    curves: variant -> (E, L) errors, NaN after an episode's last action.
+    """
+    fig, ax = plt.subplots(figsize=(6, 3.5))
+    for name, errors in curves.items():
+        counts = np.isfinite(errors).sum(axis=0)
+        upto = int(np.max(np.nonzero(counts)[0]) + 1) if counts.any() else 0
+        if upto == 0:
+            continue
+        steps = np.arange(1, upto + 1)
+        with np.errstate(all="ignore"):
+            q25, q50, q75 = np.nanpercentile(errors[:, :upto], [25, 50, 75], axis=0)
+        ax.plot(steps, q50, label=name)
+        ax.fill_between(steps, q25, q75, alpha=0.2)
+    ax.set_xlabel("action")
+    ax.set_ylabel("|predicted - measured| end position (m)")
+    ax.set_title("RTE GP prediction error (median, 25-75 %)")
+    ax.legend(fontsize=7)
+    _save(fig, path)
+
+
+def plot_actions(path, records: list[dict], max_actions: int) -> None:
+    """Box plot of the actions to reach the goal per variant (failures count as the cap)."""
+    variants = list(dict.fromkeys(r["variant"] for r in records))
+    data = [[r["actions"] for r in records if r["variant"] == v] for v in variants]
+    fig, ax = plt.subplots(figsize=(1.4 * len(variants) + 2, 3.5))
+    ax.boxplot(data, whis=(0, 100))
+    ax.set_xticks(range(1, len(variants) + 1), variants)
+    ax.axhline(max_actions, color="tab:red", ls=":", lw=1)
+    ax.set_ylabel("actions to reach the goal")
+    _save(fig, path)
