@@ -1,6 +1,7 @@
 """Online adaptation speed: planning latency per action and whole-episode wall time, per batch size.
 
-For each batch size E, E episodes (the paper's 7 damages, cycled) of --variant run on the
+For each batch size E, E episodes (the paper's 7 damages cycled from leg1, the damage of
+issue 6's acceptance, so E = 1 is a leg-1 episode) of --variant run on the
 shipped repertoires with the --preset planner. One action of a warm-up run compiles; then
 --repeats timed runs follow. Reported per batch size: compile seconds, planning latency per
 action (median and 95th percentile over every action of the timed runs; one action = one
@@ -30,7 +31,7 @@ from hte_jax.sim.damage import paper_damage_masks
 
 
 def measure(config, skills, variant: str, batch: int, repeats: int, seed: int) -> dict:
-    damages = paper_damage_masks()[np.arange(batch) % 7]
+    damages = paper_damage_masks()[(np.arange(batch) + 1) % 7]
     modes = np.full(batch, variant_mode("rte" if variant in FLAT_VARIANTS else variant, skills.hierarchical))
     adaptation = config.adaptation
     robot = maze_robot(PAPER_MAZE)
