@@ -1,5 +1,6 @@
 """Exception types raised on bad user input, and the checks that raise them."""
 
+import dataclasses
 import math
 
 
@@ -41,3 +42,13 @@ def convert_setting(key: str, current, value):
         return kind(value)
     except (TypeError, ValueError):
         raise ConfigError(f"setting {key!r}: cannot read {value!r} as {kind.__name__}") from None
+
+
+def with_overrides(config, overrides: dict):
+    """A copy of the flat dataclass `config` with fields replaced, each value read as its field's type."""
+    data = dataclasses.asdict(config)
+    for key, value in overrides.items():
+        if key not in data:
+            raise ConfigError(f"unknown setting {key!r}")
+        data[key] = convert_setting(key, data[key], value)
+    return type(config)(**data)

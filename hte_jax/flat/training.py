@@ -18,13 +18,13 @@ import math
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from hte_jax.errors import ConfigError, convert_setting, require_int, require_number
+from hte_jax.errors import ConfigError, require_int, require_number
+from hte_jax.errors import with_overrides as with_overrides  # the configuration's override rule, re-exported
 from hte_jax.flat.plots import plot_flat
 from hte_jax.flat.store import FlatRepertoires, save_flat
 from hte_jax.flat.task import GENES, FlatTask, evaluate_flat
@@ -125,16 +125,6 @@ def preset(name: str, variant: str) -> FlatConfig:
     if variant not in VARIANTS:
         raise ConfigError(f"unknown variant {variant!r}; choose one of {sorted(VARIANTS)}")
     return PRESETS[name][variant]
-
-
-def with_overrides(config: FlatConfig, overrides: dict[str, Any]) -> FlatConfig:
-    """A copy of `config` with fields replaced (values converted to the field's type)."""
-    data = config.to_dict()
-    for key, value in overrides.items():
-        if key not in data:
-            raise ConfigError(f"unknown setting {key!r}")
-        data[key] = convert_setting(key, data[key], value)
-    return FlatConfig(**data)
 
 
 def flat_algorithm(config: FlatConfig) -> BatchedMapElites:

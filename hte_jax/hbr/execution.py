@@ -91,6 +91,11 @@ class SkillResult:
     steps: StepResult
 
 
+def state_pose(state: SimState) -> jax.Array:
+    """(B, 3) planar pose (x, y, heading) of robots `state` (B, ...)."""
+    return planar_pose(state.qpos[:, :3], state.qpos[:, 3:7])
+
+
 def select_middle(hbr: HBR, desired: jax.Array, pattern: jax.Array, chunk: int = 1024):
     """Nearest middle elite in primary descriptor to `desired` (B, 3), among elites with `pattern` (B,).
 
@@ -121,8 +126,7 @@ def execute_step(
 ) -> StepResult:
     """Walk one second towards the world pose `target` (B, 3) with contact `pattern` (B,) (-1: any)."""
     task = hbr.middle_task
-    qpos = state.qpos
-    here = planar_pose(qpos[:, :3], qpos[:, 3:7])
+    here = state_pose(state)
     desired = task.normalise(relative_pose(here, target))
     index, found = select_middle(hbr, desired, pattern)
     result = rollout(robot, hbr.middle_params[index], damage, state, _step_spec(task.steps, limits))
@@ -165,7 +169,7 @@ def execute_skill(
     damage = jnp.zeros((batch, NUM_LEGS), bool) if damage is None else jnp.broadcast_to(damage, (batch, NUM_LEGS))
     if patterns is None:
         patterns = jnp.full((batch, STEPS_PER_SKILL), ANY_PATTERN, jnp.int32)
-    origin = planar_pose(start.qpos[:, :3], start.qpos[:, 3:7])
+    origin = state_pose(start)
     targets = compose_pose(origin[:, None, :], skill_waypoints(hbr.middle_task, genotypes))  # (B, 3, 3)
 
     def one_step(state, xs):
@@ -174,7 +178,7 @@ def execute_skill(
         return step.state, step
 
     final, steps = jax.lax.scan(one_step, start, (jnp.swapaxes(targets, 0, 1), jnp.swapaxes(patterns, 0, 1)))
-    end = planar_pose(final.qpos[:, :3], final.qpos[:, 3:7])
+    end = state_pose(final)
     return SkillResult(
         state=final,
         valid=steps.valid.all(axis=0),

@@ -26,8 +26,7 @@ from flax import struct
 from tqdm.auto import tqdm
 
 from hte_jax.errors import ConfigError, require_int
-from hte_jax.hbr.execution import STEPS_PER_SKILL
-from hte_jax.hbr.geometry import planar_pose
+from hte_jax.hbr.execution import STEPS_PER_SKILL, state_pose
 from hte_jax.online.actions import OUTCOME_DIM, displacement_of, observe, predict
 from hte_jax.online.execute import (
     ANY_PATTERN_MODE,
@@ -123,7 +122,7 @@ class Episodes:
 
     @property
     def pose(self) -> jax.Array:
-        return planar_pose(self.sim.qpos[:, :3], self.sim.qpos[:, 3:7])
+        return state_pose(self.sim)
 
 
 def variant_mode(variant: str, hierarchical: bool) -> int:
@@ -141,7 +140,7 @@ def start_episodes(
     damages = np.asarray(damages, bool)
     batch, length = damages.shape[0], config.max_actions
     depth = config.planner.depth
-    pose = planar_pose(start.qpos[:, :3], start.qpos[:, 3:7])
+    pose = state_pose(start)
 
     def stacked(gp):
         return jax.tree.map(lambda x: jnp.broadcast_to(x, (batch, *x.shape)), gp)
@@ -245,7 +244,7 @@ def act_step(maze: Maze, config: AdaptationConfig, robot: Robot, skills: Skills,
     # Later slots hold the latest pose until they are written (the plot shows a still robot).
     later = jnp.arange(trajectory.shape[1])[None, :] >= (first + SECONDS_PER_ACTION)[:, None]
     trajectory = jnp.where(later[..., None], outcome.poses[:, -1:, :], trajectory)
-    end = planar_pose(outcome.state.qpos[:, :3], outcome.state.qpos[:, 3:7])
+    end = outcome.poses[:, -1]  # the pose after the neutral second
     updated = episodes.replace(
         sim=outcome.state,
         rte=rte,

@@ -11,12 +11,12 @@ from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
-from typing import Any
 
 import jax
 import numpy as np
 
-from hte_jax.errors import ConfigError, convert_setting, require_int
+from hte_jax.errors import ConfigError, require_int
+from hte_jax.errors import with_overrides as with_overrides  # the configuration's override rule, re-exported
 from hte_jax.flat.store import load_flat, shipped_flat_path
 from hte_jax.hbr.store import load_hbr
 from hte_jax.online.arena import maze_robot, start_states
@@ -118,15 +118,6 @@ def preset(name: str) -> EvalConfig:
     if name not in PRESETS:
         raise ConfigError(f"unknown preset {name!r}; choose one of {sorted(PRESETS)}")
     return PRESETS[name]
-
-
-def with_overrides(config: EvalConfig, overrides: dict[str, Any]) -> EvalConfig:
-    data = config.to_dict()
-    for key, value in overrides.items():
-        if key not in data:
-            raise ConfigError(f"unknown setting {key!r}")
-        data[key] = convert_setting(key, data[key], value)
-    return EvalConfig(**data)
 
 
 def load_skills(path: str | Path | None) -> tuple[Skills, dict]:

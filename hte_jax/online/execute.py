@@ -27,7 +27,15 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from hte_jax.hbr.execution import ANY_PATTERN, HBR, STEPS_PER_SKILL, execute_step, select_middle, skill_waypoints
+from hte_jax.hbr.execution import (
+    ANY_PATTERN,
+    HBR,
+    STEPS_PER_SKILL,
+    execute_step,
+    select_middle,
+    skill_waypoints,
+    state_pose,
+)
 from hte_jax.hbr.geometry import compose_pose, planar_pose, relative_pose
 from hte_jax.hbr.top import TopTask
 from hte_jax.online.actions import ActionSet, action_set
@@ -104,10 +112,6 @@ class ActionOutcome:
     middle_index: jax.Array
     errors: jax.Array
     secondary: GPData
-
-
-def _pose(state: SimState) -> jax.Array:
-    return planar_pose(state.qpos[:, :3], state.qpos[:, 3:7])
 
 
 def _neutral(robot: Robot, state: SimState, damage: jax.Array):
@@ -196,27 +200,27 @@ def execute_hbr(
     """
     hbr = skills.hbr
     task = hbr.middle_task
-    origin = _pose(state)
+    origin = state_pose(state)
     targets = compose_pose(origin[:, None, :], skill_waypoints(task, skills.genotypes[index]))  # (B, 3, 3)
 
     def one_step(carry, xs):
         state, gp = carry
         target, step, step_keys = xs
-        desired = task.normalise(relative_pose(_pose(state), target))
+        desired = task.normalise(relative_pose(state_pose(state), target))
         t = 1 + step + STEPS_PER_SKILL * action_number
         pattern = choose_patterns(hbr, mode, oracle, gp, desired, t, step_keys)
         result = execute_step(robot, hbr, state, damage, target, pattern, ONLINE_LIMITS)
         executed = hbr.middle.descriptors[result.middle_index]  # (B, 9)
         error = relative_error(executed[:, :3], task.normalise(result.displacement))
         gp = jax.vmap(add_observation)(gp, executed, error)
-        return (result.state, gp), (pattern, result.middle_index, error, result.invalid_reason, _pose(result.state))
+        return (result.state, gp), (pattern, result.middle_index, error, result.invalid_reason, state_pose(result.state))
 
     steps = jnp.arange(STEPS_PER_SKILL, dtype=jnp.int32)
     step_keys = jnp.swapaxes(jax.vmap(lambda k: jax.random.split(k, STEPS_PER_SKILL))(keys), 0, 1)  # (3, B, 2)
     xs = (jnp.swapaxes(targets, 0, 1), steps, step_keys)
     (state, secondary), (patterns, middle, errors, reasons, poses) = jax.lax.scan(one_step, (state, secondary), xs)
     rest = _neutral(robot, state, damage)
-    end = _pose(rest.final_state)
+    end = state_pose(rest.final_state)
     return ActionOutcome(
         state=rest.final_state,
         valid=(reasons == 0).all(axis=0) & rest.valid,
