@@ -5,11 +5,17 @@
     python -m experiments.maze_eval --variant 2d-rte,8d-rte          # RTE on the shipped flat repertoires
     python -m experiments.maze_eval --preset gpu --variant hte,perfect-hte,random-hte,rte
     python -m experiments.maze_eval --repertoire runs/hbr-gpu/hbr.npz --damage none,0,6
+    python -m experiments.maze_eval --protocol paper --preset gpu    # the paper's Fig. 6 / 7 experiment
+    python -m experiments.maze_eval --protocol paper --damage-model locked
 
 Variants: hte, perfect-hte, random-hte, rte (on an HBR: the shipped one or --repertoire; rte
-also on a flat file), 2d-rte, 8d-rte (shipped flat repertoires). Damages: all (the paper's 7),
-or names / indices (none, leg0..leg5 = 0..5, legs1+4 = 6, any legs<i>+<j>).
-Writes config.json, episodes.json (one record per episode), summary.json, episodes_<k>.npz
+also on a flat file), 2d-rte, 8d-rte (shipped flat repertoires), aprol (shipped 21 damaged
+repertoires). --protocol paper: the paper's six variants on all 7 damages. Damages: all (the
+paper's 7), or names / indices (none, leg0..leg5 = 0..5, legs1+4 = 6, any legs<i>+<j>).
+--damage-model: raised (the damaged leg blocked in the air, default) or locked (standing pose).
+Writes config.json, episodes.json (one record per episode), summary.json (per variant and
+damage), statistics.json (the paper's statistics: quartiles of the replication medians, failure
+rates, pairwise Wilcoxon-Mann-Whitney tests with Bonferroni correction), episodes_<k>.npz
 (trajectories, plans, patterns of batch k) and plots/ under --out (default runs/maze-eval).
 Bad values give a one-line error and exit status 2.
 """
@@ -27,17 +33,28 @@ import numpy as np
 from hte_jax.errors import ConfigError
 from hte_jax.online.evaluation import (
     PRESETS,
+    PROTOCOLS,
     EvalConfig,
     batches,
     episode_records,
     prediction_errors,
     preset,
+    protocol_overrides,
     run_batch,
     summarise,
     with_overrides,
 )
 from hte_jax.online.maze import PAPER_MAZE
-from hte_jax.online.plots import plot_actions, plot_episodes, plot_prediction_error
+from hte_jax.online.plots import (
+    episode_track,
+    plot_actions,
+    plot_episodes,
+    plot_failures,
+    plot_prediction_error,
+    plot_protocol_box,
+    plot_variant_mazes,
+)
+from hte_jax.online.statistics import PAPER_FAILURE_REDUCTION, PAPER_QUARTILES, failure_reduction, protocol_statistics
 from hte_jax.qd.io import CheckpointError, save_checkpoint, write_json
 
 SETTINGS = [f.name for f in dataclasses.fields(EvalConfig)]
@@ -47,6 +64,7 @@ ALIASES = {"variants": "--variant", "damages": "--damage"}
 def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--preset", default="cpu", help=f"one of {', '.join(PRESETS)} (default cpu)")
+    p.add_argument("--protocol", default=None, help=f"one of {', '.join(PROTOCOLS)}: its variants on every damage")
     p.add_argument("--out", default="runs/maze-eval", help="output folder (default runs/maze-eval)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--show-config", action="store_true", help="print the resolved configuration and exit")
@@ -59,47 +77,74 @@ def parser() -> argparse.ArgumentParser:
 def main(argv=None) -> int:
     args = parser().parse_args(argv)
     try:
-        config = with_overrides(preset(args.preset), {k: getattr(args, k) for k in SETTINGS if getattr(args, k) is not None})
+        overrides = protocol_overrides(args.protocol) if args.protocol is not None else {}
+        overrides.update({k: getattr(args, k) for k in SETTINGS if getattr(args, k) is not None})
+        config = with_overrides(preset(args.preset), overrides)
         if args.show_config:
             print(json.dumps(config.to_dict(), indent=2))
             return 0
         out = Path(args.out)
         out.mkdir(parents=True, exist_ok=True)
-        write_json(out / "config.json", {"preset": args.preset, **config.to_dict()})
-        records, curves = [], {}
+        write_json(out / "config.json", {"preset": args.preset, "protocol": args.protocol, **config.to_dict()})
+        records, curves, tracks = [], {}, {}
         for k, (path, variants) in enumerate(batches(config)):
             result = run_batch(config, path, variants, progress=not args.no_progress)
             rows = episode_records(result, config.max_actions)
             records += rows
             _save_batch(out / f"episodes_{k}.npz", result)
-            _plot_batch(out / "plots", result, curves)
+            _plot_batch(out / "plots", result, curves, tracks)
             print(f"batch {k} ({'/'.join(variants)} on {result.repertoire['path']}, {result.repertoire['actions']} actions): "
                   f"{len(rows)} episodes in {result.timings.total:.1f} s, "
                   f"planning median {np.median(result.timings.plan):.2f} s per action")
     except (ConfigError, CheckpointError) as error:
         print(f"error: {error}", file=sys.stderr)
         return 2
+    order = {name: i for i, name in enumerate(config.variant_list)}
+    records.sort(key=lambda r: order[r["variant"]])  # stable: the variants in the order asked for
     summary = summarise(records, config.max_actions)
+    statistics = protocol_statistics(records)
+    variant, baseline, paper_reduction = PAPER_FAILURE_REDUCTION
+    if variant in statistics["variants"] and baseline in statistics["variants"]:
+        statistics["failure_reduction"] = {"variant": variant, "baseline": baseline, "paper_percent": paper_reduction,
+                                           "percent": failure_reduction(statistics, variant, baseline)}
     write_json(out / "episodes.json", {"episodes": records})
     write_json(out / "summary.json", summary)
+    write_json(out / "statistics.json", statistics)
     plot_prediction_error(out / "plots" / "prediction_error.png", curves)
     plot_actions(out / "plots" / "actions.png", records, config.max_actions)
+    plot_protocol_box(out / "plots" / "fig6_actions.png", statistics, config.max_actions, PAPER_QUARTILES)
+    plot_failures(out / "plots" / "fig7_failures.png", statistics)
+    plot_variant_mazes(out / "plots" / "maze_variants.png", PAPER_MAZE, tracks)
     print(f"{'variant':<12} {'damage':<8} {'rep':>3} {'actions':>7}  result")
     for r in records:
         result = "goal" if r["reached"] else ("flipped" if r["broken"] else "failed")
         print(f"{r['variant']:<12} {r['damage']:<8} {r['replicate']:>3} {r['actions']:>7}  {result}")
-    for variant, s in summary["variants"].items():
-        print(f"{variant}: {s['reached']}/{s['episodes']} reached the goal; actions 25/50/75 % = "
-              f"{s['actions_p25']:.0f} / {s['actions_median']:.0f} / {s['actions_p75']:.0f}")
+    _print_statistics(statistics)
     print(f"wrote {out}")
     return 0
+
+
+def _print_statistics(statistics: dict) -> None:
+    """The protocol table (ours beside the paper's) and the pairwise tests."""
+    print(f"{'variant':<12} {'replications':>12} {'25 / 50 / 75 % (actions)':>26} {'paper':>14} {'failed':>8} {'flipped':>8}")
+    for name, v in statistics["variants"].items():
+        ours = f"{v['p25']:.0f} / {v['p50']:.0f} / {v['p75']:.0f}"
+        paper = " / ".join(str(q) for q in PAPER_QUARTILES[name]) if name in PAPER_QUARTILES else "-"
+        print(f"{name:<12} {v['replications']:>12} {ours:>26} {paper:>14} {v['failure_percent']:>7.1f}% {v['flipped']:>8}")
+    for t in statistics["tests"]:
+        print(f"  {t['a']} vs {t['b']}: U = {t['u']:.0f}, p = {t['p']:.2g}, Bonferroni p = {t['p_bonferroni']:.2g}")
+    reduction = statistics.get("failure_reduction")
+    if reduction and reduction["percent"] is not None:
+        print(f"{reduction['variant']} has {reduction['percent']:.0f} % fewer failures than {reduction['baseline']} "
+              f"(paper: {reduction['paper_percent']:.0f} %)")
 
 
 def _save_batch(path: Path, result) -> None:
     ep = result.episodes
     arrays = {
         "trajectory": ep.trajectory, "taken": ep.taken, "reached": ep.reached, "broken": ep.broken,
-        "damage": ep.damage, "action": ep.history.action, "start": ep.history.start,
+        "damage": ep.damage, "action": ep.history.action, "map": ep.history.map, "planned": ep.history.planned,
+        "start": ep.history.start,
         "predicted": ep.history.predicted, "observed": ep.history.observed, "value": ep.history.value,
         "path": ep.history.path, "path_length": ep.history.path_length, "patterns": ep.history.patterns,
         "errors": ep.history.errors,
@@ -109,7 +154,7 @@ def _save_batch(path: Path, result) -> None:
     save_checkpoint(path, arrays, labels, compress=True)
 
 
-def _plot_batch(plot_dir: Path, result, curves: dict) -> None:
+def _plot_batch(plot_dir: Path, result, curves: dict, tracks: dict) -> None:
     ep = result.episodes
     errors = prediction_errors(ep)
     taken = np.asarray(ep.taken)
@@ -119,6 +164,7 @@ def _plot_batch(plot_dir: Path, result, curves: dict) -> None:
         labels = [f"{result.damages[i]}: {'goal' if bool(ep.reached[i]) else 'failed'} in {int(taken[i])}" for i in first]
         plot_episodes(plot_dir / f"maze_{variant}.png", PAPER_MAZE, ep, first, labels,
                       f"{variant}: first replicate per damage", plan_of=first[0])
+        tracks[variant] = [(label, episode_track(ep, i)) for label, i in zip(labels, first)]
         masked = np.full((len(rows), errors.shape[1]), np.nan)
         for j, i in enumerate(rows):
             masked[j, : taken[i]] = errors[i, : taken[i]]

@@ -54,3 +54,34 @@ def test_damaged_pose_lifts_the_foot_well_above_the_hip():
         # the pose is inside the joint limits
         lo, hi = model.jnt_range[model.joint(f"leg_{leg}_1_2").id]
         assert lo - 1e-6 <= damage.DAMAGED_POSE[1] <= hi + 1e-6
+
+
+def test_damage_models_choose_the_damaged_pose():
+    assert damage.damaged_pose("raised") == damage.DAMAGED_POSE
+    assert damage.damaged_pose("locked") == (0.0, 0.0, 0.0)
+    targets = jnp.full(18, 0.3, jnp.float32)
+    mask = jnp.asarray([False, False, True, False, False, False])
+    out = np.asarray(damage.apply_damage(targets, mask, damage.damaged_pose("locked"))).reshape(6, 3)
+    np.testing.assert_allclose(out[2], 0.0)
+    np.testing.assert_allclose(np.delete(out, 2, axis=0), 0.3)
+    with pytest.raises(ConfigError, match="unknown damage model"):
+        damage.damaged_pose("floppy")
+    with pytest.raises(ConfigError, match="damage_model"):
+        RobotConfig(damage_model="floppy")
+
+
+def test_locked_leg_stands_on_the_floor():
+    """With the locked model, a damaged leg keeps its foot on the floor like the intact robot's."""
+    from hte_jax.sim.robot import load_robot
+    from hte_jax.sim.rollout import initial_state, standing_state
+
+    mask = jnp.asarray([False, False, True, False, False, False])
+    locked = load_robot(RobotConfig(damage_model="locked"))
+    np.testing.assert_allclose(np.asarray(initial_state(locked, mask).qpos[13:16]), 0.0)
+    standing = standing_state(locked, mask)
+    model = mj_model(RobotConfig(damage_model="locked"))
+    data = mujoco.MjData(model)
+    data.qpos[:] = np.asarray(standing.qpos)
+    mujoco.mj_kinematics(model, data)
+    feet = np.array([data.geom_xpos[model.geom(f"foot_{leg}").id][2] for leg in range(6)])
+    assert feet[2] < 0.03 and feet.max() < 0.03  # every foot (radius 0.025) near the floor

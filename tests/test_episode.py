@@ -84,18 +84,38 @@ def test_outputs_and_plots(run):
         assert image.ndim == 3 and image.std() > 0
 
 
-def test_flat_repertoire_episodes(tmp_path):
+def test_flat_and_aprol_episodes_and_protocol_outputs(tmp_path):
     out = tmp_path / "flat"
-    args = ["--variant", "2d-rte", "--damage", "none,leg1", "--replicates", "2", "--max-actions", "2",
+    args = ["--variant", "2d-rte,aprol", "--damage", "none,leg1", "--replicates", "2", "--max-actions", "2",
             "--iterations", "50", "--roots", "1", "--out", str(out), "--no-progress"]
     assert maze_main(args) == 0
-    arrays, header = read_checkpoint(out / "episodes_0.npz")
-    assert header["metadata"]["repertoire"]["kind"] == "flat-2d"
-    assert (arrays["taken"] == 2).all() and (arrays["patterns"] == -1).all() and (arrays["errors"] == 0).all()
-    for i in range(4):
-        track = arrays["trajectory"][i]
-        for k in range(2):
-            np.testing.assert_allclose(arrays["observed"][i, k], relative_pose(track[4 * k], track[4 * k + 4]), atol=1e-4)
+    for k, kind in enumerate(("flat-2d", "flat-2d-set")):
+        arrays, header = read_checkpoint(out / f"episodes_{k}.npz")
+        assert header["metadata"]["repertoire"]["kind"] == kind
+        assert (arrays["taken"] == 2).all() and (arrays["patterns"] == -1).all() and (arrays["errors"] == 0).all()
+        for i in range(4):
+            track = arrays["trajectory"][i]
+            for j in range(2):
+                np.testing.assert_allclose(arrays["observed"][i, j], relative_pose(track[4 * j], track[4 * j + 4]),
+                                           atol=1e-4)
+        if kind == "flat-2d":
+            assert (arrays["map"] == 0).all() and (arrays["action"] == arrays["planned"]).all()
+        else:  # APROL: 21 repertoires; its choice is any repertoire's skill, predicted from that repertoire's GP
+            assert header["metadata"]["repertoire"]["repertoires"] == 21
+            assert ((arrays["map"] >= 0) & (arrays["map"] < 21)).all()
+    statistics = json.loads((out / "statistics.json").read_text())
+    assert set(statistics["variants"]) == {"2d-rte", "aprol"}
+    assert statistics["variants"]["aprol"]["replications"] == 4 and len(statistics["tests"]) == 1
+    for name in ("fig6_actions", "fig7_failures", "maze_variants", "maze_aprol"):
+        image = matplotlib.image.imread(out / "plots" / f"{name}.png")
+        assert image.ndim == 3 and image.std() > 0
+
+
+def test_protocol_sets_the_papers_variants_and_damages(capsys):
+    assert maze_main(["--protocol", "paper", "--damage-model", "locked", "--show-config"]) == 0
+    config = json.loads(capsys.readouterr().out)
+    assert config["variants"] == "perfect-hte,hte,2d-rte,8d-rte,aprol,random-hte"
+    assert config["damages"] == "all" and config["damage_model"] == "locked"
 
 
 @pytest.mark.parametrize("args, message", [
@@ -108,6 +128,8 @@ def test_flat_repertoire_episodes(tmp_path):
     (["--repertoire", "/nowhere/hbr.npz"], "no such checkpoint"),
     (["--variant", "hte", "--repertoire", str(shipped_flat_path("2d"))], "needs an HBR"),
     (["--variant", "rte", "--repertoire", str(shipped_flat_path("aprol"))], "APROL"),
+    (["--protocol", "nature"], "unknown protocol"),
+    (["--damage-model", "floppy"], "damage_model"),
 ])
 def test_cli_errors_name_the_problem(args, message, tmp_path, capsys):
     assert maze_main([*args, "--out", str(tmp_path), "--no-progress"]) == 2

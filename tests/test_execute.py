@@ -70,8 +70,8 @@ def test_flat_action_is_the_trained_controller_and_walls_stop_it():
     wall_x = 0.45
     walled = Maze(obstacles=((wall_x, -1.0, wall_x + 0.2, 1.0),), bounds=(-5.0, -5.0, 5.0, 5.0), start=(0.0, 0.0, 0.0))
     standing = place(_batched(standing_state(load_robot()), 2), jnp.asarray([[0.0, 0.0, 0.0], [0.0, 0.0, np.pi]]))
-    result = execute_flat(maze_robot(walled), skills, jnp.asarray([index, index]), standing, jnp.zeros((2, 6), bool),
-                          _empty_secondary(2))
+    result = execute_flat(maze_robot(walled), skills.genotypes[jnp.asarray([index, index])], standing,
+                          jnp.zeros((2, 6), bool), _empty_secondary(2))
     assert bool(result.valid.all())
     # In the open, the 3 s part reproduces the stored descriptor (in the robot's start frame).
     start_pose = jnp.asarray([0.0, 0.0, np.pi])

@@ -9,6 +9,10 @@ the robot is within the goal radius after an action (success), after `max_action
 end an episode; a robot standing where the planner's disc overlaps a wall plans from the nearest
 free +-0.5 m offset.
 
+With APROL's K repertoires (`Skills.num_maps` > 1) every repertoire has its own RTE GP; the
+planner plans with the repertoire chosen last, and the executed skill is then chosen among all
+repertoires' skills by `aprol.select_entry`.
+
 `plan_step` and `act_step` are jitted over the whole batch; `run_episodes` calls them once per
 action until every episode has ended, so planning latency can be measured on its own.
 """
@@ -28,6 +32,7 @@ from tqdm.auto import tqdm
 from hte_jax.errors import ConfigError, require_int
 from hte_jax.hbr.execution import STEPS_PER_SKILL, state_pose
 from hte_jax.online.actions import OUTCOME_DIM, displacement_of, observe, predict
+from hte_jax.online.aprol import MapBelief, closeness, initial_belief, select_entry, update_belief
 from hte_jax.online.execute import (
     ANY_PATTERN_MODE,
     ERROR_DIM,
@@ -71,7 +76,8 @@ class AdaptationConfig:
 class History:
     """What happened at each action of B episodes, L = max_actions, D = planner depth.
 
-    action: (B, L) int32 chosen action (-1 after the episode ended). start: (B, L, 3) the pose
+    action: (B, L) int32 executed action (-1 after the episode ended). map: (B, L) int32 its
+    repertoire (0 unless APROL). planned: (B, L) int32 the planner's action. start: (B, L, 3) the pose
     the planner started from. predicted: (B, L, 3) the GP's predicted displacement of the chosen
     action. observed: (B, L, 3) the measured displacement. value: (B, L) the plan's value.
     path: (B, L, D + 1, 3) the planned path (world frame). path_length: (B, L) int32.
@@ -80,6 +86,8 @@ class History:
     """
 
     action: jax.Array
+    map: jax.Array
+    planned: jax.Array
     start: jax.Array
     predicted: jax.Array
     observed: jax.Array
@@ -95,7 +103,8 @@ class Episodes:
     """B adaptation episodes.
 
     sim: SimState (B, ...) the robots. damage: (B, 6) bool. mode: (B,) int32 secondary mode.
-    oracle: (B,) int32 the true damage's pattern. rte: GPData (B, L, D, 4), the action model.
+    oracle: (B,) int32 the true damage's pattern. rte: GPData (B, K, L, D, 4), the action model of
+    each of the K repertoires. belief: MapBelief (B, K), APROL's belief about them.
     secondary: GPData (B, 3 L, 9, 3), HTE's error model. key: (B, 2) PRNG keys.
     taken: (B,) int32 actions so far. reached: (B,) bool at the goal. broken: (B,) bool the
     simulation went invalid; reason: (B,) int32 its `InvalidReason` bits (0 if not broken). trajectory: (B, 4 L + 1, 3) world pose (x, y, yaw) every second,
@@ -107,6 +116,7 @@ class Episodes:
     mode: jax.Array
     oracle: jax.Array
     rte: GPData
+    belief: MapBelief
     secondary: GPData
     key: jax.Array
     taken: jax.Array
@@ -136,17 +146,25 @@ def variant_mode(variant: str, hierarchical: bool) -> int:
 def start_episodes(
     config: AdaptationConfig, skills: Skills, start: SimState, damages: np.ndarray, modes: np.ndarray, key: jax.Array
 ) -> Episodes:
-    """B fresh episodes: robots `start` (B, ...) with `damages` (B, 6), secondary `modes` (B,)."""
+    """B fresh episodes: robots `start` (B, ...) with `damages` (B, 6), secondary `modes` (B,).
+
+    With K > 1 repertoires each episode starts planning with a uniformly drawn one.
+    """
     damages = np.asarray(damages, bool)
     batch, length = damages.shape[0], config.max_actions
     depth = config.planner.depth
     pose = state_pose(start)
+    maps = skills.num_maps
 
-    def stacked(gp):
-        return jax.tree.map(lambda x: jnp.broadcast_to(x, (batch, *x.shape)), gp)
+    def stacked(gp, *lead):
+        return jax.tree.map(lambda x: jnp.broadcast_to(x, (*lead, *x.shape)), gp)
+
+    first_map = jax.random.randint(jax.random.fold_in(key, 1), (batch,), 0, maps)
 
     history = History(
         action=jnp.full((batch, length), -1, jnp.int32),
+        map=jnp.full((batch, length), -1, jnp.int32),
+        planned=jnp.full((batch, length), -1, jnp.int32),
         start=jnp.zeros((batch, length, 3), jnp.float32),
         predicted=jnp.zeros((batch, length, 3), jnp.float32),
         observed=jnp.zeros((batch, length, 3), jnp.float32),
@@ -161,8 +179,9 @@ def start_episodes(
         damage=jnp.asarray(damages),
         mode=jnp.asarray(modes, jnp.int32),
         oracle=jnp.asarray([oracle_pattern(d) for d in damages], jnp.int32),
-        rte=stacked(empty_gp(length, skills.actions.inputs.shape[1], OUTCOME_DIM)),
-        secondary=stacked(empty_gp(STEPS_PER_SKILL * length, SECONDARY_DIM, ERROR_DIM)),
+        rte=stacked(empty_gp(length, skills.actions.inputs.shape[-1], OUTCOME_DIM), batch, maps),
+        belief=jax.vmap(lambda k: initial_belief(maps, k))(first_map),
+        secondary=stacked(empty_gp(STEPS_PER_SKILL * length, SECONDARY_DIM, ERROR_DIM), batch),
         key=jax.random.split(key, batch),
         taken=jnp.zeros(batch, jnp.int32),
         reached=jnp.zeros(batch, bool),
@@ -177,11 +196,15 @@ def start_episodes(
 class Decision:
     """The next action of B episodes.
 
-    plan: PlanResult with leading B. start: (B, 3) pose the planner started from. predicted:
-    (B, 3) the GP's predicted displacement of the chosen action. keys: (B, 2) keys for executing it.
+    plan: PlanResult with leading B (its action indexes the planning repertoire). map, action: (B,)
+    int32 the repertoire and skill to execute (APROL may pick another than the plan's; otherwise
+    map 0 and the plan's action). start: (B, 3) pose the planner started from. predicted: (B, 3)
+    the GP's predicted displacement of the executed skill. keys: (B, 2) keys for executing it.
     """
 
     plan: PlanResult
+    map: jax.Array
+    action: jax.Array
     start: jax.Array
     predicted: jax.Array
     keys: jax.Array
@@ -189,20 +212,35 @@ class Decision:
 
 @functools.partial(jax.jit, static_argnames=("maze", "config"))
 def plan_step(maze: Maze, config: AdaptationConfig, skills: Skills, field: jax.Array, episodes: Episodes) -> Decision:
-    """Plan the next action of every episode on the RTE GP's predictions."""
-    mean, _ = jax.vmap(lambda gp: predict(gp, skills.actions))(episodes.rte)  # (B, A, 4)
-    displacement = displacement_of(mean)
+    """Plan the next action of every episode on the RTE GP's predictions (with K repertoires: plan
+    with the current one, then let APROL choose the skill to execute among all of them)."""
+    maps = skills.map_actions
+
+    def predict_maps(gps):
+        return jax.vmap(predict)(gps, maps)  # (K, A, 4), (K, A)
+
+    mean, variance = jax.vmap(predict_maps)(episodes.rte)  # (B, K, A, 4), (B, K, A)
+    rows = jnp.arange(mean.shape[0])
+    current = episodes.belief.current
+    displacement = displacement_of(mean[rows, current])  # (B, A, 3)
+    usable = maps.mask[current]  # (B, A)
     pose = episodes.pose
     start = jnp.concatenate([planning_start(maze, pose[:, :2]), pose[:, 2:]], axis=-1)
     keys = jax.vmap(lambda k: jax.random.split(k, 3))(episodes.key)  # (B, 3, 2): next, plan, act
 
-    def one(displacement, key, state):
-        world = world_of(displacement, skills.actions.mask, field)
+    def one(displacement, usable, key, state):
+        world = world_of(displacement, usable, field)
         return plan(maze, config.grid, config.planner, world, key, state)
 
-    result = jax.vmap(one)(displacement, keys[:, 1], start)
-    predicted = jnp.take_along_axis(displacement, result.action[:, None, None], axis=1)[:, 0]
-    return Decision(plan=result, start=start, predicted=predicted, keys=keys)
+    result = jax.vmap(one)(displacement, usable, keys[:, 1], start)
+    if skills.num_maps > 1:
+        goal = displacement[rows, result.action, :2]  # what the plan expects the skill to do
+        chosen_map, action = jax.vmap(select_entry)(episodes.belief, mean, variance,
+                                                    jnp.broadcast_to(maps.mask, variance.shape), goal)
+    else:
+        chosen_map, action = jnp.zeros_like(result.action), result.action
+    predicted = displacement_of(mean[rows, chosen_map, action])
+    return Decision(plan=result, map=chosen_map, action=action, start=start, predicted=predicted, keys=keys)
 
 
 @functools.partial(jax.jit, static_argnames=("maze", "config"))
@@ -210,14 +248,24 @@ def act_step(maze: Maze, config: AdaptationConfig, robot: Robot, skills: Skills,
              decision: Decision) -> Episodes:
     """Execute every active episode's planned action, learn from it, and record it."""
     active = ~episodes.done
-    index = decision.plan.action
+    index, chosen_map = decision.action, decision.map
     keys = decision.keys
+    maps = skills.map_actions
     if skills.hierarchical:
         outcome = execute_hbr(robot, skills, index, episodes.sim, episodes.damage, episodes.secondary,
                               episodes.mode, episodes.oracle, episodes.taken, keys[:, 2])
     else:
-        outcome = execute_flat(robot, skills, index, episodes.sim, episodes.damage, episodes.secondary)
-    rte = jax.vmap(lambda gp, i, d: observe(gp, skills.actions, i, d))(episodes.rte, index, outcome.displacement)
+        outcome = execute_flat(robot, skills.map_genotypes[chosen_map, index], episodes.sim, episodes.damage,
+                               episodes.secondary)
+
+    def learn(gps, belief, k, i, displacement):
+        """The chosen repertoire's GP and APROL belief learn what its skill did."""
+        chosen = jax.tree.map(lambda x: x[k], maps)
+        gp = observe(jax.tree.map(lambda x: x[k], gps), chosen, i, displacement)
+        gps = jax.tree.map(lambda all_, one: all_.at[k].set(one), gps, gp)
+        return gps, update_belief(belief, k, closeness(chosen.prior[i], displacement))
+
+    rte, belief = jax.vmap(learn)(episodes.rte, episodes.belief, chosen_map, index, outcome.displacement)
 
     def keep(new, old):
         """New values for active episodes, old ones for ended episodes."""
@@ -228,6 +276,8 @@ def act_step(maze: Maze, config: AdaptationConfig, robot: Robot, skills: Skills,
     h = episodes.history
     recorded = History(
         action=h.action.at[rows, slot].set(index),
+        map=h.map.at[rows, slot].set(chosen_map),
+        planned=h.planned.at[rows, slot].set(decision.plan.action),
         start=h.start.at[rows, slot].set(decision.start),
         predicted=h.predicted.at[rows, slot].set(decision.predicted),
         observed=h.observed.at[rows, slot].set(outcome.displacement),
@@ -248,6 +298,7 @@ def act_step(maze: Maze, config: AdaptationConfig, robot: Robot, skills: Skills,
     updated = episodes.replace(
         sim=outcome.state,
         rte=rte,
+        belief=belief,
         secondary=outcome.secondary,
         key=keys[:, 0],
         taken=episodes.taken + 1,

@@ -3,8 +3,11 @@ run as batched episodes, summarised and saved (the library side of `experiments.
 
 Variants: "hte", "perfect-hte", "random-hte" and "rte" plan on an HBR's top layer (its file, or
 the shipped one); "rte" on a flat repertoire file plans on its elites; "2d-rte" and "8d-rte" are
-RTE on the shipped flat repertoires. All HBR variants share one batch (the secondary mode is
-per episode); each flat repertoire is its own batch.
+RTE on the shipped flat repertoires; "aprol" is APROL on the shipped 21 damaged repertoires. All
+HBR variants share one batch (the secondary mode is per episode); each flat variant is its own batch.
+
+The paper's protocol (`PROTOCOLS["paper"]`): its six variants, the seven damages, R repertoire
+seeds (the shipped ones: R = 1) and `replicates` episodes each.
 """
 
 from __future__ import annotations
@@ -21,15 +24,18 @@ from hte_jax.flat.store import load_flat, shipped_flat_path
 from hte_jax.hbr.store import load_hbr
 from hte_jax.online.arena import maze_robot, start_states
 from hte_jax.online.episode import AdaptationConfig, Episodes, RunTimings, run_episodes, start_episodes, variant_mode
-from hte_jax.online.execute import Skills, flat_skills, hbr_skills
+from hte_jax.online.execute import Skills, flat_skill_maps, flat_skills, hbr_skills
 from hte_jax.online.maze import PAPER_MAZE, Maze
 from hte_jax.online.mcts import PlannerConfig
 from hte_jax.qd.io import CheckpointError, read_checkpoint
 from hte_jax.sim.damage import PAPER_DAMAGES, parse_damage
+from hte_jax.sim.robot import DAMAGE_MODELS, RobotConfig
 
 HBR_VARIANTS = ("hte", "perfect-hte", "random-hte", "rte")
-FLAT_VARIANTS = {"2d-rte": "2d", "8d-rte": "8d"}
+FLAT_VARIANTS = {"2d-rte": "2d", "8d-rte": "8d", "aprol": "aprol"}  # variant -> shipped flat file
 VARIANTS = HBR_VARIANTS + tuple(FLAT_VARIANTS)
+# The paper's Fig. 6 variants, in its order.
+PROTOCOLS = {"paper": ("perfect-hte", "hte", "2d-rte", "8d-rte", "aprol", "random-hte")}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -39,7 +45,8 @@ class EvalConfig:
     variants: comma-separated variant names. damages: "all" (the paper's 7), or comma-separated
     names ("none", "leg1", "legs1+4") or the original's indices 0..6. replicates: episodes per
     (variant, damage). repertoire: an HBR or single flat repertoire file for the HBR variants and
-    "rte" ("" = the shipped HBR). max_actions: the failure cap. iterations, roots, candidates,
+    "rte" ("" = the shipped HBR). damage_model: "raised" (a damaged leg blocked in the air, the
+    paper's words) or "locked" (in the standing pose, the original code's). max_actions: the failure cap. iterations, roots, candidates,
     exploration, widening, gamma, depth: MCTS settings (see PlannerConfig). seed: PRNG seed.
     """
 
@@ -47,6 +54,7 @@ class EvalConfig:
     damages: str = "all"
     replicates: int = 1
     repertoire: str = ""
+    damage_model: str = "raised"
     max_actions: int = 80
     iterations: int = 200
     roots: int = 2
@@ -64,6 +72,8 @@ class EvalConfig:
             if name not in VARIANTS:
                 raise ConfigError(f"unknown variant {name!r}; choose from {', '.join(VARIANTS)}")
         self.damage_list  # noqa: B018 (validates the names)
+        if self.damage_model not in DAMAGE_MODELS:
+            raise ConfigError(f"damage_model must be one of {', '.join(DAMAGE_MODELS)}, got {self.damage_model!r}")
         self.adaptation  # noqa: B018 (validates the planner settings)
 
     @property
@@ -101,8 +111,20 @@ class EvalConfig:
         )
         return AdaptationConfig(max_actions=self.max_actions, planner=planner)
 
+    @property
+    def robot(self) -> RobotConfig:
+        """The simulated robot's options (before the maze's walls are added)."""
+        return RobotConfig(damage_model=self.damage_model)
+
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
+
+
+def protocol_overrides(name: str) -> dict:
+    """The EvalConfig values a named protocol fixes (its variants, every damage)."""
+    if name not in PROTOCOLS:
+        raise ConfigError(f"unknown protocol {name!r}; choose one of {sorted(PROTOCOLS)}")
+    return {"variants": ",".join(PROTOCOLS[name]), "damages": "all"}
 
 
 # cpu: 7 episodes per variant, minutes on 2 cores; gpu: the paper's 30 replicates with RTE's
@@ -120,8 +142,9 @@ def preset(name: str) -> EvalConfig:
     return PRESETS[name]
 
 
-def load_skills(path: str | Path | None) -> tuple[Skills, dict]:
-    """Actions of an HBR file (its top layer) or of a file holding one flat repertoire; None: the shipped HBR."""
+def load_skills(path: str | Path | None, maps: bool = False) -> tuple[Skills, dict]:
+    """Actions of an HBR file (its top layer) or of a file holding one flat repertoire; None: the
+    shipped HBR. maps: accept a flat file of several repertoires (APROL's set): actions (K, A)."""
     if path is None or str(path) == "":
         hbr, task, _ = load_hbr()
         skills = hbr_skills(hbr, task)
@@ -134,9 +157,13 @@ def load_skills(path: str | Path | None) -> tuple[Skills, dict]:
         return skills, {"kind": "hbr", "path": str(path), "actions": int(skills.actions.mask.sum())}
     if kind == "hte_jax.flat":
         count = len(header["metadata"].get("damages", ()))
-        if count != 1:
+        if count != 1 and not maps:
             raise CheckpointError(f"{path}: holds {count} repertoires (an APROL set); RTE needs a file with one")
         flat, _ = load_flat(path)
+        if maps:
+            skills = flat_skill_maps(flat.repertoire, flat.task.extent)
+            return skills, {"kind": f"flat-{flat.task.descriptor}-set", "path": str(path), "repertoires": len(flat),
+                            "actions": int(skills.actions.mask.sum())}
         skills = flat_skills(flat[0], flat.task.extent)
         return skills, {"kind": f"flat-{flat.task.descriptor}", "path": str(path), "actions": int(skills.actions.mask.sum())}
     raise CheckpointError(f"{path}: neither an HBR nor a flat repertoire file (kind {kind!r})")
@@ -169,15 +196,15 @@ def batches(config: EvalConfig) -> list[tuple[str | None, list[str]]]:
 def run_batch(config: EvalConfig, path: str | None, variants: list[str], maze: Maze = PAPER_MAZE,
               progress: bool = True, key: jax.Array | None = None) -> BatchResult:
     """Every (variant, damage, replicate) of `variants` on one repertoire, as one batch of episodes."""
-    skills, info = load_skills(path)
+    skills, info = load_skills(path, maps=variants == ["aprol"])
     labels = [(v, d, r) for v in variants for d in config.damage_list for r in range(config.replicates)]
     modes = np.array([variant_mode("rte" if v in FLAT_VARIANTS else v, skills.hierarchical) for v, _, _ in labels])
     damages = np.stack([parse_damage(d) for _, d, _ in labels])
     adaptation = config.adaptation
-    start = start_states(maze, damages)
+    start = start_states(maze, damages, config.robot)
     key = jax.random.PRNGKey(config.seed) if key is None else key
     episodes = start_episodes(adaptation, skills, start, damages, modes, key)
-    robot = maze_robot(maze)
+    robot = maze_robot(maze, config.robot)
     episodes, timings = run_episodes(maze, adaptation, robot, skills, episodes, progress=progress,
                                      description="/".join(variants))
     return BatchResult(

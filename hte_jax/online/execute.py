@@ -58,11 +58,12 @@ ONLINE_LIMITS = ValidityLimits(max_tilt=math.pi / 2, min_base_height=0.0, body_o
 
 @struct.dataclass
 class Skills:
-    """The A actions an episode batch plans with.
+    """The A actions an episode batch plans with, from one repertoire or from K (APROL's set).
 
-    actions: ActionSet (A,) with the RTE GP's inputs and prior.
-    genotypes: (A, G) top-layer genotypes (G = 9) of an HBR, or controllers (G = 36) of a flat repertoire.
-    hbr: the HBR the top genotypes belong to, or None for a flat repertoire.
+    actions: ActionSet (A,) with the RTE GP's inputs and prior; (K, A) for K repertoires.
+    genotypes: (A, G) top-layer genotypes (G = 9) of an HBR, or controllers (G = 36) of a flat
+      repertoire; (K, A, 36) for K flat repertoires.
+    hbr: the HBR the top genotypes belong to, or None for flat repertoires.
     """
 
     actions: ActionSet
@@ -72,6 +73,21 @@ class Skills:
     @property
     def hierarchical(self) -> bool:
         return self.hbr is not None
+
+    @property
+    def num_maps(self) -> int:
+        """K, the number of repertoires (1 unless APROL's set)."""
+        return 1 if self.actions.mask.ndim == 1 else self.actions.mask.shape[0]
+
+    @property
+    def map_actions(self) -> ActionSet:
+        """The actions with a leading (K,) repertoire axis (K = 1 for one repertoire)."""
+        return self.actions if self.actions.mask.ndim == 2 else jax.tree.map(lambda x: x[None], self.actions)
+
+    @property
+    def map_genotypes(self) -> jax.Array:
+        """(K, A, G) genotypes with a leading repertoire axis."""
+        return self.genotypes if self.actions.mask.ndim == 2 else self.genotypes[None]
 
 
 def hbr_skills(hbr: HBR, top_task: TopTask, pad_to: int | None = None) -> Skills:
@@ -88,6 +104,15 @@ def flat_skills(repertoire: Repertoire, extent: float, pad_to: int | None = None
     if genotypes.shape[-1] != NUM_PARAMS:
         raise ValueError(f"a flat repertoire holds {NUM_PARAMS}-parameter controllers, got {genotypes.shape[-1]} genes")
     return Skills(actions=actions, genotypes=genotypes)
+
+
+def flat_skill_maps(repertoires: Repertoire, extent: float) -> Skills:
+    """K flat repertoires (a `Repertoire` with a leading (K,) axis, e.g. APROL's 21) as actions with
+    a leading (K,) axis, each padded to the largest one's number of elites."""
+    count = int(jnp.asarray(repertoires.filled).sum(axis=-1).max())
+    maps = [flat_skills(jax.tree.map(lambda x, k=k: x[k], repertoires), extent, pad_to=count)
+            for k in range(repertoires.filled.shape[0])]
+    return jax.tree.map(lambda *xs: jnp.stack(xs), *maps)
 
 
 @struct.dataclass
@@ -156,10 +181,8 @@ def choose_patterns(
     return choice.astype(jnp.int32)
 
 
-def execute_flat(robot: Robot, skills: Skills, index: jax.Array, state: SimState, damage: jax.Array,
-                 secondary: GPData) -> ActionOutcome:
-    """Run flat actions `index` (B,): each controller for 3 s, then 1 s neutral, in one rollout."""
-    params = skills.genotypes[index]
+def execute_flat(robot: Robot, params: jax.Array, state: SimState, damage: jax.Array, secondary: GPData) -> ActionOutcome:
+    """Run flat controllers `params` (B, 36): each for 3 s, then 1 s neutral, in one rollout."""
     segments = jnp.stack([params] * STEPS_PER_SKILL + [jnp.zeros_like(params)], axis=1)  # (B, 4, 36)
     total = SECONDS_PER_ACTION * STEP_CONTROL_STEPS
     spec = RolloutSpec(num_steps=total, pose_steps=tuple(range(0, total + 1, STEP_CONTROL_STEPS)), record_contacts=False,
@@ -167,7 +190,7 @@ def execute_flat(robot: Robot, skills: Skills, index: jax.Array, state: SimState
     # A controller's clock restarts with each 1 s segment; its period is 1 s, so 3 segments are one 3 s run.
     result = rollout(robot, segments, damage, state, spec)
     poses = planar_pose(result.base_pos, result.base_quat)  # (B, 5, 3)
-    batch = index.shape[0]
+    batch = params.shape[0]
     return ActionOutcome(
         state=result.final_state,
         valid=result.valid,

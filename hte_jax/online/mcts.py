@@ -146,9 +146,36 @@ def _sample_actions(key, world: World, num: int) -> jax.Array:
     return world.usable[jax.random.randint(key, (num,), 0, jnp.maximum(world.count, 1))]
 
 
+def _rollout_return(maze: Maze, config: PlannerConfig, world: World, key: jax.Array, state: jax.Array,
+                    alive: jax.Array, depth: jax.Array) -> jax.Array:
+    """Discounted return of a uniform random rollout from `state` at tree depth `depth`, as the
+    step-by-step loop would give it (stop at a terminal transition or the depth limit), but with
+    every step's reward computed at once: only the pose composition is sequential (unrolled)."""
+    steps = config.depth
+    actions = _sample_actions(key, world, steps)
+
+    def move(pose, action):
+        nxt = compose_pose(pose, world.displacement[action])
+        return nxt, pose
+
+    _, before = jax.lax.scan(move, state, actions, unroll=True)  # (S, 3) the pose before each step
+    _, reward, terminal = transition(maze, config, world, before, actions)
+    k = jnp.arange(steps)
+    earlier_terminal = jnp.cumsum(terminal) - terminal  # terminal transitions before step k
+    go = alive & (depth + k < config.depth) & (earlier_terminal == 0)
+    return jnp.sum(jnp.where(go, config.gamma ** k.astype(jnp.float32) * reward, 0.0))
+
+
 def _search(maze: Maze, grid: GridSpec, config: PlannerConfig, world: World, key: jax.Array, state: jax.Array) -> Tree:
-    """Grow one tree from `state` for config.iterations simulations."""
+    """Grow one tree from `state` for config.iterations simulations.
+
+    Written for batching (vmap over trees and robots): the descent only selects (by UCT) and stops
+    where the tree should widen; the one expansion of a simulation is then computed once and
+    written through out-of-range indices when there is none (dropped writes); the rollout is one
+    vectorised return, and the back-up adds to the recorded path in one scatter.
+    """
     depth_limit = config.depth
+    capacity = config.iterations + 1  # an index past every array: writes to it are dropped
 
     def expand_action(key, tree, node):
         candidates = _sample_actions(key, world, config.candidates)
@@ -170,64 +197,63 @@ def _search(maze: Maze, grid: GridSpec, config: PlannerConfig, world: World, key
         tree, key = carry
         key, key_expand, key_roll = jax.random.split(key, 3)
 
-        def descend_cond(c):
-            return ~c[2]
-
         def descend(c):
-            tree, node, _ = c
+            """One step down by UCT, unless the node is a leaf or should widen (then stop there)."""
+            tree, node, _, path, length = c
             leaf = tree.terminal[node] | (tree.depth[node] >= depth_limit)
             count = tree.num_children[node]
             widen = ((count == 0) | (tree.visits[node].astype(jnp.float32) ** config.widening > count)) & (
                 count < config.max_children
             )
+            stop = leaf | widen
+            child = uct_child(tree, node)
+            node_next = jnp.where(stop, node, child)
+            path = path.at[jnp.where(stop, depth_limit + 1, length)].set(node_next, mode="drop")
+            return tree, node_next, stop, path, length + (~stop).astype(jnp.int32)
 
-            def add_child(tree):
-                action = expand_action(key_expand, tree, node)
-                nxt, reward, terminal = transition(maze, config, world, tree.state[node], action)
-                new = tree.size
-                tree = tree.replace(
-                    state=tree.state.at[new].set(nxt),
-                    parent=tree.parent.at[new].set(node),
-                    action=tree.action.at[new].set(action),
-                    reward=tree.reward.at[new].set(reward),
-                    terminal=tree.terminal.at[new].set(terminal),
-                    depth=tree.depth.at[new].set(tree.depth[node] + 1),
-                    children=tree.children.at[node, count].set(new),
-                    num_children=tree.num_children.at[node].add(1),
-                    size=tree.size + 1,
-                )
-                return tree, new
+        path = jnp.full((depth_limit + 1,), capacity, jnp.int32).at[0].set(0)
+        tree, node, _, path, length = jax.lax.while_loop(
+            lambda c: ~c[2], descend, (tree, jnp.int32(0), False, path, jnp.int32(1)))
 
-            expand = ~leaf & widen
-            tree, child = jax.lax.cond(expand, add_child, lambda t: (t, uct_child(t, node)), tree)
-            moved = ~leaf
-            node_next = jnp.where(moved, child, node)
-            stop = leaf | expand
-            return tree, node_next, stop
+        # Widen the node the descent stopped at (once per simulation), unless it is a leaf.
+        expand = ~(tree.terminal[node] | (tree.depth[node] >= depth_limit))
+        action = expand_action(key_expand, tree, node)
+        nxt, reward, terminal = transition(maze, config, world, tree.state[node], action)
+        new = jnp.where(expand, tree.size, capacity)
+        tree = tree.replace(
+            state=tree.state.at[new].set(nxt, mode="drop"),
+            parent=tree.parent.at[new].set(node, mode="drop"),
+            action=tree.action.at[new].set(action, mode="drop"),
+            reward=tree.reward.at[new].set(reward, mode="drop"),
+            terminal=tree.terminal.at[new].set(terminal, mode="drop"),
+            depth=tree.depth.at[new].set(tree.depth[node] + 1, mode="drop"),
+            children=tree.children.at[jnp.where(expand, node, capacity), tree.num_children[node]].set(new, mode="drop"),
+            num_children=tree.num_children.at[node].add(expand.astype(jnp.int32)),
+            size=tree.size + expand.astype(jnp.int32),
+        )
+        leaf = jnp.where(expand, new, node)
+        path = path.at[jnp.where(expand, length, depth_limit + 1)].set(new, mode="drop")
+        length = length + expand.astype(jnp.int32)
 
-        tree, leaf, _ = jax.lax.while_loop(descend_cond, descend, (tree, jnp.int32(0), False))
+        rollout = _rollout_return(maze, config, world, key_roll, tree.state[leaf], ~tree.terminal[leaf],
+                                  tree.depth[leaf])
 
-        # rollout from the leaf: uniform random actions, discounted
-        def roll(carry, key_step):
-            state, alive, discount, total, d = carry
-            action = _sample_actions(key_step, world, 1)[0]
-            nxt, reward, terminal = transition(maze, config, world, state, action)
-            go = alive & (d < depth_limit)
-            total = total + jnp.where(go, discount * reward, 0.0)
-            return (jnp.where(go, nxt, state), go & ~terminal, discount * config.gamma, total, d + 1), None
+        # Back up along the path (root excluded): g_k = reward_k + gamma g_(k+1), g after the leaf = rollout.
+        on_path = jnp.arange(depth_limit + 1) < length
+        below_root = on_path & (jnp.arange(depth_limit + 1) > 0)
+        rewards = jnp.where(below_root, tree.reward[jnp.where(on_path, path, 0)], 0.0)
 
-        start = (tree.state[leaf], ~tree.terminal[leaf], jnp.float32(1.0), jnp.float32(0.0), tree.depth[leaf])
-        (_, _, _, rollout_return, _), _ = jax.lax.scan(roll, start, jax.random.split(key_roll, depth_limit))
+        def back(g, k):
+            g = jnp.where(below_root[k], rewards[k] + config.gamma * g, g)
+            return g, g
 
-        # back up: from the leaf to the root's child, then the root
-        def backup(c):
-            tree, node, g = c
-            g = tree.reward[node] + config.gamma * g
-            tree = tree.replace(visits=tree.visits.at[node].add(1), value=tree.value.at[node].add(g))
-            return tree, tree.parent[node], g
-
-        tree, _, _ = jax.lax.while_loop(lambda c: c[1] > 0, backup, (tree, leaf, rollout_return))
-        tree = tree.replace(visits=tree.visits.at[0].add(1))
+        _, returns = jax.lax.scan(back, rollout, jnp.arange(depth_limit, -1, -1), unroll=True)
+        returns = returns[::-1]
+        target = jnp.where(below_root, path, capacity)
+        tree = tree.replace(
+            visits=tree.visits.at[target].add(1, mode="drop").at[0].add(1),
+            value=tree.value.at[target].add(returns, mode="drop"),
+        )
         return tree, key
 
     tree, _ = jax.lax.fori_loop(0, config.iterations, simulate, (_empty_tree(config, state), key))

@@ -100,3 +100,61 @@ def plot_actions(path, records: list[dict], max_actions: int) -> None:
     ax.axhline(max_actions, color="tab:red", ls=":", lw=1)
     ax.set_ylabel("actions to reach the goal")
     _save(fig, path)
+
+
+def plot_protocol_box(path, statistics: dict, max_actions: int, paper: dict | None = None) -> None:
+    """The paper's Fig. 6: per variant, a box of its replication medians with the nearest-data-point
+    quartiles (whiskers: the extreme values), and the paper's quartiles as markers."""
+    variants = list(statistics["variants"])
+    boxes = []
+    for name in variants:
+        v, values = statistics["variants"][name], np.asarray(statistics["medians"][name])
+        boxes.append({"label": name, "q1": v["p25"], "med": v["p50"], "q3": v["p75"],
+                      "whislo": float(values.min()), "whishi": float(values.max()), "fliers": []})
+    fig, ax = plt.subplots(figsize=(1.3 * len(variants) + 2, 4))
+    ax.bxp(boxes, showfliers=False)
+    for i, name in enumerate(variants, start=1):
+        if paper and name in paper:
+            ax.plot([i] * 3, paper[name], "_", color="tab:red", ms=18, mew=2, label="paper" if i == 1 else None)
+    if paper and any(name in paper for name in variants):
+        handles = [plt.Line2D([], [], color="tab:red", marker="_", ls="", ms=12, mew=2)]
+        ax.legend(handles, ["paper's 25 / 50 / 75 %"], fontsize=7, loc="upper left")
+    ax.axhline(max_actions, color="0.5", ls=":", lw=1)
+    ax.set_ylabel("median actions per replication")
+    ax.set_title("actions to reach the goal (failures count as the cap)")
+    _save(fig, path)
+
+
+def plot_failures(path, statistics: dict) -> None:
+    """The paper's Fig. 7: percentage of failed episodes per variant (hatched: the robot flipped)."""
+    variants = list(statistics["variants"])
+    v = statistics["variants"]
+    failed = [v[n]["failure_percent"] for n in variants]
+    flipped = [100.0 * v[n]["flipped"] / v[n]["episodes"] for n in variants]
+    fig, ax = plt.subplots(figsize=(1.3 * len(variants) + 2, 3.5))
+    x = np.arange(len(variants))
+    ax.bar(x, failed, color="tab:blue", label="failed (80 actions or flipped)")
+    ax.bar(x, flipped, color="none", edgecolor="k", hatch="//", label="of which flipped")
+    ax.set_xticks(x, variants)
+    ax.set_ylabel("failed episodes (%)")
+    ax.legend(fontsize=7)
+    _save(fig, path)
+
+
+def plot_variant_mazes(path, maze: Maze, tracks: dict[str, list[tuple[str, np.ndarray]]]) -> None:
+    """One maze panel per variant with sample trajectories: tracks[variant] = [(label, (T, 3) poses)]."""
+    names = list(tracks)
+    columns = min(3, len(names))
+    rows = -(-len(names) // columns)
+    fig, axes = plt.subplots(rows, columns, figsize=(4.2 * columns, 4 * rows), squeeze=False)
+    for ax in axes.ravel()[len(names):]:
+        ax.axis("off")
+    for ax, name in zip(axes.ravel(), names):
+        draw_maze(ax, maze)
+        colours = plt.cm.viridis(np.linspace(0, 0.9, max(len(tracks[name]), 1)))
+        for colour, (label, track) in zip(colours, tracks[name]):
+            ax.plot(track[:, 0], track[:, 1], color=colour, lw=1.0, label=label)
+            ax.plot(track[-1, 0], track[-1, 1], "o", color=colour, ms=3)
+        ax.set_title(name)
+        ax.legend(fontsize=5, loc="lower left")
+    _save(fig, path)

@@ -1,9 +1,16 @@
 """Leg damages: a per-rollout (6,) bool mask, batched like any other input.
 
-A damaged leg is *blocked in the air* (paper section 5): its three servos hold
-`DAMAGED_POSE` whatever the controller asks: femur and tibia both pointing straight
-up, so the foot sits 0.19 m above the hip and 0.045 m outside it, and cannot reach
-the floor unless the body tilts by about 80 degrees (rollouts are invalid past 45).
+A damaged leg's three servos hold a fixed pose whatever the controller asks. Two damage
+models (`RobotConfig.damage_model`) choose the pose:
+
+- "raised" (default, the paper's words: "a leg that is blocked in the air", section 5):
+  `DAMAGED_POSE`, femur and tibia both pointing straight up, so the foot sits 0.19 m above
+  the hip and 0.045 m outside it, and cannot reach the floor unless the body tilts by about
+  80 degrees (training rollouts are invalid past 45).
+- "locked": the standing pose (all three joints at 0), the foot on the floor. This is most
+  likely what the original code simulated (facts section 10: DART's initial position was
+  never applied before the joints were locked).
+
 The paper's seven conditions are each single leg 0..5 and the two middle legs 1+4.
 """
 
@@ -16,11 +23,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from hte_jax.errors import ConfigError
-from hte_jax.sim.robot import JOINTS_PER_LEG, NUM_LEGS
+from hte_jax.sim.robot import DAMAGE_MODELS, JOINTS_PER_LEG, NUM_LEGS
 
 # (hip yaw, femur, tibia) in radians. The femur joint (+y axis) at -pi/2 turns the femur
 # straight up; the tibia joint (-y axis) at +pi/2 turns the tibia up in line with it.
 DAMAGED_POSE = (0.0, -np.pi / 2, np.pi / 2)
+DAMAGED_POSES: dict[str, tuple[float, float, float]] = {"raised": DAMAGED_POSE, "locked": (0.0, 0.0, 0.0)}
+assert tuple(DAMAGED_POSES) == DAMAGE_MODELS
 
 PAPER_DAMAGES: dict[str, tuple[int, ...]] = {
     "leg0": (0,),
@@ -88,10 +97,17 @@ def damaged_joint_mask(damage: jax.Array) -> jax.Array:
     return jnp.repeat(damage, JOINTS_PER_LEG, axis=-1)
 
 
-def apply_damage(targets: jax.Array, damage: jax.Array) -> jax.Array:
-    """Override the joint targets of damaged legs with `DAMAGED_POSE`.
+def damaged_pose(model: str) -> tuple[float, float, float]:
+    """(hip yaw, femur, tibia) a damaged leg holds under damage model `model` ("raised" or "locked")."""
+    if model not in DAMAGED_POSES:
+        raise ConfigError(f"unknown damage model {model!r}; expected one of {', '.join(DAMAGED_POSES)}")
+    return DAMAGED_POSES[model]
+
+
+def apply_damage(targets: jax.Array, damage: jax.Array, pose: tuple[float, float, float] = DAMAGED_POSE) -> jax.Array:
+    """Override the joint targets of damaged legs with `pose` (one leg's three joints).
 
     Args: targets (18,) radians; damage (6,) bool. Returns: (18,) radians.
     """
-    pose = jnp.tile(jnp.asarray(DAMAGED_POSE, targets.dtype), NUM_LEGS)
+    pose = jnp.tile(jnp.asarray(pose, targets.dtype), NUM_LEGS)
     return jnp.where(damaged_joint_mask(damage), pose, targets)

@@ -28,6 +28,7 @@ FLOOR_BIT = 1
 WALL_BIT = 2
 WALL_HEIGHT = 0.9
 WALL_CONTACTS = ("bumper", "links", "feet")
+DAMAGE_MODELS = ("raised", "locked")  # the pose of a damaged leg (poses in hte_jax.sim.damage)
 
 
 def assets_dir() -> Path:
@@ -62,6 +63,8 @@ class RobotConfig:
     bumper_radius: radius of the bumper sphere in metres (the planner's robot radius).
     body_floor_contact: the body and link boxes collide with the floor too (not only the feet);
       the online phase turns it on so that a damaged robot that tips over lands on its body.
+    damage_model: the pose a damaged leg holds: "raised" (blocked in the air, the paper's
+      description) or "locked" (in the standing pose); see `hte_jax.sim.damage`.
     """
 
     timestep: float = 0.01
@@ -77,6 +80,7 @@ class RobotConfig:
     wall_contact: str = "bumper"
     bumper_radius: float = 0.25
     body_floor_contact: bool = False
+    damage_model: str = "raised"
 
     def __post_init__(self):
         for name in ("timestep", "control_dt", "servo_gain", "max_torque", "max_joint_velocity"):
@@ -92,6 +96,8 @@ class RobotConfig:
         if self.wall_contact not in WALL_CONTACTS:
             raise ConfigError(f"wall_contact must be one of {WALL_CONTACTS}, got {self.wall_contact!r}")
         require_number("bumper_radius", self.bumper_radius, 0.0, open_low=True)
+        if self.damage_model not in DAMAGE_MODELS:
+            raise ConfigError(f"damage_model must be one of {DAMAGE_MODELS}, got {self.damage_model!r}")
         for wall in self.walls:
             if len(wall) != 4 or not (wall[0] < wall[2] and wall[1] < wall[3]):
                 raise ConfigError(f"wall {wall!r} must be (x1, y1, x2, y2) with x1 < x2 and y1 < y2")

@@ -23,7 +23,7 @@ from mujoco import mjx
 
 from hte_jax.errors import ConfigError
 from hte_jax.sim.controller import NUM_PARAMS, SAMPLES_PER_PERIOD, servo_command, target_table
-from hte_jax.sim.damage import DAMAGED_POSE, apply_damage, damaged_joint_mask
+from hte_jax.sim.damage import apply_damage, damaged_joint_mask, damaged_pose
 from hte_jax.sim.robot import FOOT_RADIUS, NUM_JOINTS, NUM_LEGS, Robot, mj_model
 
 
@@ -138,7 +138,7 @@ def initial_state(robot: Robot, damage: jax.Array | None = None) -> SimState:
     qpos = jnp.asarray(model.qpos0, jnp.float32)
     if damage is not None:
         joints = jnp.asarray(robot.info.joint_qpos)
-        pose = jnp.tile(jnp.asarray(DAMAGED_POSE, jnp.float32), NUM_LEGS)
+        pose = jnp.tile(jnp.asarray(damaged_pose(robot.config.damage_model), jnp.float32), NUM_LEGS)
         qpos = qpos.at[joints].set(jnp.where(damaged_joint_mask(jnp.asarray(damage)), pose, qpos[joints]))
     zeros = jnp.zeros(model.nv, jnp.float32)
     return SimState(qpos=qpos, qvel=zeros, qacc_warmstart=zeros)
@@ -199,7 +199,7 @@ def _rollout_one(
         data, reason, invalid_step, poses, command_sum = carry
         poses = record_pose(poses, data.qpos, step)
         row = (step % segment_steps) % SAMPLES_PER_PERIOD
-        target = apply_damage(tables[step // segment_steps, row], damage)
+        target = apply_damage(tables[step // segment_steps, row], damage, damaged_pose(config.damage_model))
         command = servo_command(target, data.qpos[joint_qpos], config.max_joint_velocity)
         stepped = data.replace(ctrl=command)
         for _ in range(config.substeps):

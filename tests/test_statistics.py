@@ -1,0 +1,90 @@
+"""The paper's statistics on hand-made data: nearest data-point percentiles, replication medians,
+failure rates, Bonferroni-corrected Wilcoxon-Mann-Whitney tests."""
+
+import numpy as np
+import pytest
+from scipy import stats
+
+from hte_jax.online.statistics import (
+    bonferroni,
+    failure_reduction,
+    nearest_percentile,
+    pairwise_tests,
+    protocol_statistics,
+    replication_medians,
+)
+
+
+def test_nearest_percentile_takes_a_data_point():
+    values = [7, 1, 3, 9, 5]  # sorted 1 3 5 7 9, positions 0..4
+    assert nearest_percentile(values, 25) == 3  # position 1.0
+    assert nearest_percentile(values, 50) == 5
+    assert nearest_percentile(values, 75) == 7
+    assert nearest_percentile(values, 0) == 1 and nearest_percentile(values, 100) == 9
+    assert nearest_percentile(range(1, 11), 25) == 3  # position 2.25 -> the 3rd value
+    assert nearest_percentile(range(1, 11), 75) == 8  # position 6.75 -> the 8th value
+    assert nearest_percentile([10, 20, 30, 40], 50) == 20  # position 1.5: halfway goes to the lower point
+    assert nearest_percentile([4], 75) == 4
+    with pytest.raises(ValueError, match="percentile"):
+        nearest_percentile([1, 2], 101)
+    with pytest.raises(ValueError, match="no values"):
+        nearest_percentile([], 50)
+
+
+def test_bonferroni_multiplies_by_the_number_of_tests_and_caps_at_one():
+    np.testing.assert_allclose(bonferroni([0.01, 0.2, 0.001]), [0.03, 0.6, 0.003])
+    np.testing.assert_allclose(bonferroni([0.5, 0.4]), [1.0, 0.8])
+    np.testing.assert_allclose(bonferroni([0.01], tests=15), [0.15])
+
+
+def _records():
+    """Two variants, 2 damages x 3 replicates x 2 repertoire seeds; 'a' needs fewer actions than 'b'."""
+    rows = []
+    for variant, base in (("a", 10), ("b", 40)):
+        for damage in ("leg0", "leg1"):
+            for replicate in range(3):
+                for seed, offset in ((0, 0), (1, 4)):
+                    actions = base + replicate + offset
+                    failed = variant == "b" and replicate == 2
+                    rows.append({"variant": variant, "damage": damage, "replicate": replicate, "seed": seed,
+                                 "actions": 80 if failed else actions, "reached": not failed, "broken": False})
+    return rows
+
+
+def test_protocol_statistics_on_hand_made_records():
+    records = _records()
+    medians = replication_medians(records)
+    # a: per (damage, replicate) the median of seeds (10 + r, 14 + r) = 12 + r
+    np.testing.assert_allclose(medians["a"], [12, 13, 14, 12, 13, 14])
+    np.testing.assert_allclose(medians["b"], [42, 43, 80, 42, 43, 80])
+    result = protocol_statistics(records)
+    a, b = result["variants"]["a"], result["variants"]["b"]
+    assert (a["p25"], a["p50"], a["p75"]) == (12, 13, 14)  # sorted 12 12 13 13 14 14: positions 1.25, 2.5, 3.75
+    assert (b["p25"], b["p50"], b["p75"]) == (42, 43, 80)
+    assert a["failure_percent"] == 0 and b["failures"] == 4 and b["failure_percent"] == pytest.approx(100 * 4 / 12)
+    assert b["replications"] == 6 and b["episodes"] == 12
+    (test,) = result["tests"]
+    expected = stats.mannwhitneyu(medians["a"], medians["b"], alternative="two-sided")
+    assert test["a"] == "a" and test["b"] == "b"
+    assert test["p"] == pytest.approx(expected.pvalue) and test["p_bonferroni"] == pytest.approx(expected.pvalue)
+    assert test["u"] == 0  # every 'a' median is below every 'b' median
+
+
+def test_pairwise_tests_correct_over_all_pairs():
+    rng = np.random.default_rng(1)
+    samples = {name: rng.normal(loc, 1.0, 30) for name, loc in (("x", 0.0), ("y", 0.1), ("z", 3.0))}
+    tests = pairwise_tests(samples)
+    assert [(t["a"], t["b"]) for t in tests] == [("x", "y"), ("x", "z"), ("y", "z")]
+    for t in tests:
+        raw = stats.mannwhitneyu(samples[t["a"]], samples[t["b"]], alternative="two-sided").pvalue
+        assert t["p_bonferroni"] == pytest.approx(min(1.0, 3 * raw))
+    assert tests[1]["p_bonferroni"] < 1e-6 and tests[0]["p_bonferroni"] > 0.05
+    (same,) = pairwise_tests({"u": np.full(5, 80.0), "v": np.full(5, 80.0)})
+    assert same["p"] == 1.0 and same["p_bonferroni"] == 1.0
+
+
+def test_failure_reduction():
+    statistics = {"variants": {"hte": {"failure_percent": 3.0}, "2d-rte": {"failure_percent": 7.0},
+                               "none": {"failure_percent": 0.0}}}
+    assert failure_reduction(statistics, "hte", "2d-rte") == pytest.approx(100 * (1 - 3 / 7))
+    assert failure_reduction(statistics, "hte", "none") is None
