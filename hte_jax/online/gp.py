@@ -132,9 +132,12 @@ def posterior(
         gram = gram + jnp.diag(jnp.where(mask, kernel.noise, 1.0))
         chol = jnp.linalg.cholesky(gram)
         residual = jnp.where(mask[:, None], residual, 0.0)
-        alpha = jax.scipy.linalg.cho_solve((chol, True), residual)
         cross = jnp.where(mask[None, :], kernel(queries.astype(jnp.float32), data.inputs), 0.0)  # (Q, N)
-        mean = query_prior + cross @ alpha
-        v = jax.scipy.linalg.solve_triangular(chol, cross.T, lower=True)  # (N, Q)
+        # One triangular solve for both: with L L^T = K, the mean is prior + (L^-1 k)^T (L^-1 r) and
+        # the variance s^2 - |L^-1 k|^2. (Two independent solves could run concurrently on the CPU,
+        # where jaxlib's batched LAPACK kernels then deadlocked on a 2-thread pool; see design.md.)
+        solved = jax.scipy.linalg.solve_triangular(chol, jnp.concatenate([residual, cross.T], axis=1), lower=True)
+        w, v = solved[:, : residual.shape[1]], solved[:, residual.shape[1]:]  # (N, O), (N, Q)
+        mean = query_prior + v.T @ w
         variance = kernel.variance - jnp.sum(v * v, axis=0)
     return mean, jnp.maximum(variance, 0.0)
