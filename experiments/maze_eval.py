@@ -7,12 +7,15 @@
     python -m experiments.maze_eval --repertoire runs/hbr-gpu/hbr.npz --damage none,0,6
     python -m experiments.maze_eval --protocol paper --preset gpu    # the paper's Fig. 6 / 7 experiment
     python -m experiments.maze_eval --protocol paper --damage-model locked
+    python -m experiments.maze_eval --protocol paper --preset gpu --repertoire-dir runs/seeds  # R seeds
 
 Variants: hte, perfect-hte, random-hte, rte (on an HBR: the shipped one or --repertoire; rte
 also on a flat file), 2d-rte, 8d-rte (shipped flat repertoires), aprol (shipped 21 damaged
 repertoires). --protocol paper: the paper's six variants on all 7 damages. Damages: all (the
 paper's 7), or names / indices (none, leg0..leg5 = 0..5, legs1+4 = 6, any legs<i>+<j>).
 --damage-model: raised (the damaged leg blocked in the air, default) or locked (standing pose).
+--repertoire-dir: one subfolder per repertoire seed, each with hbr.npz, flat2d.npz, flat8d.npz,
+aprol.npz (the paper: 4 seeds); a replication's score is the median over seeds.
 Writes config.json, episodes.json (one record per episode), summary.json (per variant and
 damage), statistics.json (the paper's statistics: quartiles of the replication medians, failure
 rates, pairwise Wilcoxon-Mann-Whitney tests with Bonferroni correction), episodes_<k>.npz
@@ -87,13 +90,14 @@ def main(argv=None) -> int:
         out.mkdir(parents=True, exist_ok=True)
         write_json(out / "config.json", {"preset": args.preset, "protocol": args.protocol, **config.to_dict()})
         records, curves, tracks = [], {}, {}
-        for k, (path, variants) in enumerate(batches(config)):
-            result = run_batch(config, path, variants, progress=not args.no_progress)
+        for k, (seed, path, variants) in enumerate(batches(config)):
+            result = run_batch(config, path, variants, progress=not args.no_progress, seed=seed)
             rows = episode_records(result, config.max_actions)
             records += rows
             _save_batch(out / f"episodes_{k}.npz", result)
             _plot_batch(out / "plots", result, curves, tracks)
-            print(f"batch {k} ({'/'.join(variants)} on {result.repertoire['path']}, {result.repertoire['actions']} actions): "
+            print(f"batch {k} ({'/'.join(variants)} on seed {seed}: {result.repertoire['path']}, "
+                  f"{result.repertoire['actions']} actions): "
                   f"{len(rows)} episodes in {result.timings.total:.1f} s, "
                   f"planning median {np.median(result.timings.plan):.2f} s per action")
     except (ConfigError, CheckpointError) as error:
@@ -149,7 +153,7 @@ def _save_batch(path: Path, result) -> None:
         "path": ep.history.path, "path_length": ep.history.path_length, "patterns": ep.history.patterns,
         "errors": ep.history.errors,
     }
-    labels = {"variants": result.variants, "damages": result.damages, "replicates": result.replicates,
+    labels = {"seed": result.seed, "variants": result.variants, "damages": result.damages, "replicates": result.replicates,
               "repertoire": result.repertoire, "plan_seconds": result.timings.plan, "act_seconds": result.timings.act}
     save_checkpoint(path, arrays, labels, compress=True)
 
@@ -162,13 +166,14 @@ def _plot_batch(plot_dir: Path, result, curves: dict, tracks: dict) -> None:
         rows = [i for i, v in enumerate(result.variants) if v == variant]
         first = [i for i in rows if result.replicates[i] == 0]  # one episode per damage
         labels = [f"{result.damages[i]}: {'goal' if bool(ep.reached[i]) else 'failed'} in {int(taken[i])}" for i in first]
-        plot_episodes(plot_dir / f"maze_{variant}.png", PAPER_MAZE, ep, first, labels,
-                      f"{variant}: first replicate per damage", plan_of=first[0])
-        tracks[variant] = [(label, episode_track(ep, i)) for label, i in zip(labels, first)]
+        if result.seed == 0:  # trajectories of the first repertoire seed
+            plot_episodes(plot_dir / f"maze_{variant}.png", PAPER_MAZE, ep, first, labels,
+                          f"{variant}: first replicate per damage", plan_of=first[0])
+            tracks[variant] = [(label, episode_track(ep, i)) for label, i in zip(labels, first)]
         masked = np.full((len(rows), errors.shape[1]), np.nan)
         for j, i in enumerate(rows):
             masked[j, : taken[i]] = errors[i, : taken[i]]
-        curves[variant] = masked
+        curves[variant] = np.concatenate([curves[variant], masked]) if variant in curves else masked
 
 
 if __name__ == "__main__":

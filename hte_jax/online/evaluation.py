@@ -7,7 +7,9 @@ RTE on the shipped flat repertoires; "aprol" is APROL on the shipped 21 damaged 
 HBR variants share one batch (the secondary mode is per episode); each flat variant is its own batch.
 
 The paper's protocol (`PROTOCOLS["paper"]`): its six variants, the seven damages, R repertoire
-seeds (the shipped ones: R = 1) and `replicates` episodes each.
+seeds and `replicates` episodes each. Seeds come from `repertoire_dir` (one subfolder per seed
+holding `hbr.npz`, `flat2d.npz`, `flat8d.npz`, `aprol.npz`); without it, the shipped repertoires
+are the one seed.
 """
 
 from __future__ import annotations
@@ -33,6 +35,7 @@ from hte_jax.sim.robot import DAMAGE_MODELS, RobotConfig
 
 HBR_VARIANTS = ("hte", "perfect-hte", "random-hte", "rte")
 FLAT_VARIANTS = {"2d-rte": "2d", "8d-rte": "8d", "aprol": "aprol"}  # variant -> shipped flat file
+SEED_FILES = {"hbr": "hbr.npz", "2d": "flat2d.npz", "8d": "flat8d.npz", "aprol": "aprol.npz"}  # in a seed folder
 VARIANTS = HBR_VARIANTS + tuple(FLAT_VARIANTS)
 # The paper's Fig. 6 variants, in its order.
 PROTOCOLS = {"paper": ("perfect-hte", "hte", "2d-rte", "8d-rte", "aprol", "random-hte")}
@@ -45,7 +48,8 @@ class EvalConfig:
     variants: comma-separated variant names. damages: "all" (the paper's 7), or comma-separated
     names ("none", "leg1", "legs1+4") or the original's indices 0..6. replicates: episodes per
     (variant, damage). repertoire: an HBR or single flat repertoire file for the HBR variants and
-    "rte" ("" = the shipped HBR). damage_model: "raised" (a damaged leg blocked in the air, the
+    "rte" ("" = the shipped HBR). repertoire_dir: a folder with one subfolder per repertoire seed
+    (files `SEED_FILES`) used instead of the shipped repertoires. damage_model: "raised" (a damaged leg blocked in the air, the
     paper's words) or "locked" (in the standing pose, the original code's). max_actions: the failure cap. iterations, roots, candidates,
     exploration, widening, gamma, depth: MCTS settings (see PlannerConfig). seed: PRNG seed.
     """
@@ -54,6 +58,7 @@ class EvalConfig:
     damages: str = "all"
     replicates: int = 1
     repertoire: str = ""
+    repertoire_dir: str = ""
     damage_model: str = "raised"
     max_actions: int = 80
     iterations: int = 200
@@ -72,6 +77,8 @@ class EvalConfig:
             if name not in VARIANTS:
                 raise ConfigError(f"unknown variant {name!r}; choose from {', '.join(VARIANTS)}")
         self.damage_list  # noqa: B018 (validates the names)
+        if self.repertoire and self.repertoire_dir:
+            raise ConfigError("give either repertoire (one HBR file) or repertoire_dir (seed folders), not both")
         if self.damage_model not in DAMAGE_MODELS:
             raise ConfigError(f"damage_model must be one of {', '.join(DAMAGE_MODELS)}, got {self.damage_model!r}")
         self.adaptation  # noqa: B018 (validates the planner settings)
@@ -171,8 +178,10 @@ def load_skills(path: str | Path | None, maps: bool = False) -> tuple[Skills, di
 
 @dataclasses.dataclass
 class BatchResult:
-    """One batch of episodes on one repertoire: labels per episode and the final `Episodes`."""
+    """One batch of episodes on one repertoire (of repertoire seed `seed`): labels per episode and
+    the final `Episodes`."""
 
+    seed: int
     repertoire: dict
     variants: list[str]
     damages: list[str]
@@ -181,33 +190,53 @@ class BatchResult:
     timings: RunTimings
 
 
-def batches(config: EvalConfig) -> list[tuple[str | None, list[str]]]:
-    """(repertoire path or None for the shipped HBR, variants) for each batch to run."""
+def seed_folders(config: EvalConfig) -> list[Path | None]:
+    """The repertoire seeds: subfolders of `repertoire_dir` in name order, or [None] (shipped)."""
+    if not config.repertoire_dir:
+        return [None]
+    root = Path(config.repertoire_dir)
+    if not root.is_dir():
+        raise ConfigError(f"repertoire_dir {root} is not a folder")
+    seeds = sorted(p for p in root.iterdir() if p.is_dir())
+    if not seeds:
+        raise ConfigError(f"repertoire_dir {root} holds no seed subfolders")
+    return seeds
+
+
+def batches(config: EvalConfig) -> list[tuple[int, str | None, list[str]]]:
+    """(seed index, repertoire path or None for the shipped HBR, variants) for each batch to run."""
     hbr = [v for v in config.variant_list if v in HBR_VARIANTS]
     out = []
-    if hbr:
-        out.append((config.repertoire or None, hbr))
-    for variant in config.variant_list:
-        if variant in FLAT_VARIANTS:
-            out.append((str(shipped_flat_path(FLAT_VARIANTS[variant])), [variant]))
+    for seed, folder in enumerate(seed_folders(config)):
+        if hbr:
+            out.append((seed, config.repertoire or None if folder is None else str(folder / SEED_FILES["hbr"]), hbr))
+        for variant in config.variant_list:
+            if variant in FLAT_VARIANTS:
+                kind = FLAT_VARIANTS[variant]
+                path = shipped_flat_path(kind) if folder is None else folder / SEED_FILES[kind]
+                out.append((seed, str(path), [variant]))
     return out
 
 
 def run_batch(config: EvalConfig, path: str | None, variants: list[str], maze: Maze = PAPER_MAZE,
-              progress: bool = True, key: jax.Array | None = None) -> BatchResult:
-    """Every (variant, damage, replicate) of `variants` on one repertoire, as one batch of episodes."""
+              progress: bool = True, key: jax.Array | None = None, seed: int = 0) -> BatchResult:
+    """Every (variant, damage, replicate) of `variants` on one repertoire (of seed `seed`), as one
+    batch of episodes."""
     skills, info = load_skills(path, maps=variants == ["aprol"])
     labels = [(v, d, r) for v in variants for d in config.damage_list for r in range(config.replicates)]
     modes = np.array([variant_mode("rte" if v in FLAT_VARIANTS else v, skills.hierarchical) for v, _, _ in labels])
     damages = np.stack([parse_damage(d) for _, d, _ in labels])
     adaptation = config.adaptation
     start = start_states(maze, damages, config.robot)
-    key = jax.random.PRNGKey(config.seed) if key is None else key
+    if key is None:
+        key = jax.random.PRNGKey(config.seed)
+        key = key if seed == 0 else jax.random.fold_in(key, seed)
     episodes = start_episodes(adaptation, skills, start, damages, modes, key)
     robot = maze_robot(maze, config.robot)
     episodes, timings = run_episodes(maze, adaptation, robot, skills, episodes, progress=progress,
                                      description="/".join(variants))
     return BatchResult(
+        seed=seed,
         repertoire=info,
         variants=[v for v, _, _ in labels],
         damages=[d for _, d, _ in labels],
@@ -228,6 +257,7 @@ def episode_records(result: BatchResult, max_actions: int) -> list[dict]:
     for i, (variant, damage, replicate) in enumerate(zip(result.variants, result.damages, result.replicates)):
         records.append({
             "variant": variant,
+            "seed": result.seed,
             "damage": damage,
             "replicate": replicate,
             "reached": bool(reached[i]),
