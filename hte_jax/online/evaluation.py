@@ -31,7 +31,7 @@ from hte_jax.online.maze import PAPER_MAZE, Maze
 from hte_jax.online.mcts import PlannerConfig
 from hte_jax.qd.io import CheckpointError, read_checkpoint
 from hte_jax.sim.damage import PAPER_DAMAGES, parse_damage
-from hte_jax.sim.robot import DAMAGE_MODELS, RobotConfig
+from hte_jax.sim.robot import RobotConfig
 
 HBR_VARIANTS = ("hte", "perfect-hte", "random-hte", "rte")
 FLAT_VARIANTS = {"2d-rte": "2d", "8d-rte": "8d", "aprol": "aprol"}  # variant -> shipped flat file
@@ -49,8 +49,9 @@ class EvalConfig:
     names ("none", "leg1", "legs1+4") or the original's indices 0..6. replicates: episodes per
     (variant, damage). repertoire: an HBR or single flat repertoire file for the HBR variants and
     "rte" ("" = the shipped HBR). repertoire_dir: a folder with one subfolder per repertoire seed
-    (files `SEED_FILES`) used instead of the shipped repertoires. damage_model: "raised" (a damaged leg blocked in the air, the
-    paper's words) or "locked" (in the standing pose, the original code's). max_actions: the failure cap. iterations, roots, candidates,
+    (files `SEED_FILES`) used instead of the shipped repertoires. damage_model: "raised" (a
+    damaged leg blocked in the air, the paper's words) or "locked" (in the standing pose, the
+    original code's). max_actions: the failure cap. iterations, roots, candidates,
     exploration, widening, gamma, depth: MCTS settings (see PlannerConfig). seed: PRNG seed.
     """
 
@@ -79,8 +80,7 @@ class EvalConfig:
         self.damage_list  # noqa: B018 (validates the names)
         if self.repertoire and self.repertoire_dir:
             raise ConfigError("give either repertoire (one HBR file) or repertoire_dir (seed folders), not both")
-        if self.damage_model not in DAMAGE_MODELS:
-            raise ConfigError(f"damage_model must be one of {', '.join(DAMAGE_MODELS)}, got {self.damage_model!r}")
+        self.robot  # noqa: B018 (RobotConfig validates the damage model)
         self.adaptation  # noqa: B018 (validates the planner settings)
 
     @property

@@ -193,30 +193,31 @@ def _search(maze: Maze, grid: GridSpec, config: PlannerConfig, world: World, key
         score = tree.value[safe] / n + 2.0 * config.exploration * jnp.sqrt(jnp.log(parent + 1.0) / n)
         return safe[jnp.argmax(jnp.where(valid, score, -jnp.inf))]
 
+    def is_leaf(tree, node):
+        return tree.terminal[node] | (tree.depth[node] >= depth_limit)
+
     def simulate(i, carry):
         tree, key = carry
         key, key_expand, key_roll = jax.random.split(key, 3)
 
         def descend(c):
-            """One step down by UCT, unless the node is a leaf or should widen (then stop there)."""
-            tree, node, _, path, length = c
-            leaf = tree.terminal[node] | (tree.depth[node] >= depth_limit)
+            """One step down by UCT, unless the node is a leaf or should widen (then stop there).
+            The tree does not change on the way down, so it stays out of the loop's carry."""
+            node, _, path, length = c
             count = tree.num_children[node]
             widen = ((count == 0) | (tree.visits[node].astype(jnp.float32) ** config.widening > count)) & (
                 count < config.max_children
             )
-            stop = leaf | widen
-            child = uct_child(tree, node)
-            node_next = jnp.where(stop, node, child)
+            stop = is_leaf(tree, node) | widen
+            node_next = jnp.where(stop, node, uct_child(tree, node))
             path = path.at[jnp.where(stop, depth_limit + 1, length)].set(node_next, mode="drop")
-            return tree, node_next, stop, path, length + (~stop).astype(jnp.int32)
+            return node_next, stop, path, length + (~stop).astype(jnp.int32)
 
         path = jnp.full((depth_limit + 1,), capacity, jnp.int32).at[0].set(0)
-        tree, node, _, path, length = jax.lax.while_loop(
-            lambda c: ~c[2], descend, (tree, jnp.int32(0), False, path, jnp.int32(1)))
+        node, _, path, length = jax.lax.while_loop(lambda c: ~c[1], descend, (jnp.int32(0), False, path, jnp.int32(1)))
 
         # Widen the node the descent stopped at (once per simulation), unless it is a leaf.
-        expand = ~(tree.terminal[node] | (tree.depth[node] >= depth_limit))
+        expand = ~is_leaf(tree, node)
         action = expand_action(key_expand, tree, node)
         nxt, reward, terminal = transition(maze, config, world, tree.state[node], action)
         new = jnp.where(expand, tree.size, capacity)
