@@ -23,6 +23,12 @@ def require_number(name: str, value, low: float = -math.inf, high: float = math.
         raise ConfigError(f"{name} must be a finite number in {bounds}, got {value!r}")
 
 
+def require_choice(name: str, value, choices) -> None:
+    """`value` must be one of `choices`."""
+    if value not in choices:
+        raise ConfigError(f"{name} must be one of {tuple(choices)}, got {value!r}")
+
+
 def require_bounds(name: str, low, high, dims: int | None = None) -> None:
     """Per-dimension bounds: same length (== dims if given), finite, low < high."""
     if len(low) != len(high) or not low or (dims is not None and len(low) != dims):

@@ -36,7 +36,7 @@ def pytest_unconfigure(config):
 
 
 # Benchmark scripts re-run programs (a training preset, say) that other tests compile first.
-_LAST = ("test_benchmarks.py",)
+_LAST = ("test_benchmarks.py", "test_benchmarks_hbr.py")
 
 
 def pytest_collection_modifyitems(session, config, items):

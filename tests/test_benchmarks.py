@@ -1,26 +1,15 @@
-"""The benchmark scripts run end to end at tiny sizes and write well-formed results.
-
-These check that the scripts work, not how fast anything is (speed lives in benchmarks/results).
+"""The simulation, QD and online benchmark scripts run end to end at tiny sizes and write well-formed
+results. These check that the scripts work, not how fast anything is (speed lives in benchmarks/results).
 """
 
 import json
-import subprocess
-import sys
-from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-
-
-def _run(script, *args):
-    proc = subprocess.run([sys.executable, str(ROOT / "benchmarks" / script), *args], cwd=ROOT,
-                          capture_output=True, text=True, timeout=600)
-    assert proc.returncode == 0, proc.stderr[-2000:]
-    return proc.stdout
+from tests.benchmark_runner import run_benchmark
 
 
 def test_batch_size_benchmark(tmp_path):
     out = tmp_path / "bs.json"
-    stdout = _run("batch_size.py", "--max-batch", "1", "--steps", "20", "--repeats", "1",
+    stdout = run_benchmark("batch_size.py", "--max-batch", "1", "--steps", "20", "--repeats", "1",
                   "--native-batches", "4", "--out", str(out))
     result = json.loads(out.read_text())
     engines = {row["engine"]: row for row in result["rows"]}
@@ -34,7 +23,7 @@ def test_batch_size_benchmark(tmp_path):
 
 def test_qd_overhead_benchmark(tmp_path):
     out = tmp_path / "qd.json"
-    _run("qd_overhead.py", "--min-batch", "64", "--max-batch", "64", "--eval-max-batch", "0",
+    run_benchmark("qd_overhead.py", "--min-batch", "64", "--max-batch", "64", "--eval-max-batch", "0",
          "--archive-capacity", "1024", "--repeats", "1", "--out", str(out))
     rows = json.loads(out.read_text())["rows"]
     assert [r["container"] for r in rows] == ["grid_2d_100x100", "grid_8d_640k", "archive_9d_1024"]
@@ -43,40 +32,9 @@ def test_qd_overhead_benchmark(tmp_path):
         assert row["filled"] >= {"grid_2d_100x100": 5000, "grid_8d_640k": 320_000, "archive_9d_1024": 512}[row["container"]]
 
 
-def test_hbr_layer_benchmark(tmp_path):
-    out = tmp_path / "layers.json"
-    stdout = _run("hbr_layers.py", "--preset", "tiny", "--batch-sizes", "8", "--repeats", "1",
-                  "--layers", "bottom", "--out", str(out))
-    result = json.loads(out.read_text())
-    (row,) = result["rows"]
-    assert (row["layer"], row["batch"]) == ("bottom", 8)
-    assert row["evaluations_per_s"] > 0 and abs(row["steps_per_s"] / row["evaluations_per_s"] - 100) < 1e-6
-    assert result["settings"]["preset"] == "tiny" and "eval/s" in stdout
-
-
-def test_hbr_preset_benchmark(tmp_path):
-    out = tmp_path / "preset.json"
-    _run("hbr_preset.py", "--preset", "tiny", "--out", str(tmp_path / "run"), "--no-progress", "--json", str(out))
-    result = json.loads(out.read_text())
-    assert result["preset"] == "tiny" and result["total_wall_s"] > 0
-    assert set(result["layers"]) == {"bottom", "middle", "top"}
-    assert result["layers"]["top"]["evaluations"] == 64
-    assert sum(layer["wall_time_s"] for layer in result["layers"].values()) <= result["total_wall_s"]
-    assert (tmp_path / "run" / "hbr.npz").stat().st_size > 0
-
-
-def test_determinism_benchmark(tmp_path):
-    out = tmp_path / "det.json"
-    stdout = _run("determinism.py", "--preset", "tiny", "--generations", "1", "--out", str(out))
-    result = json.loads(out.read_text())
-    assert result["identical"] is True  # on the CPU a seed is bit-reproducible
-    assert result["elites"][0] == result["elites"][1] > 0 and len(result["wall_s"]) == 2
-    assert "identical=True" in stdout
-
-
 def test_adaptation_benchmark(tmp_path):
     out = tmp_path / "adapt.json"
-    stdout = _run("adaptation.py", "--batch-sizes", "2", "--max-actions", "2", "--iterations", "10", "--roots", "1",
+    stdout = run_benchmark("adaptation.py", "--batch-sizes", "2", "--max-actions", "2", "--iterations", "10", "--roots", "1",
                   "--repeats", "1", "--out", str(out))
     result = json.loads(out.read_text())
     (row,) = result["rows"]

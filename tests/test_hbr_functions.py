@@ -6,7 +6,17 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from hte_jax.hbr.bottom import FOOT_REACH, activation_fitness, duty_level, leg_params, lift_height, swing_distance
+from hte_jax.errors import ConfigError
+from hte_jax.hbr.bottom import (
+    FOOT_REACH,
+    BottomTask,
+    activation_fitness,
+    duty_level,
+    gene_fitness,
+    leg_params,
+    lift_height,
+    swing_distance,
+)
 from hte_jax.hbr.execution import HBR, select_middle, skill_waypoints
 from hte_jax.hbr.geometry import angle_error, compose_pose, heading, medoid_index, planar_pose, relative_pose, wrap_angle
 from hte_jax.hbr.middle import MiddleTask, leg_controllers, nearest_index, pattern_bits, pattern_code
@@ -98,6 +108,15 @@ def test_duty_levels_and_activation():
     # A leg commanded at the full 5 rad/s on all joints for 1 s scores -1; a still leg 0.
     assert float(activation_fitness(jnp.full(3, 5.0), 1.0, 5.0)) == pytest.approx(-1.0)
     assert float(activation_fitness(jnp.zeros(3), 1.0, 5.0)) == 0.0
+
+
+def test_original_gene_fitness_option():
+    """The original's bottom fitness: minus the sum of all six genes (phases and duties too) over 3."""
+    genes = jnp.asarray([[0.0] * 6, [1.0] * 6, [0.5, 0.2, 0.0, 0.1, 0.9, 0.3]], jnp.float32)
+    np.testing.assert_allclose(np.asarray(gene_fitness(genes)), [0.0, -2.0, -2.0 / 3], rtol=1e-6)
+    assert BottomTask(fitness="genes").fitness == "genes"
+    with pytest.raises(ConfigError, match="bottom fitness must be one of"):
+        BottomTask(fitness="energy")
 
 
 def test_leg_params_drive_only_the_chosen_leg():

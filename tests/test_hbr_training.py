@@ -113,6 +113,10 @@ def test_every_preset_value_can_be_overridden():
     assert config.top == PRESETS["gpu"].top
     with pytest.raises(ConfigError, match="unknown setting 'middle.colour'"):
         with_overrides(config, {"middle.colour": 1})
+    genes = with_overrides(config, {"bottom_fitness": "genes"})
+    assert genes.bottom_task.fitness == "genes" and config.bottom_task.fitness == "commands"
+    with pytest.raises(ConfigError, match="bottom_fitness must be one of"):
+        with_overrides(config, {"bottom_fitness": "energy"})
     for name in ("cpu", "gpu", "paper"):
         schedule = PRESETS[name]
         assert (schedule.bottom.mutation_rate, schedule.middle.mutation_rate, schedule.top.mutation_rate) == (0.17, 0.11, 0.14)

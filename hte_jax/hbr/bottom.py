@@ -13,9 +13,10 @@ Descriptor (each normalised to [0, 1]; outside the range the individual is inval
   height: the signed extreme of the foot's height relative to the body, minus its initial value.
   duty: the vertical signal's duty gene quantised to 4 levels {0, 1/3, 2/3, 1} (floor(4 d), with
     d = 1 in the top level; the original maps d = 1 to 0).
-Fitness, "minimal activation": minus the time-averaged |commanded velocity| of the leg's three
-joints, divided by the servo's velocity limit (in [-1, 0]); the original's minus-sum-of-genes
-also penalised phases and duties.
+Fitness, "minimal activation" (`BottomTask.fitness`): "commands" (default) is minus the
+time-averaged |commanded velocity| of the leg's three joints, divided by the servo's velocity
+limit (in [-1, 0]); "genes" is the original's minus the sum of the six genes over 3 (in [-2, 0]),
+which also penalises phases and duties.
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
-from hte_jax.errors import require_int, require_number
+from hte_jax.errors import require_choice, require_int, require_number
 from hte_jax.qd.repertoire import Evaluation
 from hte_jax.sim.controller import NUM_PARAMS
 from hte_jax.sim.robot import NUM_LEGS, Robot
@@ -34,6 +35,7 @@ from hte_jax.sim.rollout import RolloutSpec, SimState, rollout
 GENES = 6  # (a, p, d) hip signal, (a, p, d) vertical signal
 DESCRIPTORS = 3  # swing, height, duty
 FOOT_REACH = 0.176  # horizontal hip-to-foot distance at the standing pose (m)
+BOTTOM_FITNESSES = ("commands", "genes")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -42,18 +44,21 @@ class BottomTask:
 
     steps: control steps (100 = 1 s). swing_range / height_range: the descriptor covers
     [-range, range] metres. duty_levels: quantisation of the duty descriptor.
+    fitness: "commands" (measured joint commands) or "genes" (the original's gene sum).
     """
 
     steps: int = 100
     swing_range: float = 0.2
     height_range: float = 0.06
     duty_levels: int = 4
+    fitness: str = "commands"
 
     def __post_init__(self):
         require_int("bottom steps", self.steps)
         require_number("bottom swing_range", self.swing_range, 0.0, open_low=True)
         require_number("bottom height_range", self.height_range, 0.0, open_low=True)
         require_int("bottom duty_levels", self.duty_levels, minimum=2)
+        require_choice("bottom fitness", self.fitness, BOTTOM_FITNESSES)
 
     @property
     def spec(self) -> RolloutSpec:
@@ -90,6 +95,11 @@ def activation_fitness(command_abs_sum: jax.Array, duration: float, max_velocity
     return -command_abs_sum.mean(axis=-1) / (duration * max_velocity)
 
 
+def gene_fitness(genes: jax.Array) -> jax.Array:
+    """(..., 6) primitives -> (...,) the original's fitness, minus the sum of the genes over 3."""
+    return -jnp.sum(jnp.abs(genes), axis=-1) / 3.0
+
+
 def leg_params(genes: jax.Array, leg: jax.Array) -> jax.Array:
     """(B, 6) primitives and (B,) leg indices -> (B, 36) controllers driving only that leg."""
     onehot = jax.nn.one_hot(leg, NUM_LEGS, dtype=genes.dtype)
@@ -120,7 +130,10 @@ def evaluate_bottom(robot: Robot, start: SimState, task: BottomTask, key: jax.Ar
     )
     leg_commands = result.command_abs_sum.reshape(batch, NUM_LEGS, 3)[rows, leg]
     duration = task.steps * robot.config.control_dt
-    fitness = activation_fitness(leg_commands, duration, robot.config.max_joint_velocity)
+    if task.fitness == "genes":
+        fitness = gene_fitness(genes)
+    else:
+        fitness = activation_fitness(leg_commands, duration, robot.config.max_joint_velocity)
     in_range = jnp.all((descriptors >= 0.0) & (descriptors <= 1.0), axis=-1)
     return Evaluation(
         fitnesses=fitness,

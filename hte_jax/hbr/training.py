@@ -22,12 +22,12 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
-from hte_jax.errors import ConfigError, convert_setting, require_int, require_number
+from hte_jax.errors import ConfigError, convert_setting, require_choice, require_int, require_number
 from hte_jax.hbr import bottom as bottom_layer
 from hte_jax.hbr import middle as middle_layer
 from hte_jax.hbr import top as top_layer
 from hte_jax.hbr.analysis import hbr_statistics
-from hte_jax.hbr.bottom import BottomTask, evaluate_bottom
+from hte_jax.hbr.bottom import BOTTOM_FITNESSES, BottomTask, evaluate_bottom
 from hte_jax.hbr.execution import HBR, STEPS_PER_SKILL
 from hte_jax.hbr.middle import MiddleTask, evaluate_middle
 from hte_jax.hbr.plots import plot_hbr
@@ -88,6 +88,7 @@ class HBRConfig:
     middle_samples: chained 1 s samples per middle evaluation (original 10).
     contact_threshold: fraction of a second a foot must be down for its contact bit.
     bottom_l / middle_l: archive distance thresholds. top_bins: grid cells per axis.
+    bottom_fitness: "commands" (measured joint commands) or "genes" (the original's gene sum).
     """
 
     bottom: LayerSchedule
@@ -99,6 +100,7 @@ class HBRConfig:
     bottom_l: float = 0.01
     middle_l: float = 0.05
     top_bins: int = 100
+    bottom_fitness: str = "commands"
 
     def __post_init__(self):
         require_int("seed", self.seed, minimum=0)
@@ -107,10 +109,11 @@ class HBRConfig:
         require_number("bottom_l", self.bottom_l, 0.0, open_low=True)
         require_number("middle_l", self.middle_l, 0.0, open_low=True)
         require_int("top_bins", self.top_bins)
+        require_choice("bottom_fitness", self.bottom_fitness, BOTTOM_FITNESSES)
 
     @property
     def bottom_task(self) -> BottomTask:
-        return BottomTask()
+        return BottomTask(fitness=self.bottom_fitness)
 
     @property
     def middle_task(self) -> MiddleTask:
