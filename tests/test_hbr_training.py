@@ -15,9 +15,9 @@ from hte_jax.hbr.execution import execute_skill, execute_step
 from hte_jax.hbr.geometry import compose_pose, planar_pose
 from hte_jax.hbr.middle import PRIMARY, evaluate_controllers
 from hte_jax.hbr.store import load_hbr
-from hte_jax.hbr.training import PRESETS, preset, train_hbr, with_overrides
+from hte_jax.hbr.training import PRESETS, normalised_config, preset, train_hbr, with_overrides
 from hte_jax.errors import ConfigError
-from hte_jax.qd.io import CheckpointError, read_checkpoint, save_checkpoint
+from hte_jax.qd.io import CheckpointError, prepare_run_dir, read_checkpoint, save_checkpoint
 from hte_jax.sim import load_robot, standing_state
 
 LAYERS = ("bottom", "middle", "top")
@@ -105,6 +105,17 @@ def test_cli_refuses_to_clobber_or_mix_configurations(tiny_run, capsys):
     assert "middle.init_size" in capsys.readouterr().err
     assert train_main(["--top-mutation-rate", "lots"]) == 2
     assert "top.mutation_rate" in capsys.readouterr().err
+
+
+def test_runs_started_before_a_new_setting_still_resume(tmp_path):
+    """A config.json written before `bottom_fitness` existed resumes under its default, and only under it."""
+    config = PRESETS["tiny"].to_dict()
+    old = {key: value for key, value in config.items() if key != "bottom_fitness"}
+    (tmp_path / "config.json").write_text(json.dumps(old))
+    assert prepare_run_dir(tmp_path, config, True, normalise=normalised_config) == tmp_path
+    genes = with_overrides(PRESETS["tiny"], {"bottom_fitness": "genes"}).to_dict()
+    with pytest.raises(ConfigError, match="differs in: bottom_fitness"):
+        prepare_run_dir(tmp_path, genes, True, normalise=normalised_config)
 
 
 def test_every_preset_value_can_be_overridden():

@@ -174,6 +174,11 @@ PRESETS: dict[str, HBRConfig] = {
 }
 
 
+def normalised_config(data: dict) -> dict:
+    """A stored configuration read through today's HBRConfig: settings added since take their defaults."""
+    return HBRConfig.from_dict(data).to_dict()
+
+
 def preset(name: str) -> HBRConfig:
     if name not in PRESETS:
         raise ConfigError(f"unknown preset {name!r}; choose one of {sorted(PRESETS)}")
@@ -252,7 +257,7 @@ def train_hbr(
 ) -> TrainingOutcome:
     """Train (or finish training) the three layers; see the module docstring for the outputs."""
     out = Path(out_dir)
-    io.prepare_run_dir(out, config.to_dict(), resume_run)
+    io.prepare_run_dir(out, config.to_dict(), resume_run, normalise=normalised_config)
     robot = load_robot()
     start = standing_state(robot)
     keys = dict(zip(LAYERS, jax.random.split(jax.random.PRNGKey(config.seed), len(LAYERS))))

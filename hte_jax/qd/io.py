@@ -13,6 +13,7 @@ import json
 import os
 import zipfile
 import zlib
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -139,9 +140,11 @@ def write_json(path: str | Path, data: dict) -> None:
     os.replace(tmp, path)
 
 
-def prepare_run_dir(out: str | Path, config: dict, resume_run: bool) -> Path:
+def prepare_run_dir(out: str | Path, config: dict, resume_run: bool, normalise: Callable[[dict], dict] | None = None) -> Path:
     """Start a run folder holding `config.json`, or check that the run already in it has `config`.
 
+    normalise: reads a stored config as today's code would (say, filling in the defaults of
+    settings added since the run started), before comparing.
     Raises ConfigError (naming the differing top-level keys) when the folder holds another run,
     or holds a run and `resume_run` is False.
     """
@@ -152,6 +155,8 @@ def prepare_run_dir(out: str | Path, config: dict, resume_run: bool) -> Path:
         if not resume_run:
             raise ConfigError(f"{out} already holds a run; pass --resume to continue it or choose another --out")
         stored = json.loads(config_path.read_text())
+        if normalise is not None:
+            stored = _jsonable(normalise(stored))
         changed = sorted(key for key in set(stored) | set(wanted) if stored.get(key) != wanted.get(key))
         if changed:
             raise ConfigError(f"{out} was started with a different configuration (differs in: {', '.join(changed)})")
