@@ -20,7 +20,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from hte_jax.errors import ConfigError, require_int, require_number
+from hte_jax.errors import require_choice, require_int, require_number
 
 KERNELS = ("squared_exponential", "matern52")
 
@@ -39,8 +39,7 @@ class Kernel:
     noise: float
 
     def __post_init__(self):
-        if self.kind not in KERNELS:
-            raise ConfigError(f"kernel kind must be one of {KERNELS}, got {self.kind!r}")
+        require_choice("kernel kind", self.kind, KERNELS)
         require_number("kernel length_scale", self.length_scale, 0.0, open_low=True)
         require_number("kernel variance", self.variance, 0.0, open_low=True)
         require_number("kernel noise", self.noise, 0.0)

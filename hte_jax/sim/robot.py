@@ -16,7 +16,7 @@ import mujoco
 from flax import struct
 from mujoco import mjx
 
-from hte_jax.errors import ConfigError, require_int, require_number
+from hte_jax.errors import ConfigError, require_choice, require_int, require_number
 
 NUM_LEGS = 6
 JOINTS_PER_LEG = 3
@@ -93,11 +93,9 @@ class RobotConfig:
         require_int("solver_iterations", self.solver_iterations)
         require_int("ls_iterations", self.ls_iterations)
         require_number("armature", self.armature, 0.0)
-        if self.wall_contact not in WALL_CONTACTS:
-            raise ConfigError(f"wall_contact must be one of {WALL_CONTACTS}, got {self.wall_contact!r}")
+        require_choice("wall_contact", self.wall_contact, WALL_CONTACTS)
         require_number("bumper_radius", self.bumper_radius, 0.0, open_low=True)
-        if self.damage_model not in DAMAGE_MODELS:
-            raise ConfigError(f"damage_model must be one of {DAMAGE_MODELS}, got {self.damage_model!r}")
+        require_choice("damage_model", self.damage_model, DAMAGE_MODELS)
         for wall in self.walls:
             if len(wall) != 4 or not (wall[0] < wall[2] and wall[1] < wall[3]):
                 raise ConfigError(f"wall {wall!r} must be (x1, y1, x2, y2) with x1 < x2 and y1 < y2")
