@@ -128,6 +128,11 @@ def test_every_preset_value_can_be_overridden():
     assert genes.bottom_task.fitness == "genes" and config.bottom_task.fitness == "commands"
     with pytest.raises(ConfigError, match="bottom_fitness must be one of"):
         with_overrides(config, {"bottom_fitness": "energy"})
+    density = with_overrides(config, {"middle.selection": "density", "middle.density_bins": "8"})
+    assert density.middle.map_elites_config(0.0).selection == "density"
+    assert density.middle.map_elites_config(0.0).density_bins == 8 and config.middle.selection == "uniform"
+    with pytest.raises(ConfigError, match="selection must be one of"):
+        with_overrides(config, {"top.selection": "best"})
     for name in ("cpu", "gpu", "paper"):
         schedule = PRESETS[name]
         assert (schedule.bottom.mutation_rate, schedule.middle.mutation_rate, schedule.top.mutation_rate) == (0.17, 0.11, 0.14)

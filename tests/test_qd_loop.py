@@ -28,7 +28,7 @@ from hte_jax.qd import (
 from hte_jax.qd import io as qd_io
 from hte_jax.qd.plots import grid_projection, plot_grid, plot_metrics, plot_scatter
 from hte_jax.qd.tasks import planar_arm, planar_arm_evaluate
-from hte_jax.qd.variation import polynomial_mutation, sbx_crossover, uniform_selection
+from hte_jax.qd.variation import density_selection, polynomial_mutation, sbx_crossover, uniform_selection
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -121,6 +121,47 @@ def test_uniform_selection_only_picks_elites_uniformly():
     assert np.all(np.abs(counts[[1, 4, 5, 9]] - 10_000) < 500)
 
 
+def test_density_selection_makes_every_occupied_coarse_cell_equally_likely():
+    """5 elites share one cell of a 4 x 4 grid, 1 elite is alone in another: each cell gets half."""
+    rep = Grid(bins=(8,), low=(0.0,), high=(1.0,)).empty(1)
+    descriptors = jnp.asarray([[0.1, 0.1]] * 5 + [[0.9, 0.95]] + [[0.0, 0.0]] * 2)
+    rep = rep.replace(descriptors=descriptors, filled=jnp.asarray([1, 1, 1, 1, 1, 1, 0, 0], bool))
+    picks = np.asarray(density_selection(jax.random.PRNGKey(0), rep, 40_000, (0.0, 0.0), (1.0, 1.0), 4, 2))
+    counts = np.bincount(picks, minlength=8)
+    assert counts[6:].sum() == 0  # empty slots never
+    assert abs(counts[5] - 20_000) < 600 and np.all(np.abs(counts[:5] - 4000) < 400)
+    # Coarse cells over the first dimension only: all six elites share [0, 0.25) or [0.75, 1).
+    picks = np.asarray(density_selection(jax.random.PRNGKey(1), rep, 40_000, (0.0, 0.0), (1.0, 1.0), 4, 1))
+    assert abs(np.bincount(picks, minlength=8)[5] - 20_000) < 600
+    # Filled slots need not be a prefix (grids): only slots 3 and 7 are elites, in two cells.
+    sparse = rep.replace(filled=jnp.zeros(8, bool).at[jnp.asarray([3, 7])].set(True))
+    sparse = sparse.replace(descriptors=sparse.descriptors.at[7].set(jnp.asarray([0.9, 0.9])))
+    picks = np.asarray(density_selection(jax.random.PRNGKey(3), sparse, 20_000, (0.0, 0.0), (1.0, 1.0), 4, 2))
+    counts = np.bincount(picks, minlength=8)
+    assert counts.sum() == counts[3] + counts[7] and abs(counts[7] - 10_000) < 500
+    # One coarse cell: the same as uniform selection.
+    picks = np.asarray(density_selection(jax.random.PRNGKey(2), rep, 60_000, (0.0, 0.0), (1.0, 1.0), 1, 2))
+    assert np.all(np.abs(np.bincount(picks, minlength=8)[:6] - 10_000) < 500)
+
+
+def test_density_selection_in_the_loop():
+    """Same seed, same budget: density selection runs, differs from uniform, and is recorded in
+    checkpoints (uniform runs keep the metadata they had before selection was a setting)."""
+    grid = Grid(bins=(16, 16), low=(0.0, 0.0), high=(1.0, 1.0))
+    algos = {
+        kind: MapElites(
+            grid, planar_arm_evaluate, 6,
+            MapElitesConfig(batch_size=32, init_size=32, selection=kind, density_bins=4, density_dims=2),
+        )
+        for kind in ("uniform", "density")
+    }
+    states = {kind: algo.run_block(algo.init(jax.random.PRNGKey(5)), 5)[0] for kind, algo in algos.items()}
+    assert int(states["density"].repertoire.filled.sum()) > 32
+    assert not np.array_equal(np.asarray(states["uniform"].repertoire.filled), np.asarray(states["density"].repertoire.filled))
+    assert "selection" not in algos["uniform"].checkpoint_metadata()["config"]
+    assert algos["density"].checkpoint_metadata()["config"]["selection"] == "density"
+
+
 def test_sbx_crossover_stays_between_bounds_and_keeps_equal_parents():
     a = jax.random.uniform(jax.random.PRNGKey(0), (200, 5))
     child = np.asarray(sbx_crossover(jax.random.PRNGKey(1), a, a, 10.0))
@@ -137,6 +178,10 @@ def test_config_errors():
         MapElitesConfig(mutation_rate=1.5)
     with pytest.raises(ConfigError, match="batch_size"):
         MapElitesConfig(batch_size=0)
+    with pytest.raises(ConfigError, match="selection must be one of"):
+        MapElitesConfig(selection="tournament")
+    with pytest.raises(ConfigError, match="density_bins\\^density_dims"):
+        MapElitesConfig(selection="density", density_bins=100, density_dims=9)
 
 
 # --- checkpoints -------------------------------------------------------------------------

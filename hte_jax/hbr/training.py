@@ -50,6 +50,8 @@ class LayerSchedule:
     batch_size); generations: after the initial batch; block_size: generations per jitted block
     (one progress tick, CSV row and checkpoint each); mutation_rate / eta_m: polynomial mutation;
     capacity: archive slots (bottom and middle; the top layer is a fixed grid).
+    selection: "uniform" (the original's) or "density" (every occupied cell of a coarse grid over
+    the first `density_dims` descriptors equally likely; see `MapElitesConfig`).
     """
 
     batch_size: int
@@ -59,6 +61,9 @@ class LayerSchedule:
     mutation_rate: float
     eta_m: float = 10.0
     capacity: int = 1
+    selection: str = "uniform"
+    density_bins: int = 16
+    density_dims: int = 3
 
     def __post_init__(self):
         require_int("generations", self.generations, minimum=0)
@@ -77,6 +82,9 @@ class LayerSchedule:
             mutation_rate=self.mutation_rate,
             eta_m=self.eta_m,
             qd_offset=qd_offset,
+            selection=self.selection,
+            density_bins=self.density_bins,
+            density_dims=self.density_dims,
         )
 
 

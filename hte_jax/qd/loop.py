@@ -20,11 +20,14 @@ import jax.numpy as jnp
 from flax import struct
 from tqdm.auto import tqdm
 
-from hte_jax.errors import ConfigError, require_int, require_number
+from hte_jax.errors import ConfigError, require_choice, require_int, require_number
 from hte_jax.qd import io
 from hte_jax.qd.metrics import MetricsLog, RepertoireMetrics, repertoire_metrics
 from hte_jax.qd.repertoire import Evaluation, Repertoire
-from hte_jax.qd.variation import polynomial_mutation, sbx_crossover, uniform_selection
+from hte_jax.qd.variation import density_selection, polynomial_mutation, sbx_crossover, uniform_selection
+
+SELECTIONS = ("uniform", "density")
+MAX_DENSITY_CELLS = 1 << 22
 
 # evaluate(key, genotypes (B, G)) -> Evaluation with B rows; must be jittable.
 EvaluateFn = Callable[[jax.Array, jax.Array], Evaluation]
@@ -38,6 +41,9 @@ class MapElitesConfig:
     (a multiple of batch_size). mutation_rate / eta_m: per-gene polynomial mutation.
     crossover_rate / eta_c: fraction of offspring made by SBX crossover before mutation.
     qd_offset: fitness lower bound used by the QD score.
+    selection: "uniform" (every elite equally likely, the original's) or "density" (every occupied
+      cell of a coarse `density_bins`^`density_dims` grid over the first `density_dims`
+      descriptor dimensions equally likely; `variation.density_selection`).
     """
 
     batch_size: int = 200
@@ -47,6 +53,9 @@ class MapElitesConfig:
     crossover_rate: float = 0.0
     eta_c: float = 10.0
     qd_offset: float = 0.0
+    selection: str = "uniform"
+    density_bins: int = 16
+    density_dims: int = 3
 
     def __post_init__(self):
         require_int("batch_size", self.batch_size)
@@ -58,6 +67,13 @@ class MapElitesConfig:
         require_number("eta_m", self.eta_m, 0.0)
         require_number("eta_c", self.eta_c, 0.0)
         require_number("qd_offset", self.qd_offset)
+        require_choice("selection", self.selection, SELECTIONS)
+        require_int("density_bins", self.density_bins)
+        require_int("density_dims", self.density_dims)
+        if self.density_bins**self.density_dims > MAX_DENSITY_CELLS:
+            raise ConfigError(
+                f"density_bins^density_dims = {self.density_bins}^{self.density_dims} exceeds {MAX_DENSITY_CELLS} cells"
+            )
 
 
 @struct.dataclass
@@ -116,13 +132,22 @@ class MapElites:
         repertoire, _ = jax.lax.scan(insert, state.repertoire, jax.random.split(key_init, batches))
         return state.replace(repertoire=repertoire)
 
+    def select(self, repertoire: Repertoire, key: jax.Array) -> jax.Array:
+        """(batch_size,) parent slots, by the configured selection."""
+        cfg = self.config
+        if cfg.selection == "density":
+            dims = min(cfg.density_dims, len(self.container.low))
+            low, high = self.container.low, self.container.high
+            return density_selection(key, repertoire, cfg.batch_size, low, high, cfg.density_bins, dims)
+        return uniform_selection(key, repertoire, cfg.batch_size)
+
     def ask(self, repertoire: Repertoire, key: jax.Array) -> jax.Array:
-        """(batch_size, G) offspring of uniformly selected elites."""
+        """(batch_size, G) offspring of selected elites."""
         cfg = self.config
         key_sel, key_mate, key_cross, key_use, key_mut = jax.random.split(key, 5)
-        parents = repertoire.genotypes[uniform_selection(key_sel, repertoire, cfg.batch_size)]
+        parents = repertoire.genotypes[self.select(repertoire, key_sel)]
         if cfg.crossover_rate > 0:
-            mates = repertoire.genotypes[uniform_selection(key_mate, repertoire, cfg.batch_size)]
+            mates = repertoire.genotypes[self.select(repertoire, key_mate)]
             children = sbx_crossover(key_cross, parents, mates, cfg.eta_c)
             use = jax.random.uniform(key_use, (cfg.batch_size, 1)) < cfg.crossover_rate
             parents = jnp.where(use, children, parents)
@@ -152,9 +177,13 @@ class MapElites:
 
     def checkpoint_metadata(self) -> dict:
         """What must match for a checkpoint to be resumed by this algorithm."""
+        config = dataclasses.asdict(self.config)
+        if self.config.selection == "uniform":  # as before selection was a setting: old checkpoints resume
+            for key in ("selection", "density_bins", "density_dims"):
+                config.pop(key)
         return {
             "container": {"kind": type(self.container).__name__, **dataclasses.asdict(self.container)},
-            "config": dataclasses.asdict(self.config),
+            "config": config,
             "genotype_dim": self.genotype_dim,
         }
 

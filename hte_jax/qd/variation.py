@@ -20,6 +20,30 @@ def uniform_selection(key: jax.Array, repertoire: Repertoire, num: int) -> jax.A
     return jnp.searchsorted(cumulative, rank + 1, side="left").astype(jnp.int32)
 
 
+def density_selection(
+    key: jax.Array, repertoire: Repertoire, num: int, low: jax.Array, high: jax.Array, bins: int, dims: int
+) -> jax.Array:
+    """(num,) filled slots drawn with replacement, each with probability proportional to 1 / (the
+    number of elites in its coarse cell): every occupied cell of a `bins`^`dims` grid over the
+    first `dims` descriptor dimensions (bounds low, high) is equally likely, then an elite within it.
+
+    Elites in sparsely filled regions, such as the frontier of what the layer can do, are picked
+    more often than under uniform selection, where densely filled regions (many elites with the
+    same primary descriptor and other secondary ones) take most offspring.
+    """
+    low, high = jnp.asarray(low, jnp.float32)[:dims], jnp.asarray(high, jnp.float32)[:dims]
+    scaled = (repertoire.descriptors[:, :dims] - low) / (high - low)
+    index = jnp.clip(jnp.floor(scaled * bins), 0, bins - 1).astype(jnp.int32)
+    cell = jnp.ravel_multi_index(tuple(index.T), (bins,) * dims, mode="clip")
+    counts = jax.ops.segment_sum(repertoire.filled.astype(jnp.float32), cell, num_segments=bins**dims)
+    weight = jnp.where(repertoire.filled, 1.0 / jnp.maximum(counts[cell], 1.0), 0.0)
+    cumulative = jnp.cumsum(weight)
+    draw = jax.random.uniform(key, (num,)) * cumulative[-1]
+    slot = jnp.searchsorted(cumulative, draw, side="right")  # the first slot whose weight covers the draw
+    last = repertoire.filled.shape[0] - 1 - jnp.argmax(repertoire.filled[::-1])  # float round-up guard
+    return jnp.minimum(slot, last).astype(jnp.int32)
+
+
 def polynomial_mutation(key: jax.Array, genotypes: jax.Array, rate: float, eta: float) -> jax.Array:
     """sferes' polynomial mutation, gene-wise with probability `rate`, then clipped to [0, 1].
 
