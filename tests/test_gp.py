@@ -64,10 +64,17 @@ def test_masked_buffer_equals_the_unpadded_gp_and_forgets_the_oldest():
     padded = posterior(RTE_KERNEL, _fill(64, x, y), q, prior_q)
     for got, want in zip(padded, exact):
         np.testing.assert_allclose(np.asarray(got), np.asarray(want), atol=1e-6)
-    ring = posterior(RTE_KERNEL, _fill(4, x, y), q, prior_q)  # keeps the last 4 observations
-    last = posterior(RTE_KERNEL, _fill(4, x[2:], y[2:]), q, prior_q)
-    for got, want in zip(ring, last):  # same points in another slot order: float32 rounding differs
-        np.testing.assert_allclose(np.asarray(got), np.asarray(want), rtol=2e-6, atol=1e-6)
+    # A full ring buffer keeps the last 4 observations, in another slot order than a fresh GP of
+    # them: float32 rounding then differs by a few 1e-6 and by how much depends on the CPU's
+    # kernels, so both are held to the float64 posterior of those 4, within the float32 tolerance
+    # of test_posterior_matches_float64_numpy.
+    ring_mean, ring_var = posterior(RTE_KERNEL, _fill(4, x, y), q, prior_q)
+    want_mean, want_var = _numpy_posterior(RTE_KERNEL, x[2:], y[2:], np.zeros((4, 4)), q, np.zeros((11, 4)))
+    np.testing.assert_allclose(np.asarray(ring_mean), want_mean, atol=2e-4, rtol=1e-4)
+    np.testing.assert_allclose(np.asarray(ring_var), np.maximum(want_var, 0), atol=2e-6)
+    assert np.abs(np.asarray(exact[0]) - want_mean).max() > 100 * 2e-4  # forgetting the oldest two matters
+    last_mean, _ = posterior(RTE_KERNEL, _fill(4, x[2:], y[2:]), q, prior_q)
+    np.testing.assert_allclose(np.asarray(ring_mean), np.asarray(last_mean), atol=2e-4, rtol=1e-4)
     empty_mean, empty_var = posterior(RTE_KERNEL, empty_gp(8, 2, 4), q, prior_q + 3.0)
     np.testing.assert_allclose(np.asarray(empty_mean), 3.0)
     np.testing.assert_allclose(np.asarray(empty_var), RTE_KERNEL.variance)
