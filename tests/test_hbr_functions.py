@@ -1,6 +1,7 @@
 """Pure pieces of the HBR: geometry, angle error, descriptors, lookups, genotype decoding (acceptance 1)."""
 
 import math
+from types import SimpleNamespace
 
 import jax.numpy as jnp
 import numpy as np
@@ -17,6 +18,7 @@ from hte_jax.hbr.bottom import (
     lift_height,
     swing_distance,
 )
+from hte_jax.hbr.analysis import speed_by_turn
 from hte_jax.hbr.execution import HBR, select_middle, skill_waypoints
 from hte_jax.hbr.geometry import angle_error, compose_pose, heading, medoid_index, planar_pose, relative_pose, wrap_angle
 from hte_jax.hbr.middle import MiddleTask, leg_controllers, nearest_index, pattern_bits, pattern_code
@@ -187,3 +189,19 @@ def test_skill_waypoints_compose_middle_steps():
     expected2 = expected1 + [0.1 * math.cos(0.5), 0.1 * math.sin(0.5), 0.0]
     expected3 = expected2 + [-0.1 * math.sin(0.5), 0.1 * math.cos(0.5), 0.0]
     np.testing.assert_allclose(waypoints, [expected1, expected2, expected3], atol=1e-6)
+
+
+def test_speed_by_turn_hand_case():
+    """Motions (x, y, yaw) -> speed per |yaw| bin; empty slots ignored, the last bin includes max_turn."""
+    task = MiddleTask()
+    steps = jnp.asarray([[0.3, 0.4, 0.05], [0.1, 0.0, -0.95], [0.0, 0.2, 1.0], [0.1, 0.1, 0.02], [0.45, 0.0, 0.0]])
+    middle = empty_repertoire(5, 18, 9).replace(
+        descriptors=jnp.concatenate([task.normalise(steps), jnp.ones((5, 6))], axis=1),
+        filled=jnp.asarray([True, True, True, True, False]),
+    )
+    rows = speed_by_turn(SimpleNamespace(middle=middle, middle_task=task), bins=10)
+    assert [row["motions"] for row in rows] == [2, 0, 0, 0, 0, 0, 0, 0, 0, 2]
+    assert rows[0]["speed_max"] == pytest.approx(0.5, abs=1e-6)
+    assert rows[9]["speed_max"] == pytest.approx(0.2, abs=1e-6)
+    assert rows[9]["speed_p95"] == pytest.approx(np.percentile([0.1, 0.2], 95), abs=1e-6)
+    assert np.isnan(rows[1]["speed_max"]) and rows[9]["turn"] == [0.9, 1.0]

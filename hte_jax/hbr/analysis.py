@@ -14,6 +14,28 @@ def pattern_histogram(hbr: HBR) -> np.ndarray:
     return np.bincount(patterns[patterns >= 0], minlength=NUM_PATTERNS)
 
 
+def speed_by_turn(hbr: HBR, bins: int = 10) -> list[dict]:
+    """The middle layer's speed-versus-turn frontier: per |yaw| bin of width max_turn / bins,
+    the number of motions and the 95th percentile and maximum of their speed (m/s)."""
+    filled = np.asarray(hbr.middle.filled)
+    steps = np.asarray(hbr.middle_task.denormalise(hbr.middle.descriptors[:, :3]))[filled]
+    speed, turn = np.hypot(steps[:, 0], steps[:, 1]), np.abs(steps[:, 2])
+    edges = np.linspace(0.0, hbr.middle_task.max_turn, bins + 1)
+    rows = []
+    for low, high in zip(edges[:-1], edges[1:]):
+        inside = (turn >= low) & ((turn < high) | (high == edges[-1]))
+        chosen = speed[inside]
+        rows.append(
+            {
+                "turn": [round(float(low), 6), round(float(high), 6)],
+                "motions": int(inside.sum()),
+                "speed_p95": float(np.percentile(chosen, 95)) if chosen.size else float("nan"),
+                "speed_max": float(chosen.max()) if chosen.size else float("nan"),
+            }
+        )
+    return rows
+
+
 def hbr_statistics(hbr: HBR) -> dict:
     """Elite counts and fitness of each layer, distinct contact patterns, top-layer usage of the middle."""
     stats = {}
@@ -30,6 +52,7 @@ def hbr_statistics(hbr: HBR) -> dict:
     histogram = pattern_histogram(hbr)
     stats["middle"]["contact_patterns"] = int((histogram > 0).sum())
     stats["middle"]["pattern_histogram"] = histogram.tolist()
+    stats["middle"]["speed_by_turn"] = speed_by_turn(hbr)
     top_filled = np.asarray(hbr.top.filled)
     used = np.asarray(hbr.top.extras["middle_indices"])[top_filled]
     stats["top"]["coverage"] = float(top_filled.mean())
