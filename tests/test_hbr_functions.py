@@ -204,4 +204,4 @@ def test_speed_by_turn_hand_case():
     assert rows[0]["speed_max"] == pytest.approx(0.5, abs=1e-6)
     assert rows[9]["speed_max"] == pytest.approx(0.2, abs=1e-6)
     assert rows[9]["speed_p95"] == pytest.approx(np.percentile([0.1, 0.2], 95), abs=1e-6)
-    assert np.isnan(rows[1]["speed_max"]) and rows[9]["turn"] == [0.9, 1.0]
+    assert rows[1]["speed_max"] is None and rows[1]["speed_p95"] is None and rows[9]["turn"] == [0.9, 1.0]

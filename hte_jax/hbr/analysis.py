@@ -16,7 +16,7 @@ def pattern_histogram(hbr: HBR) -> np.ndarray:
 
 def speed_by_turn(hbr: HBR, bins: int = 10) -> list[dict]:
     """The middle layer's speed-versus-turn frontier: per |yaw| bin of width max_turn / bins,
-    the number of motions and the 95th percentile and maximum of their speed (m/s)."""
+    the number of motions and the 95th percentile and maximum of their speed (m/s; None if empty)."""
     filled = np.asarray(hbr.middle.filled)
     steps = np.asarray(hbr.middle_task.denormalise(hbr.middle.descriptors[:, :3]))[filled]
     speed, turn = np.hypot(steps[:, 0], steps[:, 1]), np.abs(steps[:, 2])
@@ -29,8 +29,8 @@ def speed_by_turn(hbr: HBR, bins: int = 10) -> list[dict]:
             {
                 "turn": [round(float(low), 6), round(float(high), 6)],
                 "motions": int(inside.sum()),
-                "speed_p95": float(np.percentile(chosen, 95)) if chosen.size else float("nan"),
-                "speed_max": float(chosen.max()) if chosen.size else float("nan"),
+                "speed_p95": float(np.percentile(chosen, 95)) if chosen.size else None,
+                "speed_max": float(chosen.max()) if chosen.size else None,
             }
         )
     return rows
