@@ -43,7 +43,8 @@ class MapElitesConfig:
     qd_offset: fitness lower bound used by the QD score.
     selection: "uniform" (every elite equally likely, the original's) or "density" (every occupied
       cell of a coarse `density_bins`^`density_dims` grid over the first `density_dims`
-      descriptor dimensions equally likely; `variation.density_selection`).
+      descriptor dimensions, all of them if the container has fewer, equally likely;
+      `variation.density_selection`).
     """
 
     batch_size: int = 200
@@ -136,7 +137,7 @@ class MapElites:
         """(batch_size,) parent slots, by the configured selection."""
         cfg = self.config
         if cfg.selection == "density":
-            dims = min(cfg.density_dims, len(self.container.low))
+            dims = min(cfg.density_dims, self.container.descriptor_dim)
             low, high = self.container.low, self.container.high
             return density_selection(key, repertoire, cfg.batch_size, low, high, cfg.density_bins, dims)
         return uniform_selection(key, repertoire, cfg.batch_size)
