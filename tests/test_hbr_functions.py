@@ -18,10 +18,11 @@ from hte_jax.hbr.bottom import (
     lift_height,
     swing_distance,
 )
-from hte_jax.hbr.analysis import speed_by_turn
+from hte_jax.hbr.analysis import fitness_by_distance, speed_by_turn
 from hte_jax.hbr.execution import HBR, select_middle, skill_waypoints
 from hte_jax.hbr.geometry import angle_error, compose_pose, heading, medoid_index, planar_pose, relative_pose, wrap_angle
 from hte_jax.hbr.middle import MiddleTask, leg_controllers, nearest_index, pattern_bits, pattern_code
+from hte_jax.hbr.top import TopTask
 from hte_jax.qd.repertoire import Repertoire, empty_repertoire
 
 
@@ -205,3 +206,19 @@ def test_speed_by_turn_hand_case():
     assert rows[9]["speed_max"] == pytest.approx(0.2, abs=1e-6)
     assert rows[9]["speed_p95"] == pytest.approx(np.percentile([0.1, 0.2], 95), abs=1e-6)
     assert rows[1]["speed_max"] is None and rows[1]["speed_p95"] is None and rows[9]["turn"] == [0.9, 1.0]
+
+
+def test_fitness_by_distance_hand_case():
+    """Skills ending at known distances fall in the right bands; empty slots and empty bands are skipped."""
+    task = TopTask()
+    ends = jnp.asarray([[0.1, 0.0], [0.0, -0.2], [0.4, 0.3], [-0.7, 0.0], [1.0, 1.0], [0.05, 0.05]])
+    top = empty_repertoire(6, 9, 2).replace(
+        descriptors=task.normalise(ends),
+        fitnesses=jnp.asarray([-0.1, -0.3, -0.5, -1.0, -2.0, -9.0]),
+        filled=jnp.asarray([True, True, True, True, True, False]),
+    )
+    rows = fitness_by_distance(SimpleNamespace(top=top), task, edges=(0.0, 0.3, 0.6, 0.9, 1.2, float("inf")))
+    assert [row["cells"] for row in rows] == [2, 1, 1, 0, 1]
+    assert rows[0]["mean_fitness"] == pytest.approx(-0.2) and rows[1]["mean_fitness"] == pytest.approx(-0.5)
+    assert rows[3]["mean_fitness"] is None and rows[4]["distance"] == [1.2, None]
+    assert rows[4]["mean_fitness"] == pytest.approx(-2.0)

@@ -63,6 +63,8 @@ def test_tiny_preset_writes_a_complete_hbr(tiny_run):
     middle = np.asarray(hbr.middle.descriptors)[np.asarray(hbr.middle.filled)]
     assert set(np.unique(middle[:, PRIMARY:])) <= {0.0, 1.0}
     assert summary["statistics"]["middle"]["contact_patterns"] == len({tuple(b) for b in middle[:, PRIMARY:]})
+    bands = summary["statistics"]["top"]["fitness_by_distance"]
+    assert sum(band["cells"] for band in bands) == summary["statistics"]["top"]["elites"]
     assert meta["training"]["config"] == config.to_dict()
     assert top_task == config.top_task and hbr.middle_task == config.middle_task
     for name in ("top_xy_fitness", "middle_xy_yaw_patterns", "bottom_projections", "bottom_metrics", "middle_metrics",
@@ -133,6 +135,10 @@ def test_every_preset_value_can_be_overridden():
     assert density.middle.map_elites_config(0.0).density_bins == 8 and config.middle.selection == "uniform"
     with pytest.raises(ConfigError, match="selection must be one of"):
         with_overrides(config, {"top.selection": "best"})
+    frontier = with_overrides(config, {"middle.selection": "frontier", "middle.frontier_fraction": "0.25"})
+    assert frontier.middle.map_elites_config(0.0).frontier_fraction == 0.25
+    with pytest.raises(ConfigError, match="middle.frontier_fraction"):
+        with_overrides(config, {"middle.frontier_fraction": "2"})
     for name in ("cpu", "gpu", "paper"):
         schedule = PRESETS[name]
         assert (schedule.bottom.mutation_rate, schedule.middle.mutation_rate, schedule.top.mutation_rate) == (0.17, 0.11, 0.14)

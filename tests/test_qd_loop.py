@@ -1,6 +1,7 @@
 """The MAP-Elites loop, metrics, variation, checkpoints and plots (acceptance 2-4)."""
 
 import csv
+import dataclasses
 import subprocess
 import sys
 from pathlib import Path
@@ -28,7 +29,14 @@ from hte_jax.qd import (
 from hte_jax.qd import io as qd_io
 from hte_jax.qd.plots import grid_projection, plot_grid, plot_metrics, plot_scatter
 from hte_jax.qd.tasks import planar_arm, planar_arm_evaluate
-from hte_jax.qd.variation import density_selection, polynomial_mutation, sbx_crossover, uniform_selection
+from hte_jax.qd.variation import (
+    density_selection,
+    frontier_elites,
+    frontier_selection,
+    polynomial_mutation,
+    sbx_crossover,
+    uniform_selection,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -162,6 +170,84 @@ def test_density_selection_in_the_loop():
     assert algos["density"].checkpoint_metadata()["config"]["selection"] == "density"
 
 
+def _frontier_by_hand(descriptors, filled, low, high, angle_bins, level_bins):
+    """NumPy reference: per (sector, level) cell, the lowest slot among the farthest elites."""
+    scaled = (descriptors - np.asarray(low)) / (np.asarray(high) - np.asarray(low))
+    marked = np.zeros(len(filled), bool)
+    best = {}
+    for slot in np.flatnonzero(filled):
+        dx, dy = scaled[slot, 0] - 0.5, scaled[slot, 1] - 0.5
+        sector = min(int(np.floor((np.arctan2(dy, dx) + np.pi) / (2 * np.pi) * angle_bins)), angle_bins - 1)
+        level = min(int(np.floor(scaled[slot, 2] * level_bins)), level_bins - 1) if scaled.shape[1] > 2 else 0
+        radius = np.hypot(dx, dy)
+        if (sector, level) not in best or radius > best[(sector, level)][0]:
+            best[(sector, level)] = (radius, slot)
+    for _, slot in best.values():
+        marked[slot] = True
+    return marked
+
+
+def test_frontier_elites_are_the_farthest_per_sector_and_level_against_numpy():
+    rng = np.random.default_rng(0)
+    capacity = 400
+    descriptors = rng.uniform(-1.0, 2.0, (capacity, 4)).astype(np.float32)
+    descriptors[:, 3] = rng.integers(0, 2, capacity)  # a binary secondary dimension plays no part
+    filled = rng.uniform(size=capacity) < 0.6
+    filled[:5] = False  # empty slots (not a prefix, as in grids) are never marked
+    rep = Archive(capacity, (-1.0,) * 4, (2.0,) * 4, 0.05).empty(3)
+    rep = rep.replace(descriptors=jnp.asarray(descriptors), filled=jnp.asarray(filled))
+    for angle_bins, level_bins in ((8, 4), (16, 1), (3, 7)):
+        got = np.asarray(frontier_elites(rep, (-1.0,) * 4, (2.0,) * 4, angle_bins, level_bins))
+        want = _frontier_by_hand(descriptors.astype(np.float64), filled, (-1.0,) * 4, (2.0,) * 4, angle_bins, level_bins)
+        np.testing.assert_array_equal(got, want)
+    # Two elites at the same distance in one cell: the lower slot wins.
+    tie = rep.replace(
+        descriptors=jnp.asarray([[2.0, 0.5, 0.0, 0.0], [2.0, 0.5, 0.0, 0.0]] + [[0.5, 0.5, 0.0, 0.0]] * (capacity - 2)),
+        filled=jnp.zeros(capacity, bool).at[jnp.asarray([0, 1])].set(True),
+    )
+    assert np.flatnonzero(np.asarray(frontier_elites(tie, (-1.0,) * 4, (2.0,) * 4, 4, 1))).tolist() == [0]
+
+
+def test_frontier_selection_spends_its_share_on_the_edge():
+    """Elites on two rings around the centre of a 2-D space: 8 sectors, the outer ring is the edge."""
+    angles = np.arange(8) * 2 * np.pi / 8 + np.pi / 8  # one elite per sector on each ring
+    inner = 0.5 + 0.1 * np.stack([np.cos(angles), np.sin(angles)], -1)
+    outer = 0.5 + 0.4 * np.stack([np.cos(angles), np.sin(angles)], -1)
+    descriptors = np.concatenate([inner, np.full((4, 2), 0.5), outer]).astype(np.float32)  # slots 8-11 empty
+    filled = np.ones(20, bool)
+    filled[8:12] = False
+    rep = Grid(bins=(20,), low=(0.0,), high=(1.0,)).empty(1)
+    rep = rep.replace(descriptors=jnp.asarray(descriptors), filled=jnp.asarray(filled))
+    picks = np.asarray(frontier_selection(jax.random.PRNGKey(0), rep, 40_000, (0.0, 0.0), (1.0, 1.0), 8, 1, 0.75))
+    counts = np.bincount(picks, minlength=20)
+    assert counts[8:12].sum() == 0
+    # 30 000 draws among the 8 outer elites, 10 000 among all 16: 3750 + 625 each for the outer ones.
+    assert np.all(np.abs(counts[12:] - 4375) < 300) and np.all(np.abs(counts[:8] - 625) < 120)
+    assert np.all(np.isin(picks[:30_000], np.arange(12, 20)))
+    # fraction 0: uniform over the elites.
+    picks = np.asarray(frontier_selection(jax.random.PRNGKey(1), rep, 32_000, (0.0, 0.0), (1.0, 1.0), 8, 1, 0.0))
+    assert np.all(np.abs(np.bincount(picks, minlength=20)[filled] - 2000) < 200)
+
+
+def test_frontier_selection_in_the_loop_and_its_checkpoint_metadata():
+    grid = Grid(bins=(16, 16), low=(0.0, 0.0), high=(1.0, 1.0))
+    config = MapElitesConfig(batch_size=32, init_size=32, selection="frontier", frontier_angle_bins=8, frontier_level_bins=1)
+    algo = MapElites(grid, planar_arm_evaluate, 6, config)
+    uniform = MapElites(grid, planar_arm_evaluate, 6, dataclasses.replace(config, selection="uniform"))
+    state = algo.run_block(algo.init(jax.random.PRNGKey(5)), 5)[0]
+    other = uniform.run_block(uniform.init(jax.random.PRNGKey(5)), 5)[0]
+    assert int(state.repertoire.filled.sum()) > 32
+    assert not np.array_equal(np.asarray(state.repertoire.filled), np.asarray(other.repertoire.filled))
+    meta = algo.checkpoint_metadata()["config"]
+    assert meta["selection"] == "frontier" and meta["frontier_angle_bins"] == 8 and "density_bins" not in meta
+    density = dataclasses.replace(config, selection="density")
+    meta = MapElites(grid, planar_arm_evaluate, 6, density).checkpoint_metadata()["config"]
+    assert meta["selection"] == "density" and "frontier_fraction" not in meta  # older density checkpoints resume
+    one_dim = MapElites(Grid(bins=(8,), low=(0.0,), high=(1.0,)), planar_arm_evaluate, 6, config)
+    with pytest.raises(ConfigError, match="frontier.*2 descriptor dimensions"):
+        one_dim.select(one_dim.empty_state(jax.random.PRNGKey(0)).repertoire, jax.random.PRNGKey(0))
+
+
 def test_sbx_crossover_stays_between_bounds_and_keeps_equal_parents():
     a = jax.random.uniform(jax.random.PRNGKey(0), (200, 5))
     child = np.asarray(sbx_crossover(jax.random.PRNGKey(1), a, a, 10.0))
@@ -182,6 +268,10 @@ def test_config_errors():
         MapElitesConfig(selection="tournament")
     with pytest.raises(ConfigError, match="density_bins\\^density_dims"):
         MapElitesConfig(selection="density", density_bins=100, density_dims=9)
+    with pytest.raises(ConfigError, match="frontier_fraction"):
+        MapElitesConfig(selection="frontier", frontier_fraction=1.5)
+    with pytest.raises(ConfigError, match="frontier_angle_bins"):
+        MapElitesConfig(frontier_angle_bins=0)
 
 
 # --- checkpoints -------------------------------------------------------------------------

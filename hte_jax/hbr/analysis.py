@@ -6,6 +6,9 @@ import numpy as np
 
 from hte_jax.hbr.execution import HBR
 from hte_jax.hbr.middle import NUM_PATTERNS
+from hte_jax.hbr.top import TopTask
+
+DISTANCE_BANDS = (0.0, 0.3, 0.6, 0.9, 1.2, float("inf"))
 
 
 def pattern_histogram(hbr: HBR) -> np.ndarray:
@@ -36,7 +39,31 @@ def speed_by_turn(hbr: HBR, bins: int = 10) -> list[dict]:
     return rows
 
 
-def hbr_statistics(hbr: HBR) -> dict:
+def fitness_by_distance(hbr: HBR, top_task: TopTask = TopTask(), edges=DISTANCE_BANDS) -> list[dict]:
+    """The top layer's cells and mean fitness per band of distance (m) from the start: how the
+    quality of the skills changes from the interior of the map to its frontier (None if empty).
+
+    The mean over all filled cells mixes quality with coverage (a layer that reaches farther adds
+    frontier cells whose ideal arcs are hard); these bands separate the two.
+    """
+    filled = np.asarray(hbr.top.filled)
+    xy = np.asarray(top_task.denormalise(hbr.top.descriptors))[filled]
+    fitness = np.asarray(hbr.top.fitnesses)[filled]
+    distance = np.hypot(xy[:, 0], xy[:, 1])
+    rows = []
+    for low, high in zip(edges[:-1], edges[1:]):
+        inside = (distance >= low) & (distance < high)
+        rows.append(
+            {
+                "distance": [float(low), float(high) if np.isfinite(high) else None],
+                "cells": int(inside.sum()),
+                "mean_fitness": float(fitness[inside].mean()) if inside.any() else None,
+            }
+        )
+    return rows
+
+
+def hbr_statistics(hbr: HBR, top_task: TopTask = TopTask()) -> dict:
     """Elite counts and fitness of each layer, distinct contact patterns, top-layer usage of the middle."""
     stats = {}
     for name in ("bottom", "middle", "top"):
@@ -57,4 +84,5 @@ def hbr_statistics(hbr: HBR) -> dict:
     used = np.asarray(hbr.top.extras["middle_indices"])[top_filled]
     stats["top"]["coverage"] = float(top_filled.mean())
     stats["top"]["distinct_middle_elites_used"] = int(np.unique(used).size)
+    stats["top"]["fitness_by_distance"] = fitness_by_distance(hbr, top_task)
     return stats

@@ -50,8 +50,10 @@ class LayerSchedule:
     batch_size); generations: after the initial batch; block_size: generations per jitted block
     (one progress tick, CSV row and checkpoint each); mutation_rate / eta_m: polynomial mutation;
     capacity: archive slots (bottom and middle; the top layer is a fixed grid).
-    selection: "uniform" (the original's) or "density" (every occupied cell of a coarse grid over
-    the first `density_dims` descriptors equally likely; see `MapElitesConfig`).
+    selection: "uniform" (the original's), "density" (every occupied cell of a coarse grid over
+    the first `density_dims` descriptors equally likely) or "frontier" (a share
+    `frontier_fraction` of every batch from the outermost elites in x-y per direction sector and
+    level of the third descriptor); see `MapElitesConfig`.
     """
 
     batch_size: int
@@ -64,6 +66,9 @@ class LayerSchedule:
     selection: str = "uniform"
     density_bins: int = 16
     density_dims: int = 3
+    frontier_fraction: float = 0.5
+    frontier_angle_bins: int = 16
+    frontier_level_bins: int = 16
 
     def __post_init__(self):
         require_int("generations", self.generations, minimum=0)
@@ -85,6 +90,9 @@ class LayerSchedule:
             selection=self.selection,
             density_bins=self.density_bins,
             density_dims=self.density_dims,
+            frontier_fraction=self.frontier_fraction,
+            frontier_angle_bins=self.frontier_angle_bins,
+            frontier_level_bins=self.frontier_level_bins,
         )
 
 
@@ -303,7 +311,7 @@ def train_hbr(
             "wall_time_s": time.perf_counter() - began,
         }
     hbr = HBR.build(lower["bottom"], lower["middle"], lower["top"], config.middle_task)
-    summary["statistics"] = hbr_statistics(hbr)
+    summary["statistics"] = hbr_statistics(hbr, config.top_task)
     summary["devices"] = [str(d) for d in jax.devices()]
     save_hbr(out / "hbr.npz", hbr, config.top_task, {"training": summary})
     io.write_json(out / "summary.json", summary)

@@ -1,6 +1,6 @@
 """MAP-Elites as pure `init` / `ask` / `tell` functions plus a thin host-side runner.
 
-A generation is one jitted call: select parents uniformly among elites, vary them, evaluate
+A generation is one jitted call: select parents among the elites, vary them, evaluate
 the whole batch in one call of the user's `evaluate`, insert the batch. Blocks of generations
 run under `lax.scan`; between blocks the host shows progress, logs metrics to CSV and writes
 a checkpoint, so a killed run resumes where it stopped and gives bit-identical results.
@@ -24,9 +24,22 @@ from hte_jax.errors import ConfigError, require_choice, require_int, require_num
 from hte_jax.qd import io
 from hte_jax.qd.metrics import MetricsLog, RepertoireMetrics, repertoire_metrics
 from hte_jax.qd.repertoire import Evaluation, Repertoire
-from hte_jax.qd.variation import density_selection, polynomial_mutation, sbx_crossover, uniform_selection
+from hte_jax.qd.variation import (
+    density_selection,
+    frontier_selection,
+    polynomial_mutation,
+    sbx_crossover,
+    uniform_selection,
+)
 
-SELECTIONS = ("uniform", "density")
+SELECTIONS = ("uniform", "density", "frontier")
+# The config fields each selection reads (recorded in checkpoints; uniform records none, as
+# before selection was a setting, so old checkpoints resume).
+SELECTION_FIELDS = {
+    "uniform": (),
+    "density": ("selection", "density_bins", "density_dims"),
+    "frontier": ("selection", "frontier_fraction", "frontier_angle_bins", "frontier_level_bins"),
+}
 MAX_DENSITY_CELLS = 1 << 22
 
 # evaluate(key, genotypes (B, G)) -> Evaluation with B rows; must be jittable.
@@ -44,7 +57,10 @@ class MapElitesConfig:
     selection: "uniform" (every elite equally likely, the original's) or "density" (every occupied
       cell of a coarse `density_bins`^`density_dims` grid over the first `density_dims`
       descriptor dimensions, all of them if the container has fewer, equally likely;
-      `variation.density_selection`).
+      `variation.density_selection`) or "frontier" (a share `frontier_fraction` of every batch
+      drawn among the elites farthest from the centre of the plane of the first two descriptors,
+      one per cell of `frontier_angle_bins` sectors x `frontier_level_bins` levels of the third
+      descriptor, the rest uniformly; `variation.frontier_selection`).
     """
 
     batch_size: int = 200
@@ -57,6 +73,9 @@ class MapElitesConfig:
     selection: str = "uniform"
     density_bins: int = 16
     density_dims: int = 3
+    frontier_fraction: float = 0.5
+    frontier_angle_bins: int = 16
+    frontier_level_bins: int = 16
 
     def __post_init__(self):
         require_int("batch_size", self.batch_size)
@@ -75,6 +94,9 @@ class MapElitesConfig:
             raise ConfigError(
                 f"density_bins^density_dims = {self.density_bins}^{self.density_dims} exceeds {MAX_DENSITY_CELLS} cells"
             )
+        require_number("frontier_fraction", self.frontier_fraction, 0.0, 1.0)
+        require_int("frontier_angle_bins", self.frontier_angle_bins)
+        require_int("frontier_level_bins", self.frontier_level_bins)
 
 
 @struct.dataclass
@@ -140,6 +162,13 @@ class MapElites:
             dims = min(cfg.density_dims, self.container.descriptor_dim)
             low, high = self.container.low, self.container.high
             return density_selection(key, repertoire, cfg.batch_size, low, high, cfg.density_bins, dims)
+        if cfg.selection == "frontier":
+            if self.container.descriptor_dim < 2:
+                raise ConfigError("selection='frontier' needs a container with at least 2 descriptor dimensions")
+            return frontier_selection(
+                key, repertoire, cfg.batch_size, self.container.low, self.container.high,
+                cfg.frontier_angle_bins, cfg.frontier_level_bins, cfg.frontier_fraction,
+            )
         return uniform_selection(key, repertoire, cfg.batch_size)
 
     def ask(self, repertoire: Repertoire, key: jax.Array) -> jax.Array:
@@ -179,9 +208,10 @@ class MapElites:
     def checkpoint_metadata(self) -> dict:
         """What must match for a checkpoint to be resumed by this algorithm."""
         config = dataclasses.asdict(self.config)
-        if self.config.selection == "uniform":  # as before selection was a setting: old checkpoints resume
-            for key in ("selection", "density_bins", "density_dims"):
-                config.pop(key)
+        for selection, fields in SELECTION_FIELDS.items():
+            for key in fields:
+                if key not in SELECTION_FIELDS[self.config.selection]:
+                    config.pop(key, None)
         return {
             "container": {"kind": type(self.container).__name__, **dataclasses.asdict(self.container)},
             "config": config,

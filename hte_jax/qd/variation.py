@@ -15,7 +15,12 @@ def uniform_selection(key: jax.Array, repertoire: Repertoire, num: int) -> jax.A
     (O(capacity + num log capacity), whatever the capacity). An empty repertoire has nothing
     to select: the caller must fill it first (MAP-Elites' initial random batch does).
     """
-    cumulative = jnp.cumsum(repertoire.filled, dtype=jnp.int32)
+    return _uniform_among(key, repertoire.filled, num)
+
+
+def _uniform_among(key: jax.Array, mask: jax.Array, num: int) -> jax.Array:
+    """(num,) slots drawn uniformly, with replacement, among those where `mask` (C,) is True."""
+    cumulative = jnp.cumsum(mask, dtype=jnp.int32)
     rank = jax.random.randint(key, (num,), 0, jnp.maximum(cumulative[-1], 1))
     return jnp.searchsorted(cumulative, rank + 1, side="left").astype(jnp.int32)
 
@@ -42,6 +47,63 @@ def density_selection(
     slot = jnp.searchsorted(cumulative, draw, side="right")  # the first slot whose weight covers the draw
     last = repertoire.filled.shape[0] - 1 - jnp.argmax(repertoire.filled[::-1])  # float round-up guard
     return jnp.minimum(slot, last).astype(jnp.int32)
+
+
+def frontier_elites(
+    repertoire: Repertoire, low: jax.Array, high: jax.Array, angle_bins: int, level_bins: int
+) -> jax.Array:
+    """(C,) bool: the elites farthest from the centre of the plane of descriptor dimensions 0 and 1.
+
+    Descriptors are scaled to [0, 1] by (low, high); the plane around (0.5, 0.5) is cut into
+    `angle_bins` equal sectors and, when the container has a third dimension, its range into
+    `level_bins` equal levels. In every occupied (sector, level) cell the elite at the largest
+    distance from the centre is marked (ties to the lowest slot). For displacement descriptors
+    (x, y[, yaw]) these are the fastest motions in every direction [at every turn rate]: the
+    outer shell of what the repertoire can do.
+    """
+    low, high = jnp.asarray(low, jnp.float32), jnp.asarray(high, jnp.float32)
+    scaled = (repertoire.descriptors - low) / (high - low)
+    offset = scaled[:, :2] - 0.5
+    radius = jnp.linalg.norm(offset, axis=-1)
+    angle = jnp.arctan2(offset[:, 1], offset[:, 0])  # (-pi, pi]
+    sector = jnp.clip(jnp.floor((angle + jnp.pi) / (2 * jnp.pi) * angle_bins), 0, angle_bins - 1).astype(jnp.int32)
+    if scaled.shape[1] > 2 and level_bins > 1:
+        level = jnp.clip(jnp.floor(scaled[:, 2] * level_bins), 0, level_bins - 1).astype(jnp.int32)
+    else:
+        level = jnp.zeros_like(sector)
+    cell = sector * level_bins + level
+    cells = angle_bins * level_bins
+    radius = jnp.where(repertoire.filled, radius, -1.0)
+    farthest = jax.ops.segment_max(radius, cell, num_segments=cells)
+    slots = jnp.arange(radius.shape[0], dtype=jnp.int32)
+    is_max = repertoire.filled & (radius == farthest[cell])
+    first = jax.ops.segment_min(jnp.where(is_max, slots, radius.shape[0]), cell, num_segments=cells)
+    return repertoire.filled & (slots == first[cell])
+
+
+def frontier_selection(
+    key: jax.Array,
+    repertoire: Repertoire,
+    num: int,
+    low: jax.Array,
+    high: jax.Array,
+    angle_bins: int,
+    level_bins: int,
+    fraction: float,
+) -> jax.Array:
+    """(num,) filled slots: the first round(fraction * num) drawn uniformly among the
+    `frontier_elites`, the rest uniformly among all elites (with replacement).
+
+    Uniform selection gives the few elites on the edge of the descriptor space a tiny share of
+    the offspring, so the edge moves outwards by novelty alone, slowly. Here a fixed share of
+    every batch is spent on exactly those elites; the rest keeps filling the interior.
+    """
+    edge = min(num, int(round(fraction * num)))
+    key_edge, key_rest = jax.random.split(key)
+    mask = frontier_elites(repertoire, low, high, angle_bins, level_bins)
+    return jnp.concatenate(
+        [_uniform_among(key_edge, mask, edge), _uniform_among(key_rest, repertoire.filled, num - edge)]
+    )
 
 
 def polynomial_mutation(key: jax.Array, genotypes: jax.Array, rate: float, eta: float) -> jax.Array:
