@@ -63,12 +63,12 @@ class LayerSchedule:
     mutation_rate: float
     eta_m: float = 10.0
     capacity: int = 1
-    selection: str = "uniform"
-    density_bins: int = 16
-    density_dims: int = 3
-    frontier_fraction: float = 0.5
-    frontier_angle_bins: int = 16
-    frontier_level_bins: int = 16
+    selection: str = MapElitesConfig.selection
+    density_bins: int = MapElitesConfig.density_bins
+    density_dims: int = MapElitesConfig.density_dims
+    frontier_fraction: float = MapElitesConfig.frontier_fraction
+    frontier_angle_bins: int = MapElitesConfig.frontier_angle_bins
+    frontier_level_bins: int = MapElitesConfig.frontier_level_bins
 
     def __post_init__(self):
         require_int("generations", self.generations, minimum=0)
@@ -81,19 +81,9 @@ class LayerSchedule:
         return self.init_size + self.generations * self.batch_size
 
     def map_elites_config(self, qd_offset: float) -> MapElitesConfig:
-        return MapElitesConfig(
-            batch_size=self.batch_size,
-            init_size=self.init_size,
-            mutation_rate=self.mutation_rate,
-            eta_m=self.eta_m,
-            qd_offset=qd_offset,
-            selection=self.selection,
-            density_bins=self.density_bins,
-            density_dims=self.density_dims,
-            frontier_fraction=self.frontier_fraction,
-            frontier_angle_bins=self.frontier_angle_bins,
-            frontier_level_bins=self.frontier_level_bins,
-        )
+        """The MapElitesConfig of this layer: every setting the two share by name, and `qd_offset`."""
+        shared = {f.name: getattr(self, f.name) for f in dataclasses.fields(MapElitesConfig) if hasattr(self, f.name)}
+        return MapElitesConfig(**shared, qd_offset=qd_offset)
 
 
 @dataclasses.dataclass(frozen=True)

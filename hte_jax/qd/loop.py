@@ -207,11 +207,8 @@ class MapElites:
 
     def checkpoint_metadata(self) -> dict:
         """What must match for a checkpoint to be resumed by this algorithm."""
-        config = dataclasses.asdict(self.config)
-        for selection, fields in SELECTION_FIELDS.items():
-            for key in fields:
-                if key not in SELECTION_FIELDS[self.config.selection]:
-                    config.pop(key, None)
+        unread = {key for fields in SELECTION_FIELDS.values() for key in fields} - set(SELECTION_FIELDS[self.config.selection])
+        config = {key: value for key, value in dataclasses.asdict(self.config).items() if key not in unread}
         return {
             "container": {"kind": type(self.container).__name__, **dataclasses.asdict(self.container)},
             "config": config,
