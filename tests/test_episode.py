@@ -97,7 +97,16 @@ def test_outputs_and_plots(run):
     (["--protocol", "nature"], "unknown protocol"),
     (["--damage-model", "floppy"], "damage_model"),
     (["--repertoire-dir", "/nowhere"], "not a folder"),
+    (["--variant", "hte-miss", "--optimism", "-1"], "optimism"),
+    (["--variant", "hte-drift", "--repertoire", str(shipped_flat_path("2d"))], "needs an HBR"),
 ])
 def test_cli_errors_name_the_problem(args, message, tmp_path, capsys):
     assert maze_main([*args, "--out", str(tmp_path), "--no-progress"]) == 2
     assert message in capsys.readouterr().err
+
+
+def test_our_variants_have_their_own_modes():
+    from hte_jax.online.episode import variant_mode
+    from hte_jax.online.execute import DRIFT_MODE, MISS_MODE
+
+    assert variant_mode("hte-miss", True) == MISS_MODE and variant_mode("hte-drift", True) == DRIFT_MODE

@@ -12,9 +12,13 @@ from hte_jax.hbr.geometry import planar_pose, relative_pose
 from hte_jax.hbr.store import load_hbr
 from hte_jax.online.arena import maze_robot, place, start_states
 from hte_jax.online.execute import (
+    ALL_PATTERNS,
     ANY_PATTERN_MODE,
     CANDIDATE_PATTERNS,
+    DRIFT_MODE,
+    MISS_MODE,
     ORACLE_MODE,
+    SECONDARY_OUTPUTS,
     RANDOM_MODE,
     UCB_MODE,
     candidate_elites,
@@ -22,7 +26,9 @@ from hte_jax.online.execute import (
     execute_flat,
     flat_skills,
 )
+from hte_jax.hbr.execution import select_middle
 from hte_jax.online.gp import add_observation, empty_gp
+from hte_jax.online.secondary import step_targets
 from hte_jax.online.maze import PAPER_MAZE, Maze
 from hte_jax.sim.robot import load_robot
 from hte_jax.sim.rollout import standing_state
@@ -101,20 +107,87 @@ def test_each_variant_picks_patterns_its_own_way(hbr_setup):
     lowest = int(CANDIDATE_PATTERNS[np.argmax(np.asarray(found[0]))])
     modes = jnp.asarray([ANY_PATTERN_MODE, UCB_MODE, ORACLE_MODE, RANDOM_MODE])
     oracle = jnp.asarray([63, 63, 47, 63])
-    gp = _batched(empty_gp(6, 9, 3), 4)
+    gp = _batched(empty_gp(6, 9, SECONDARY_OUTPUTS), 4)
     t = jnp.ones(4, jnp.int32)
-    chosen = np.asarray(choose_patterns(hbr, modes, oracle, gp, desired, t, jax.random.split(jax.random.PRNGKey(1), 4)))
+    chosen, query = choose_patterns(hbr, modes, oracle, gp, desired, t, jax.random.split(jax.random.PRNGKey(1), 4))
+    chosen = np.asarray(chosen)
+    np.testing.assert_array_equal(query, desired)  # only DRIFT_MODE aims off the wanted step
     assert chosen[0] == -1 and chosen[2] == 47
     assert chosen[1] == lowest  # an empty GP scores every candidate alike: the first wins, as in the original
     assert chosen[3] in set(CANDIDATE_PATTERNS[np.asarray(found[3])].tolist())
     # Random choices cover many patterns; UCB moves away from a pattern observed to fail badly.
-    draws = {int(choose_patterns(hbr, modes[3:], oracle[3:], _batched(empty_gp(6, 9, 3), 1),
-                                 desired[3:], t[3:], jax.random.split(jax.random.PRNGKey(k), 1))[0]) for k in range(20)}
+    draws = {int(choose_patterns(hbr, modes[3:], oracle[3:], _batched(empty_gp(6, 9, SECONDARY_OUTPUTS), 1),
+                                 desired[3:], t[3:], jax.random.split(jax.random.PRNGKey(k), 1))[0][0]) for k in range(20)}
     assert len(draws) > 5
     bad = hbr.middle.descriptors[index[1, np.argmax(np.asarray(found[1]))]]
     failed = jax.tree.map(lambda x: x[1], gp)
     for _ in range(3):
-        failed = add_observation(failed, bad, jnp.asarray([3.0, 3.0, 3.0]))
+        failed = add_observation(failed, bad, jnp.asarray([3.0, 3.0, 3.0, 0.5, 0.5, 0.5, 0.5, 0.5, 0.5]))
     again = choose_patterns(hbr, modes[1:2], oracle[1:2], _batched(failed, 1), desired[1:2], t[1:2] + 3,
-                            jax.random.split(jax.random.PRNGKey(2), 1))
+                            jax.random.split(jax.random.PRNGKey(2), 1))[0]
     assert int(again[0]) != lowest
+
+
+def test_miss_choice_is_rte_until_a_pattern_is_seen_to_miss(hbr_setup):
+    """An empty GP predicts no deviation: the predicted-miss choice is the nearest elite of any
+    pattern (RTE's). Once that elite's pattern is observed to deviate, a pattern whose nearest elite
+    is predicted to land closer wins, exactly as a NumPy evaluation of the rule says."""
+    hbr, _ = hbr_setup
+    desired = jnp.asarray([[0.7, 0.5, 0.5], [0.45, 0.62, 0.7]])
+    modes = jnp.full(2, MISS_MODE, jnp.int32)
+    oracle = jnp.full(2, 63, jnp.int32)
+    t = jnp.ones(2, jnp.int32)
+    keys = jax.random.split(jax.random.PRNGKey(0), 2)
+    empty = _batched(empty_gp(12, 9, SECONDARY_OUTPUTS), 2)
+    nearest, _ = select_middle(hbr, desired, jnp.full(2, -1, jnp.int32))
+    chosen = np.asarray(choose_patterns(hbr, modes, oracle, empty, desired, t, keys)[0])
+    np.testing.assert_array_equal(chosen, np.asarray(hbr.middle_patterns)[np.asarray(nearest)])
+
+    # The nearest elite of robot 0 deviated by 0.3 in x and y, three times.
+    first = hbr.middle.descriptors[nearest[0]]
+    observed = first[:3] + jnp.asarray([0.3, -0.3, 0.0])
+    gp = jax.tree.map(lambda x: x[0], empty)
+    for _ in range(3):
+        gp = add_observation(gp, first, step_targets(first[:3], observed))
+    learnt = _batched(gp, 1)
+    again = int(choose_patterns(hbr, modes[:1], oracle[:1], learnt, desired[:1], t[:1], keys[:1])[0][0])
+    assert again != int(chosen[0])
+    # NumPy reference of the rule over every pattern's nearest elite
+    index, found = candidate_elites(hbr, desired[:1], ALL_PATTERNS)
+    inputs = hbr.middle.descriptors[index[0]]
+    from hte_jax.online.gp import HTE_KERNEL, posterior
+
+    mean, _ = posterior(HTE_KERNEL, gp, inputs)
+    miss = np.linalg.norm(np.abs(np.asarray(inputs[:, :3]) - np.asarray(desired[0]))
+                          + np.maximum(np.asarray(mean[:, 3:6]), 0.0), axis=-1)
+    miss[~np.asarray(found[0])] = np.inf
+    assert again == int(ALL_PATTERNS[np.argmin(miss)])
+
+
+def test_drift_choice_aims_against_a_learnt_drift(hbr_setup):
+    """With no observations DRIFT_MODE is RTE's choice; after RTE's elite was seen to drift by
+    +0.15 in x three times, it looks its elite up 0.15 short (or picks one predicted to land nearer),
+    and its predicted landing is nearer the wanted step than RTE's."""
+    hbr, _ = hbr_setup
+    desired = jnp.asarray([[0.7, 0.5, 0.5]])
+    modes = jnp.full(1, DRIFT_MODE, jnp.int32)
+    args = (jnp.full(1, 63, jnp.int32),)
+    t, keys = jnp.ones(1, jnp.int32), jax.random.split(jax.random.PRNGKey(0), 1)
+    empty = _batched(empty_gp(12, 9, SECONDARY_OUTPUTS), 1)
+    nearest, _ = select_middle(hbr, desired, jnp.full(1, -1, jnp.int32))
+    pattern, query = choose_patterns(hbr, modes, *args, empty, desired, t, keys)
+    assert int(pattern[0]) == int(hbr.middle_patterns[nearest[0]])
+    np.testing.assert_allclose(query, desired)
+    first = hbr.middle.descriptors[nearest[0]]
+    gp = jax.tree.map(lambda x: x[0], empty)
+    for _ in range(3):
+        gp = add_observation(gp, first, step_targets(first[:3], first[:3] + jnp.asarray([0.15, 0.0, 0.0])))
+    pattern, query = choose_patterns(hbr, modes, *args, _batched(gp, 1), desired, t, keys)
+    index, _ = select_middle(hbr, query, pattern)
+    from hte_jax.online.gp import HTE_KERNEL, posterior
+
+    chosen = hbr.middle.descriptors[index[0]]
+    mean, _ = posterior(HTE_KERNEL, gp, jnp.stack([first, chosen]))
+    landing = np.asarray(jnp.stack([first, chosen])[:, :3] + mean[:, 6:9])
+    rte_miss, drift_miss = np.linalg.norm(landing - np.asarray(desired), axis=-1)
+    assert drift_miss < rte_miss

@@ -4,7 +4,16 @@ import jax.numpy as jnp
 import numpy as np
 
 from hte_jax.online.gp import HTE_KERNEL, add_observation, empty_gp, posterior
-from hte_jax.online.secondary import acquisition, allowed_patterns, oracle_pattern, relative_error, ucb_beta
+from hte_jax.online.secondary import (
+    acquisition,
+    allowed_patterns,
+    oracle_pattern,
+    predicted_landing_miss,
+    predicted_miss,
+    relative_error,
+    step_targets,
+    ucb_beta,
+)
 from hte_jax.sim.damage import paper_damage_masks
 
 # the 28 patterns the original excludes (facts 7.3)
@@ -47,3 +56,22 @@ def test_ucb_prefers_patterns_that_worked_and_explores_the_unknown():
     scores = np.asarray(acquisition(mean, var, 0.0))
     assert scores[list(patterns).index(42)] > scores[list(patterns).index(63)]
     assert np.asarray(var)[list(patterns).index(42)] < np.asarray(var).max()
+
+
+def test_step_targets_and_predicted_miss_hand_values():
+    expected = jnp.asarray([0.9, 0.5, 0.25])
+    observed = jnp.asarray([0.7, 0.6, 0.25])
+    np.testing.assert_allclose(step_targets(expected, observed),
+                               [0.2 / 0.801, 0.1 / 0.001, 0.0, 0.2, 0.1, 0.0, -0.2, 0.1, 0.0], rtol=1e-5, atol=1e-7)
+    landing = predicted_landing_miss(jnp.asarray([0.7, 0.5, 0.5]), jnp.asarray([[0.8, 0.5, 0.5], [0.6, 0.6, 0.5]]),
+                                     jnp.asarray([[-0.1, 0.0, 0.0], [0.0, 0.0, 0.1]]))
+    np.testing.assert_allclose(landing, [0.0, np.sqrt(0.03)], atol=1e-6)
+    desired = jnp.asarray([0.7, 0.5, 0.5])
+    candidates = jnp.asarray([[0.7, 0.5, 0.5], [0.8, 0.5, 0.4]])
+    deviation = jnp.asarray([[0.3, 0.4, 0.0], [0.0, 0.0, 0.0]])
+    std = jnp.asarray([0.1, 0.2])
+    # greedy: candidate 0 is predicted 0.5 off, candidate 1 sqrt(0.02) off
+    np.testing.assert_allclose(predicted_miss(desired, candidates, deviation, std, 0.0), [0.5, np.sqrt(0.02)], rtol=1e-6)
+    # optimism takes 2 std off each predicted deviation, never below 0
+    np.testing.assert_allclose(predicted_miss(desired, candidates, deviation, std, 2.0),
+                               [np.hypot(0.1, 0.2), np.sqrt(0.02)], rtol=1e-6)

@@ -122,12 +122,16 @@ def _step_spec(steps: int, limits: ValidityLimits) -> RolloutSpec:
 
 def execute_step(
     robot: Robot, hbr: HBR, state: SimState, damage: jax.Array, target: jax.Array, pattern: jax.Array,
-    limits: ValidityLimits = ValidityLimits(),
+    limits: ValidityLimits = ValidityLimits(), query: jax.Array | None = None,
 ) -> StepResult:
-    """Walk one second towards the world pose `target` (B, 3) with contact `pattern` (B,) (-1: any)."""
+    """Walk one second towards the world pose `target` (B, 3) with contact `pattern` (B,) (-1: any).
+
+    query: (B, 3) normalised primary step to look the elite up with instead of the step to `target`
+    (an adaptation rule that aims off the target to cancel a predicted drift).
+    """
     task = hbr.middle_task
     here = state_pose(state)
-    desired = task.normalise(relative_pose(here, target))
+    desired = task.normalise(relative_pose(here, target)) if query is None else query
     index, found = select_middle(hbr, desired, pattern)
     result = rollout(robot, hbr.middle_params[index], damage, state, _step_spec(task.steps, limits))
     poses = planar_pose(result.base_pos, result.base_quat)

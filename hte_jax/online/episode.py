@@ -35,10 +35,13 @@ from hte_jax.online.actions import OUTCOME_DIM, displacement_of, observe, predic
 from hte_jax.online.aprol import MapBelief, closeness, initial_belief, select_entry, update_belief
 from hte_jax.online.execute import (
     ANY_PATTERN_MODE,
+    DRIFT_MODE,
     ERROR_DIM,
+    MISS_MODE,
     ORACLE_MODE,
     RANDOM_MODE,
     SECONDARY_DIM,
+    SECONDARY_OUTPUTS,
     SECONDS_PER_ACTION,
     UCB_MODE,
     Skills,
@@ -53,7 +56,8 @@ from hte_jax.sim.robot import Robot
 from hte_jax.sim.rollout import SimState
 
 # variant -> how each 1 s step picks its contact pattern (flat repertoires: only "rte")
-VARIANT_MODES = {"rte": ANY_PATTERN_MODE, "hte": UCB_MODE, "perfect-hte": ORACLE_MODE, "random-hte": RANDOM_MODE}
+VARIANT_MODES = {"rte": ANY_PATTERN_MODE, "hte": UCB_MODE, "perfect-hte": ORACLE_MODE, "random-hte": RANDOM_MODE,
+                 "hte-miss": MISS_MODE, "hte-drift": DRIFT_MODE}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -105,7 +109,8 @@ class Episodes:
     sim: SimState (B, ...) the robots. damage: (B, 6) bool. mode: (B,) int32 secondary mode.
     oracle: (B,) int32 the true damage's pattern. rte: GPData (B, K, L, D, 4), the action model of
     each of the K repertoires. belief: MapBelief (B, K), APROL's belief about them.
-    secondary: GPData (B, 3 L, 9, 3), HTE's error model. key: (B, 2) PRNG keys.
+    secondary: GPData (B, 3 L, 9, 9), HTE's error model (relative errors, absolute and signed deviations).
+    optimism: (B,) float32 confidence weight of the predicted-miss choice. key: (B, 2) PRNG keys.
     taken: (B,) int32 actions so far. reached: (B,) bool at the goal. broken: (B,) bool the
     simulation went invalid; reason: (B,) int32 its `InvalidReason` bits (0 if not broken). trajectory: (B, 4 L + 1, 3) world pose (x, y, yaw) every second,
     the last pose repeated after the end. history: History.
@@ -118,6 +123,7 @@ class Episodes:
     rte: GPData
     belief: MapBelief
     secondary: GPData
+    optimism: jax.Array
     key: jax.Array
     taken: jax.Array
     reached: jax.Array
@@ -144,9 +150,11 @@ def variant_mode(variant: str, hierarchical: bool) -> int:
 
 
 def start_episodes(
-    config: AdaptationConfig, skills: Skills, start: SimState, damages: np.ndarray, modes: np.ndarray, key: jax.Array
+    config: AdaptationConfig, skills: Skills, start: SimState, damages: np.ndarray, modes: np.ndarray, key: jax.Array,
+    optimism: np.ndarray | None = None,
 ) -> Episodes:
-    """B fresh episodes: robots `start` (B, ...) with `damages` (B, 6), secondary `modes` (B,).
+    """B fresh episodes: robots `start` (B, ...) with `damages` (B, 6), secondary `modes` (B,) and
+    `optimism` (B,) (default 0).
 
     With K > 1 repertoires each episode starts planning with a uniformly drawn one.
     """
@@ -181,7 +189,8 @@ def start_episodes(
         oracle=jnp.asarray([oracle_pattern(d) for d in damages], jnp.int32),
         rte=stacked(empty_gp(length, skills.actions.inputs.shape[-1], OUTCOME_DIM), batch, maps),
         belief=jax.vmap(lambda k: initial_belief(maps, k))(first_map),
-        secondary=stacked(empty_gp(STEPS_PER_SKILL * length, SECONDARY_DIM, ERROR_DIM), batch),
+        secondary=stacked(empty_gp(STEPS_PER_SKILL * length, SECONDARY_DIM, SECONDARY_OUTPUTS), batch),
+        optimism=jnp.zeros(batch, jnp.float32) if optimism is None else jnp.asarray(optimism, jnp.float32),
         key=jax.random.split(key, batch),
         taken=jnp.zeros(batch, jnp.int32),
         reached=jnp.zeros(batch, bool),
@@ -253,7 +262,7 @@ def act_step(maze: Maze, config: AdaptationConfig, robot: Robot, skills: Skills,
     maps = skills.map_actions
     if skills.hierarchical:
         outcome = execute_hbr(robot, skills, index, episodes.sim, episodes.damage, episodes.secondary,
-                              episodes.mode, episodes.oracle, episodes.taken, keys[:, 2])
+                              episodes.mode, episodes.oracle, episodes.taken, keys[:, 2], episodes.optimism)
     else:
         outcome = execute_flat(robot, skills.map_genotypes[chosen_map, index], episodes.sim, episodes.damage,
                                episodes.secondary)

@@ -20,7 +20,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from hte_jax.errors import ConfigError, require_int
+from hte_jax.errors import ConfigError, require_int, require_number
 from hte_jax.errors import with_overrides as with_overrides  # the configuration's override rule, re-exported
 from hte_jax.flat.store import load_flat, shipped_flat_path
 from hte_jax.hbr.store import load_hbr
@@ -33,7 +33,7 @@ from hte_jax.qd.io import CheckpointError, read_checkpoint
 from hte_jax.sim.damage import PAPER_DAMAGES, parse_damage
 from hte_jax.sim.robot import RobotConfig
 
-HBR_VARIANTS = ("hte", "perfect-hte", "random-hte", "rte")
+HBR_VARIANTS = ("hte", "perfect-hte", "random-hte", "rte", "hte-miss", "hte-drift")
 FLAT_VARIANTS = {"2d-rte": "2d", "8d-rte": "8d", "aprol": "aprol"}  # variant -> shipped flat file
 SEED_FILES = {"hbr": "hbr.npz", "2d": "flat2d.npz", "8d": "flat8d.npz", "aprol": "aprol.npz"}  # in a seed folder
 VARIANTS = HBR_VARIANTS + tuple(FLAT_VARIANTS)
@@ -52,7 +52,9 @@ class EvalConfig:
     (files `SEED_FILES`) used instead of the shipped repertoires. damage_model: "raised" (a
     damaged leg blocked in the air, the paper's words) or "locked" (in the standing pose, the
     original code's). max_actions: the failure cap. iterations, roots, candidates,
-    exploration, widening, gamma, depth: MCTS settings (see PlannerConfig). seed: PRNG seed.
+    exploration, widening, gamma, depth: MCTS settings (see PlannerConfig). optimism: how many
+    standard deviations "hte-miss" takes off each elite's predicted deviation (0: greedy). seed:
+    PRNG seed.
     """
 
     variants: str = "hte"
@@ -69,11 +71,13 @@ class EvalConfig:
     widening: float = 0.5
     gamma: float = 0.9
     depth: int = 20
+    optimism: float = 0.0
     seed: int = 0
 
     def __post_init__(self):
         require_int("replicates", self.replicates)
         require_int("seed", self.seed, 0)
+        require_number("optimism", self.optimism, 0.0)
         for name in self.variant_list:
             if name not in VARIANTS:
                 raise ConfigError(f"unknown variant {name!r}; choose from {', '.join(VARIANTS)}")
@@ -231,7 +235,8 @@ def run_batch(config: EvalConfig, path: str | None, variants: list[str], maze: M
     if key is None:
         key = jax.random.PRNGKey(config.seed)
         key = key if seed == 0 else jax.random.fold_in(key, seed)
-    episodes = start_episodes(adaptation, skills, start, damages, modes, key)
+    optimism = np.full(len(labels), config.optimism, np.float32)
+    episodes = start_episodes(adaptation, skills, start, damages, modes, key, optimism)
     robot = maze_robot(maze, config.robot)
     episodes, timings = run_episodes(maze, adaptation, robot, skills, episodes, progress=progress,
                                      description="/".join(variants))

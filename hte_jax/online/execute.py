@@ -9,20 +9,30 @@ the contact pattern of the middle elite is chosen by the episode's secondary mod
   exactly as in training;
 - `UCB_MODE` (HTE): GP-UCB over the 36 allowed patterns, on the secondary GP's predicted errors;
 - `ORACLE_MODE` (Perfect HTE): the pattern of the true damage (the intact legs down);
-- `RANDOM_MODE` (Random HTE): a uniform pattern among the allowed ones the repertoire holds.
+- `RANDOM_MODE` (Random HTE): a uniform pattern among the allowed ones the repertoire holds;
+- `MISS_MODE` (HTE, ours): the nearest elite of every one of the 64 patterns is scored by its
+  predicted miss (primary mismatch with the wanted step plus the secondary GP's predicted
+  deviation, `secondary.predicted_miss`); the least is run. With no observations this is RTE's
+  choice, so RTE on an HBR is the special case of a GP that never learns;
+- `DRIFT_MODE` (HTE, ours): as `MISS_MODE`, but the GP's signed deviation is added to each
+  candidate's descriptor (where it will land) and the candidates also include every pattern's
+  nearest elite to the wanted step minus the drift predicted for RTE's choice, so a damage that
+  pulls the robot one way is aimed against.
 
 Rollouts here use `ONLINE_LIMITS`: the robot of the online phase has its body collide with the
 floor, so a body on the floor is no longer an error, and only a robot tilted past 90 degrees (on
 its side or back: it cannot get up), a non-finite or an exploding state ends an episode.
 
-After each step the relative error between the executed elite's stored primary descriptor and
-what the robot did is added to the secondary GP (in every mode, so that all variants report it).
+After each step the relative error (and the absolute deviation) between the executed elite's
+stored primary descriptor and what the robot did is added to the secondary GP (in every mode, so
+that all variants report it).
 """
 
 from __future__ import annotations
 
 import math
 
+import numpy as np
 import jax
 import jax.numpy as jnp
 from flax import struct
@@ -37,22 +47,33 @@ from hte_jax.hbr.execution import (
     state_pose,
 )
 from hte_jax.hbr.geometry import compose_pose, planar_pose, relative_pose
+from hte_jax.hbr.middle import NUM_PATTERNS, PRIMARY
 from hte_jax.hbr.top import TopTask
 from hte_jax.online.actions import ActionSet, action_set
 from hte_jax.online.gp import HTE_KERNEL, GPData, add_observation, posterior
-from hte_jax.online.secondary import acquisition, allowed_patterns, relative_error, ucb_beta
+from hte_jax.online.secondary import (
+    acquisition,
+    allowed_patterns,
+    predicted_landing_miss,
+    predicted_miss,
+    relative_error,
+    step_targets,
+    ucb_beta,
+)
 from hte_jax.qd.repertoire import Repertoire
 from hte_jax.sim.controller import NUM_PARAMS
 from hte_jax.sim.robot import Robot
 from hte_jax.sim.rollout import RolloutSpec, SimState, ValidityLimits, rollout
 
-ANY_PATTERN_MODE, UCB_MODE, ORACLE_MODE, RANDOM_MODE = 0, 1, 2, 3
+ANY_PATTERN_MODE, UCB_MODE, ORACLE_MODE, RANDOM_MODE, MISS_MODE, DRIFT_MODE = 0, 1, 2, 3, 4, 5
 STEP_CONTROL_STEPS = 100  # one second
 NEUTRAL_CONTROL_STEPS = 100  # the 1 s neutral pose after each skill
 SECONDS_PER_ACTION = STEPS_PER_SKILL + 1
-CANDIDATE_PATTERNS = allowed_patterns()  # (36,)
+CANDIDATE_PATTERNS = allowed_patterns()  # (36,) the paper's candidates
+ALL_PATTERNS = np.arange(NUM_PATTERNS, dtype=np.int32)  # (64,) MISS_MODE's candidates
 SECONDARY_DIM = 9  # the middle descriptor: x, y, yaw, 6 contact bits
 ERROR_DIM = 3
+SECONDARY_OUTPUTS = 3 * ERROR_DIM  # relative errors (the paper's), absolute deviations, signed deviations
 ONLINE_LIMITS = ValidityLimits(max_tilt=math.pi / 2, min_base_height=0.0, body_on_floor=False)
 
 
@@ -144,41 +165,75 @@ def _neutral(robot: Robot, state: SimState, damage: jax.Array):
     return rollout(robot, jnp.zeros((state.qpos.shape[0], NUM_PARAMS)), damage, state, spec)
 
 
-def candidate_elites(hbr: HBR, desired: jax.Array) -> tuple[jax.Array, jax.Array]:
-    """For desired primary descriptors (B, 3): the middle elite each candidate pattern would execute.
+def candidate_elites(hbr: HBR, desired: jax.Array, patterns: np.ndarray = CANDIDATE_PATTERNS):
+    """For desired primary descriptors (B, 3): the middle elite each of `patterns` (C,) would execute.
 
     Returns index (B, C) and found (B, C) (False where the repertoire has no elite with that pattern).
     """
-    batch, count = desired.shape[0], CANDIDATE_PATTERNS.size
+    batch, count = desired.shape[0], patterns.size
     queries = jnp.repeat(desired, count, axis=0)
-    patterns = jnp.tile(jnp.asarray(CANDIDATE_PATTERNS), batch)
-    index, found = select_middle(hbr, queries, patterns)
+    wanted = jnp.tile(jnp.asarray(patterns), batch)
+    index, found = select_middle(hbr, queries, wanted)
     return index.reshape(batch, count), found.reshape(batch, count)
 
 
 def choose_patterns(
-    hbr: HBR, mode: jax.Array, oracle: jax.Array, secondary: GPData, desired: jax.Array, t: jax.Array, keys: jax.Array
-) -> jax.Array:
-    """Contact pattern (B,) for the next step of each robot (see the module docstring).
+    hbr: HBR, mode: jax.Array, oracle: jax.Array, secondary: GPData, desired: jax.Array, t: jax.Array,
+    keys: jax.Array, optimism: jax.Array | None = None,
+) -> tuple[jax.Array, jax.Array]:
+    """Contact pattern (B,) for the next step of each robot (see the module docstring), and the
+    primary step (B, 3) to look its elite up with (`desired`, except where DRIFT_MODE aims off it).
 
     mode, oracle: (B,) int32. secondary: GPData (B, ...). desired: (B, 3) normalised primary
     descriptor the step aims at. t: (B,) GP-UCB step count (>= 1). keys: (B, 2) PRNG keys.
+    optimism: (B,) MISS_MODE's confidence-bound weight (default 0).
     """
-    index, found = candidate_elites(hbr, desired)
-    inputs = hbr.middle.descriptors[index]  # (B, C, 9)
+    if optimism is None:
+        optimism = jnp.zeros(desired.shape[0], jnp.float32)
+    every, found_every = candidate_elites(hbr, desired, ALL_PATTERNS)  # (B, 64): pattern p in column p
+    columns = jnp.asarray(CANDIDATE_PATTERNS)
+    index, found = every[:, columns], found_every[:, columns]
+    inputs = hbr.middle.descriptors[every]  # (B, 64, 9)
     mean, variance = jax.vmap(lambda gp, x: posterior(HTE_KERNEL, gp, x))(secondary, inputs)
-    score = acquisition(mean, variance, ucb_beta(t)[:, None])
+    score = acquisition(mean[:, columns, :ERROR_DIM], variance[:, columns], ucb_beta(t)[:, None])
     candidates = jnp.asarray(CANDIDATE_PATTERNS)
     ucb = candidates[jnp.argmax(jnp.where(found, score, -jnp.inf), axis=-1)]  # ties: the lowest pattern
     logits = jnp.where(found, 0.0, -jnp.inf)
     random = candidates[jax.vmap(jax.random.categorical)(keys, logits)]
+    miss = predicted_miss(desired, inputs[..., :PRIMARY], mean[..., ERROR_DIM:2 * ERROR_DIM],
+                          jnp.sqrt(jnp.maximum(variance, 0.0)), optimism[:, None, None])
+    least = jnp.argmin(jnp.where(found_every, miss, jnp.inf), axis=-1).astype(jnp.int32)  # column = pattern
+    drift, aim = _drift_choice(hbr, secondary, desired, inputs, mean, found_every)
     anything = found.any(axis=-1)
     choice = jnp.select(
-        [mode == UCB_MODE, mode == ORACLE_MODE, mode == RANDOM_MODE],
-        [jnp.where(anything, ucb, ANY_PATTERN), oracle, jnp.where(anything, random, ANY_PATTERN)],
+        [mode == UCB_MODE, mode == ORACLE_MODE, mode == RANDOM_MODE, mode == MISS_MODE, mode == DRIFT_MODE],
+        [jnp.where(anything, ucb, ANY_PATTERN), oracle, jnp.where(anything, random, ANY_PATTERN), least, drift],
         ANY_PATTERN,
     )
-    return choice.astype(jnp.int32)
+    query = jnp.where((mode == DRIFT_MODE)[:, None], aim, desired)
+    return choice.astype(jnp.int32), query
+
+
+def _drift_choice(hbr: HBR, secondary: GPData, desired: jax.Array, inputs: jax.Array, mean: jax.Array,
+                  found: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """DRIFT_MODE's pattern (B,) and the step to look its elite up with (B, 3): among every pattern's
+    nearest elite to the wanted step and to the wanted step less the drift predicted for RTE's
+    choice, the one predicted to land nearest the wanted step."""
+    signed = mean[..., 2 * ERROR_DIM:]  # (B, 64, 3)
+    nearest, _ = select_middle(hbr, desired, jnp.full(desired.shape[0], ANY_PATTERN, jnp.int32))
+    rte_column = hbr.middle_patterns[nearest]  # RTE's elite is the nearest of its own pattern
+    aim = desired - jnp.take_along_axis(signed, rte_column[:, None, None], axis=1)[:, 0]
+    aimed, aimed_found = candidate_elites(hbr, aim, ALL_PATTERNS)
+    aimed_inputs = hbr.middle.descriptors[aimed]
+    aimed_mean, _ = jax.vmap(lambda gp, x: posterior(HTE_KERNEL, gp, x))(secondary, aimed_inputs)
+    miss = jnp.concatenate([
+        jnp.where(found, predicted_landing_miss(desired, inputs[..., :PRIMARY], signed), jnp.inf),
+        jnp.where(aimed_found, predicted_landing_miss(desired, aimed_inputs[..., :PRIMARY],
+                                                      aimed_mean[..., 2 * ERROR_DIM:]), jnp.inf),
+    ], axis=-1)
+    best = jnp.argmin(miss, axis=-1)
+    query = jnp.where((best >= NUM_PATTERNS)[:, None], aim, desired)
+    return (best % NUM_PATTERNS).astype(jnp.int32), query
 
 
 def execute_flat(robot: Robot, params: jax.Array, state: SimState, damage: jax.Array, secondary: GPData) -> ActionOutcome:
@@ -215,11 +270,12 @@ def execute_hbr(
     oracle: jax.Array,
     action_number: jax.Array,
     keys: jax.Array,
+    optimism: jax.Array | None = None,
 ) -> ActionOutcome:
     """Run HBR skills `index` (B,) step by step, choosing each step's contact pattern, then 1 s neutral.
 
     action_number: (B,) int32 actions already taken (the GP-UCB count is t = 1 + step + 3 action_number).
-    keys: (B, 2) PRNG keys (random patterns).
+    keys: (B, 2) PRNG keys (random patterns). optimism: (B,) MISS_MODE's confidence weight (default 0).
     """
     hbr = skills.hbr
     task = hbr.middle_task
@@ -231,11 +287,12 @@ def execute_hbr(
         target, step, step_keys = xs
         desired = task.normalise(relative_pose(state_pose(state), target))
         t = 1 + step + STEPS_PER_SKILL * action_number
-        pattern = choose_patterns(hbr, mode, oracle, gp, desired, t, step_keys)
-        result = execute_step(robot, hbr, state, damage, target, pattern, ONLINE_LIMITS)
+        pattern, query = choose_patterns(hbr, mode, oracle, gp, desired, t, step_keys, optimism)
+        result = execute_step(robot, hbr, state, damage, target, pattern, ONLINE_LIMITS, query=query)
         executed = hbr.middle.descriptors[result.middle_index]  # (B, 9)
-        error = relative_error(executed[:, :3], task.normalise(result.displacement))
-        gp = jax.vmap(add_observation)(gp, executed, error)
+        observed = task.normalise(result.displacement)
+        error = relative_error(executed[:, :PRIMARY], observed)
+        gp = jax.vmap(add_observation)(gp, executed, step_targets(executed[:, :PRIMARY], observed))
         return (result.state, gp), (pattern, result.middle_index, error, result.invalid_reason, state_pose(result.state))
 
     steps = jnp.arange(STEPS_PER_SKILL, dtype=jnp.int32)

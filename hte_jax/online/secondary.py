@@ -5,6 +5,12 @@ elite is predicted to deviate least from its stored primary descriptor. A GP (Ma
 input: the elite's 9-D descriptor, output: the three relative errors of x, y, yaw) learns the
 errors on the damaged robot; the score of a candidate is ||exp(-k max(0, mu))||_2 + beta_t var
 (k = 4, 4, 3), with the GP-UCB schedule beta_t of the original.
+
+Ours (`predicted_miss`, not the paper's): the GP also learns each executed elite's absolute
+deviation |bd' - bd| (normalised units), and every pattern's nearest elite is scored by how far
+from the wanted step it is predicted to end: primary mismatch plus predicted deviation. With no
+observations the deviation is predicted 0 and the choice is RTE's (the nearest elite of any
+pattern); as the damage shows, elites whose pattern it spoils are predicted to miss and avoided.
 """
 
 from __future__ import annotations
@@ -49,6 +55,34 @@ def oracle_pattern(damage: np.ndarray) -> int:
 def relative_error(expected: jax.Array, observed: jax.Array) -> jax.Array:
     """(..., 3) normalised primary descriptors -> (..., 3) errors |bd' - bd| / (2 |bd - c| + guard)."""
     return jnp.abs(observed - expected) / (2.0 * jnp.abs(expected - ERROR_CENTRE) + ERROR_GUARD)
+
+
+def step_targets(expected: jax.Array, observed: jax.Array) -> jax.Array:
+    """(..., 3) stored and observed primary descriptors -> (..., 9) the secondary GP's targets:
+    the paper's relative errors, the absolute deviations |bd' - bd|, the signed deviations bd' - bd."""
+    return jnp.concatenate([relative_error(expected, observed), jnp.abs(observed - expected), observed - expected],
+                           axis=-1)
+
+
+def predicted_landing_miss(desired: jax.Array, candidates: jax.Array, drift: jax.Array) -> jax.Array:
+    """How far from the wanted step (..., 3) each candidate (..., C, 3) lands if it drifts by the
+    predicted signed deviation `drift` (..., C, 3): || candidate + drift - desired ||_2, (..., C)."""
+    return jnp.linalg.norm(candidates + drift - desired[..., None, :], axis=-1)
+
+
+def predicted_miss(
+    desired: jax.Array, candidates: jax.Array, deviation: jax.Array, std: jax.Array, optimism: float
+) -> jax.Array:
+    """How far from the wanted step each candidate elite is predicted to end (normalised units).
+
+    desired: (..., 3) wanted primary step. candidates: (..., C, 3) the candidates' stored primary
+    descriptors. deviation: (..., C, 3) predicted |bd' - bd|; std: (..., C) its posterior standard
+    deviation, subtracted `optimism` times (a lower confidence bound: untried elites get tried).
+    Returns (..., C): || |candidate - desired| + max(0, deviation - optimism std) ||_2.
+    """
+    mismatch = jnp.abs(candidates - desired[..., None, :])
+    hopeful = jnp.maximum(deviation - optimism * std[..., None], 0.0)
+    return jnp.linalg.norm(mismatch + hopeful, axis=-1)
 
 
 def ucb_beta(t: jax.Array, candidates: int = 36) -> jax.Array:
