@@ -6,10 +6,13 @@ stops at the first size that does not fit). Per size: compile time, median run t
 of --repeats runs, simulated physics steps/s, 3 s rollouts/s, peak memory. Then, in
 the same run, native MuJoCo's multithreaded `mujoco.rollout` on the same robot with
 all cores, as the reference line (open-loop position-servo targets from the same
-controllers; see docs/design.md).
+controllers; see docs/design.md). --compare SETTING ("S/L[@tol=T][@dt=D]", see
+physics_frontier.py) times a second MJX setting at every batch size, right after the first,
+and prints the throughput ratio (first / compared) at each size.
 
     python benchmarks/batch_size.py                      # CPU: 1 .. 1024
     python benchmarks/batch_size.py --max-batch 131072   # GPU
+    python benchmarks/batch_size.py --min-batch 8192 --max-batch 131072 --compare 4/8   # new vs old default
 
 Prints a table and writes JSON to benchmarks/results/.
 """
@@ -26,7 +29,7 @@ import sys
 import time
 from pathlib import Path
 
-from common import environment, result_path
+from common import environment, parse_setting, result_path, setting_label
 
 CONTROL_DT = 0.01
 
@@ -41,6 +44,7 @@ def _parse(argv=None):
     p.add_argument("--solver-iterations", type=int, default=None)
     p.add_argument("--ls-iterations", type=int, default=None)
     p.add_argument("--no-joint-limits", action="store_true")
+    p.add_argument("--compare", default=None, help="a second solver setting timed at every MJX batch size, e.g. 4/8")
     p.add_argument("--native-batches", type=str, default="64,256,1024,4096",
                    help="comma-separated batch sizes for native MuJoCo ('' to skip)")
     p.add_argument("--out", type=Path, default=None, help="JSON path (default: results/batch_size_<device>_<date>.json)")
@@ -48,10 +52,12 @@ def _parse(argv=None):
                    help="JSON files of earlier partial sweeps on the same device to include")
     p.add_argument("--worker", type=int, default=None, help=argparse.SUPPRESS)
     p.add_argument("--native-worker", type=int, default=None, help=argparse.SUPPRESS)
+    p.add_argument("--worker-setting", default=None, help=argparse.SUPPRESS)
     return p.parse_args(argv)
 
 
-def _robot_config(args):
+def _robot_config(args, setting: str | None = None):
+    """The robot of the flags, with a setting string ("S/L[@tol=T][@dt=D]") on top."""
     from hte_jax.sim.robot import RobotConfig
 
     overrides = {}
@@ -61,6 +67,8 @@ def _robot_config(args):
         overrides["ls_iterations"] = args.ls_iterations
     if args.no_joint_limits:
         overrides["joint_limits"] = False
+    if setting is not None:
+        overrides.update(parse_setting(setting))
     return RobotConfig(**overrides)
 
 
@@ -79,7 +87,7 @@ def _worker(args) -> dict:
     from hte_jax.sim.rollout import RolloutSpec, rollout, standing_state
 
     batch = args.worker
-    robot = load_robot(_robot_config(args))
+    robot = load_robot(_robot_config(args, args.worker_setting))
     init = standing_state(robot)
     params = jnp.asarray(_random_params(batch))
     damage = jnp.zeros(6, bool)
@@ -134,7 +142,7 @@ def _native_worker(args) -> dict:
     from hte_jax.sim.rollout import standing_state
 
     batch = args.native_worker
-    config = _robot_config(args)
+    config = _robot_config(args, args.worker_setting)
     spec = build_spec(config)
     for actuator in spec.actuators:  # same servo law, open loop: kp (target - q) - kv qdot
         actuator.set_to_position(kp=config.servo_gain / SERVO_TIME_CONSTANT, kv=config.servo_gain)
@@ -177,13 +185,15 @@ def _native_worker(args) -> dict:
     }
 
 
-def _spawn(flag: str, batch: int, args) -> dict:
+def _spawn(flag: str, batch: int, args, setting: str | None = None) -> dict:
     cmd = [sys.executable, __file__, flag, str(batch), "--steps", str(args.steps), "--repeats", str(args.repeats)]
     for name in ("solver_iterations", "ls_iterations"):
         if getattr(args, name) is not None:
             cmd += [f"--{name.replace('_', '-')}", str(getattr(args, name))]
     if args.no_joint_limits:
         cmd.append("--no-joint-limits")
+    if setting is not None:
+        cmd += ["--worker-setting", setting]
     env = dict(os.environ, XLA_PYTHON_CLIENT_PREALLOCATE="false")
     try:
         proc = subprocess.run(cmd, capture_output=True, text=True, timeout=args.timeout, env=env)
@@ -214,15 +224,15 @@ def _fmt_bytes(n) -> str:
 
 
 def _table(rows) -> str:
-    head = (f"{'engine':7} {'batch':>7} {'compile s':>9} {'run s':>8} {'steps/s':>11} {'rollouts/s':>10} "
+    head = (f"{'engine':7} {'setting':>9} {'batch':>7} {'compile s':>9} {'run s':>8} {'steps/s':>11} {'rollouts/s':>10} "
             f"{'peak dev':>11} {'XLA bufs':>11} {'peak RSS':>11}")
     lines = [head, "-" * len(head)]
     for r in rows:
         if "error" in r:
-            lines.append(f"{r.get('engine', 'mjx'):7} {r['batch']:>7} {r['error']}")
+            lines.append(f"{r.get('engine', 'mjx'):7} {r.get('setting', '-'):>9} {r['batch']:>7} {r['error']}")
             continue
         lines.append(
-            f"{r['engine']:7} {r['batch']:>7} {r.get('compile_s', float('nan')):>9.1f} {r['run_s']:>8.3f} "
+            f"{r['engine']:7} {r.get('setting', '-'):>9} {r['batch']:>7} {r.get('compile_s', float('nan')):>9.1f} {r['run_s']:>8.3f} "
             f"{r['steps_per_s']:>11,.0f} {r['rollouts_per_s']:>10,.1f} "
             f"{_fmt_bytes(r.get('peak_device_bytes')):>11} {_fmt_bytes(r.get('xla_bytes')):>11} "
             f"{_fmt_bytes(r.get('peak_rss_bytes')):>11}"
@@ -241,16 +251,25 @@ def main(argv=None):
 
     env = environment()
     config = _robot_config(args)
+    label = setting_label(config)
+    compare = None
+    if args.compare is not None:
+        compare = setting_label(_robot_config(args, args.compare))
     settings = {"steps": args.steps, "repeats": args.repeats, "timestep": config.timestep,
                 "solver_iterations": config.solver_iterations, "ls_iterations": config.ls_iterations,
-                "joint_limits": config.joint_limits}
+                "joint_limits": config.joint_limits, "compare": compare}
     max_batch = args.max_batch or (1024 if env["platform"] == "cpu" else 131072)
     rows = _merged_rows(args.merge, env, settings)
     batch = args.min_batch
     while batch <= max_batch:
-        row = _spawn("--worker", batch, args)
+        row = {"setting": label, **_spawn("--worker", batch, args)}
         rows.append(row)
         print(_table([row]).splitlines()[-1], flush=True)
+        if compare is not None and not any(r.get("setting") == compare and "error" in r for r in rows):
+            other = {"setting": compare, **_spawn("--worker", batch, args, args.compare)}
+            rows.append(other)
+            ratio = "" if "error" in row or "error" in other else f"   {label} / {compare}: {row['steps_per_s'] / other['steps_per_s']:.2f}"
+            print(_table([other]).splitlines()[-1] + ratio, flush=True)
         if "error" in row:
             break  # the first size that does not fit ends the sweep
         batch *= 2
@@ -261,7 +280,8 @@ def main(argv=None):
         rows.append(row)
         print(_table([row]).splitlines()[-1], flush=True)
 
-    mjx_ok = [r for r in rows if r.get("engine") == "mjx" and "error" not in r]
+    mjx_ok = [r for r in rows if r.get("engine") == "mjx" and "error" not in r and r.get("setting", label) == label]
+    compared = {r["batch"]: r for r in rows if r.get("engine") == "mjx" and "error" not in r and r.get("setting") == compare}
     native_ok = [r for r in rows if r.get("engine") == "native" and "error" not in r]
     summary = {}
     if mjx_ok:
@@ -274,6 +294,13 @@ def main(argv=None):
         summary["best_native_steps_per_s"] = best_native["steps_per_s"]
     if mjx_ok and native_ok:
         summary["mjx_over_native"] = summary["best_mjx_steps_per_s"] / summary["best_native_steps_per_s"]
+    if compared:
+        best_compare = max(compared.values(), key=lambda r: r["steps_per_s"])
+        summary["compare_setting"] = compare
+        summary["best_compare_batch"] = best_compare["batch"]
+        summary["best_compare_steps_per_s"] = best_compare["steps_per_s"]
+        summary["ratio_by_batch"] = {str(r["batch"]): r["steps_per_s"] / compared[r["batch"]]["steps_per_s"]
+                                     for r in mjx_ok if r["batch"] in compared}
 
     print()
     print(f"{env['device']} ({env['platform']}), jax {env['jax']}, mujoco {env['mujoco']}, "

@@ -30,3 +30,34 @@ def environment() -> dict:
 def result_path(name: str, env: dict) -> Path:
     """benchmarks/results/<name>_<platform>_<device>_<date>.json"""
     return RESULTS / f"{name}_{env['platform']}_{env['device'].replace(' ', '_')}_{env['date']}.json"
+
+
+# A solver setting on the command line: "S/L" = solver_iterations/ls_iterations, then optional
+# "@tol=T" (RobotConfig.solver_tolerance) and "@dt=D" (RobotConfig.timestep), e.g. "2/4@dt=0.005".
+SETTING_KEYS = {"tol": "solver_tolerance", "dt": "timestep"}
+
+
+def parse_setting(text: str) -> dict:
+    """RobotConfig overrides of a setting string "S/L[@tol=T][@dt=D]" (ValueError if malformed)."""
+    head, *extras = text.strip().split("@")
+    solver, _, line_search = head.partition("/")
+    if not solver.strip().isdigit() or not line_search.strip().isdigit():
+        raise ValueError(f"setting {text!r}: expected S/L, e.g. 2/4, then optional @tol=T or @dt=D")
+    overrides = {"solver_iterations": int(solver), "ls_iterations": int(line_search)}
+    for extra in extras:
+        key, _, value = extra.partition("=")
+        if key.strip() not in SETTING_KEYS:
+            raise ValueError(f"setting {text!r}: unknown key {key!r}; use {', '.join(SETTING_KEYS)}")
+        overrides[SETTING_KEYS[key.strip()]] = float(value)
+    return overrides
+
+
+def setting_label(config) -> str:
+    """The setting string of a RobotConfig: "S/L", with @tol / @dt where they differ from the defaults."""
+    from hte_jax.sim.robot import RobotConfig
+
+    label = f"{config.solver_iterations}/{config.ls_iterations}"
+    for key, name in SETTING_KEYS.items():
+        if getattr(config, name) != getattr(RobotConfig, name):
+            label += f"@{key}={getattr(config, name):g}"
+    return label

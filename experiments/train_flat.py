@@ -5,10 +5,13 @@
     python -m experiments.train_flat --variant aprol --preset gpu # 21 damages, one jitted call per block
     python -m experiments.train_flat --variant 2d --out runs/f --resume   # continue a killed run
     python -m experiments.train_flat --variant 2d --generations 50 --seed 3   # override any value
+    python -m experiments.train_flat --variant 2d --solver-iterations 4 --ls-iterations 8   # the solver
 
 Writes config.json, checkpoint.npz, metrics.csv, repertoires.npz, summary.json and plots/ under
 --out (default runs/flat-<variant>-<preset>). `--show-config` prints the resolved configuration.
-Bad values give a one-line error and exit status 2.
+Bad values give a one-line error and exit status 2. A resumed run keeps the solver settings it was
+started with (4 / 8 for runs started before they were settings) unless they are given; a
+different value is then an error.
 """
 
 from __future__ import annotations
@@ -20,7 +23,8 @@ import sys
 
 from hte_jax.errors import ConfigError
 from hte_jax.flat.training import PRESETS, VARIANTS, FlatConfig, preset, train_flat, with_overrides
-from hte_jax.qd.io import CheckpointError
+from hte_jax.qd.io import CheckpointError, stored_config
+from hte_jax.sim.robot import stored_solver
 
 SETTINGS = [f.name for f in dataclasses.fields(FlatConfig) if f.name != "variant"]
 
@@ -42,11 +46,15 @@ def main(argv=None) -> int:
     args = parser().parse_args(argv)
     try:
         config = preset(args.preset, args.variant)
-        config = with_overrides(config, {k: getattr(args, k) for k in SETTINGS if getattr(args, k) is not None})
+        overrides = {k: getattr(args, k) for k in SETTINGS if getattr(args, k) is not None}
+        out = args.out or f"runs/flat-{args.variant}-{args.preset}"
+        stored = stored_config(out) if args.resume else None
+        if stored is not None:
+            overrides = {**stored_solver(stored), **overrides}
+        config = with_overrides(config, overrides)
         if args.show_config:
             print(json.dumps(config.to_dict(), indent=2))
             return 0
-        out = args.out or f"runs/flat-{args.variant}-{args.preset}"
         outcome = train_flat(config, out, resume_run=args.resume, progress=not args.no_progress)
     except (ConfigError, CheckpointError) as error:
         print(f"error: {error}", file=sys.stderr)

@@ -5,10 +5,13 @@
     python -m experiments.train_hbr --preset paper --out runs/paper   # the paper's budget
     python -m experiments.train_hbr --out runs/hbr --resume          # continue a killed run
     python -m experiments.train_hbr --middle-generations 100 --seed 3   # override any value
+    python -m experiments.train_hbr --solver-iterations 4 --ls-iterations 8   # the physics' solver
 
 Writes config.json, per-layer checkpoints and metrics CSVs, hbr.npz, summary.json and plots/
 under --out (default runs/hbr-<preset>). Every preset value has a flag; `--show-config` prints
 the resolved configuration and exits. Bad values give a one-line error and exit status 2.
+A resumed run keeps the solver settings it was started with (4 / 8 for runs started before they
+were settings) unless they are given; a different value is then an error.
 """
 
 from __future__ import annotations
@@ -20,7 +23,8 @@ import sys
 
 from hte_jax.errors import ConfigError
 from hte_jax.hbr.training import LAYERS, PRESETS, HBRConfig, LayerSchedule, preset, train_hbr, with_overrides
-from hte_jax.qd.io import CheckpointError
+from hte_jax.qd.io import CheckpointError, stored_config
+from hte_jax.sim.robot import stored_solver
 
 
 def _flag(key: str) -> str:
@@ -54,11 +58,14 @@ def main(argv=None) -> int:
     try:
         config: HBRConfig = preset(args.preset)
         overrides = {key: getattr(args, key) for key, _ in _settings() if getattr(args, key) is not None}
+        out = args.out or f"runs/hbr-{args.preset}"
+        stored = stored_config(out) if args.resume else None
+        if stored is not None:
+            overrides = {**stored_solver(stored), **overrides}
         config = with_overrides(config, overrides)
         if args.show_config:
             print(json.dumps(config.to_dict(), indent=2))
             return 0
-        out = args.out or f"runs/hbr-{args.preset}"
         outcome = train_hbr(config, out, resume_run=args.resume, progress=not args.no_progress)
     except (ConfigError, CheckpointError) as error:
         print(f"error: {error}", file=sys.stderr)

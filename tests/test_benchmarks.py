@@ -4,15 +4,24 @@ results. These check that the scripts work, not how fast anything is (speed live
 
 import json
 
-from tests.benchmark_runner import run_benchmark
+import pytest
+
+from hte_jax.flat.store import shipped_flat_path
+from hte_jax.sim.robot import RobotConfig
+from tests.benchmark_runner import benchmark_module, run_benchmark
+
+common = benchmark_module("common")
 
 
 def test_batch_size_benchmark(tmp_path):
     out = tmp_path / "bs.json"
     stdout = run_benchmark("batch_size.py", "--max-batch", "1", "--steps", "20", "--repeats", "1",
-                  "--native-batches", "4", "--out", str(out))
+                  "--native-batches", "4", "--compare", "4/8", "--out", str(out))
     result = json.loads(out.read_text())
     engines = {row["engine"]: row for row in result["rows"]}
+    settings = [row["setting"] for row in result["rows"] if row["engine"] == "mjx"]
+    assert settings == [common.setting_label(RobotConfig()), "4/8"] and result["settings"]["compare"] == "4/8"
+    assert result["summary"]["ratio_by_batch"]["1"] > 0 and f"{settings[0]} / 4/8" in stdout
     assert set(engines) == {"mjx", "native"} and not any("error" in r for r in result["rows"])
     assert engines["mjx"]["steps_per_s"] > 0 and engines["mjx"]["compile_s"] > 0
     assert engines["native"]["steps_per_s"] > 0 and engines["native"]["threads"] >= 1
@@ -42,3 +51,36 @@ def test_adaptation_benchmark(tmp_path):
     assert row["actions_per_run"] == [2] and len(row["runs"][0]["plan_s"]) == 2
     assert result["settings"]["iterations"] == 10 and result["repertoire"]["kind"] == "hbr"
     assert "plan med s" in stdout
+
+
+def test_setting_strings():
+    assert common.parse_setting("2/4@dt=0.005@tol=1e-6") == {"solver_iterations": 2, "ls_iterations": 4,
+                                                       "timestep": 0.005, "solver_tolerance": 1e-6}
+    assert common.setting_label(RobotConfig(**common.parse_setting("3/6@tol=1e-4"))) == "3/6@tol=0.0001"
+    for bad in ("2", "2/x", "2/4@iters=3"):
+        with pytest.raises(ValueError, match="setting"):
+            common.parse_setting(bad)
+
+
+def test_physics_frontier_benchmark(tmp_path):
+    """One setting against itself (no errors by construction) and the repertoire check on two elites."""
+    out = tmp_path / "frontier.json"
+    setting = common.setting_label(RobotConfig())
+    stdout = run_benchmark("physics_frontier.py", "--settings", setting, "--reference", setting, "--reference-checks", "",
+                           "--batch", "2", "--steps", "10", "--repeats", "1", "--fidelity-size", "4", "--skills", "0",
+                           "--repertoires", setting, "--elites", "2", "--flat", str(shipped_flat_path("2d")),
+                           "--out", str(out))
+    result = json.loads(out.read_text())
+    (row,) = result["rows"]
+    assert row["setting"] == setting and row["steps_per_s"] > 0 and row["compile_s"] > 0
+    assert set(row["fidelity"]) == {"pooled", "random-intact", "random-damaged"}
+    pooled = row["fidelity"]["pooled"]
+    assert pooled["rollouts"] == 8 and pooled["max_cm"] == 0.0 and pooled["new_invalid"] == 0
+    assert pooled["penetration_max_mm"] == pooled["reference_penetration_max_mm"] > 0
+    assert row["budget_misses"] == [] and result["summary"]["fastest_within_budget"] == setting
+    assert (tmp_path / result["plot"]).stat().st_size > 10_000
+    (check,) = result["repertoires"]
+    for name in ("hbr-top", "flat-2d"):
+        assert check[name]["trained"] == "4/8"  # both shipped sets predate the solver settings
+        assert check[name]["elites"] == 2 and 0 <= check[name]["in_own_cell"] <= 1 and check[name]["max_cm"] >= 0
+    assert "fastest_within_budget" in stdout and "own cell" in stdout

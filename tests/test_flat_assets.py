@@ -1,24 +1,29 @@
 """The flat repertoires shipped in assets/flat_gpu (issue 5): trained by train_flat with the gpu preset."""
 
+import dataclasses
 import json
 
 import numpy as np
 import pytest
 
 from hte_jax.flat.store import load_flat, shipped_flat_path
-from hte_jax.flat.training import flat_statistics, preset
+from hte_jax.flat.training import FlatConfig, flat_statistics, preset
 from hte_jax.hbr.middle import pattern_code
 from hte_jax.sim.damage import APROL_DAMAGES
+from hte_jax.sim.robot import LEGACY_SOLVER, SOLVER_FIELDS
 
 
 @pytest.mark.parametrize("variant", ["2d", "8d", "aprol"])
 def test_shipped_flat_sets_are_the_gpu_preset_as_trained(variant):
     path = shipped_flat_path(variant)
     flat, meta = load_flat(path)
-    config = preset("gpu", variant)
-    assert meta["training"]["config"] == config.to_dict() and flat.task == config.task
+    # trained before the solver was a setting, i.e. with 4 / 8 (the file is as written then)
+    config = dataclasses.replace(preset("gpu", variant), **dict(zip(SOLVER_FIELDS, LEGACY_SOLVER)))
+    stored = {k: v for k, v in config.to_dict().items() if k not in SOLVER_FIELDS}
+    assert meta["training"]["config"] == stored and flat.task == config.task
+    assert FlatConfig.from_dict(meta["training"]["config"]) == config
     folder = path.parent / variant
-    assert json.loads((folder / "config.json").read_text()) == config.to_dict()
+    assert json.loads((folder / "config.json").read_text()) == stored
     summary = json.loads((folder / "summary.json").read_text())
     # the file holds exactly what the training run reported (no edits after training)
     stats = flat_statistics(flat)

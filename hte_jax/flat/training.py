@@ -33,7 +33,7 @@ from hte_jax.qd.batched import BatchedMapElites
 from hte_jax.qd.loop import MapElitesConfig, QDState, resume, run
 from hte_jax.qd.metrics import projected_statistics
 from hte_jax.sim.damage import APROL_DAMAGES, damage_masks
-from hte_jax.sim.robot import NUM_LEGS, load_robot
+from hte_jax.sim.robot import NUM_LEGS, RobotConfig, SOLVER_FIELDS, load_robot, stored_solver
 from hte_jax.sim.rollout import standing_state
 
 # variant -> (descriptor, damages the repertoires are trained on)
@@ -52,6 +52,8 @@ class FlatConfig:
     (init_size a multiple of batch_size). block_size: generations per jitted block (one progress
     tick, CSV row and checkpoint). mutation_rate / eta_m: polynomial mutation. seed: PRNG seed.
     bins: x-y cells per axis. contact_threshold: contact-bit threshold of the 8-D descriptor.
+    solver_iterations / ls_iterations / solver_tolerance: the physics' Newton solver (`RobotConfig`);
+    a configuration stored without them ran 4 / 8 / 1e-8 and resumes with that.
     """
 
     variant: str
@@ -64,6 +66,9 @@ class FlatConfig:
     seed: int = 0
     bins: int = 100
     contact_threshold: float = 0.3
+    solver_iterations: int = RobotConfig.solver_iterations
+    ls_iterations: int = RobotConfig.ls_iterations
+    solver_tolerance: float = RobotConfig.solver_tolerance
 
     def __post_init__(self):
         if self.variant not in VARIANTS:
@@ -74,6 +79,12 @@ class FlatConfig:
         require_number("eta_m", self.eta_m, 0.0)
         self.task  # noqa: B018 - validates bins and contact_threshold
         self.map_elites_config()  # validates batch, init and mutation
+        self.robot  # noqa: B018 (RobotConfig validates the solver settings)
+
+    @property
+    def robot(self) -> RobotConfig:
+        """The simulated robot's options."""
+        return RobotConfig(**{name: getattr(self, name) for name in SOLVER_FIELDS})
 
     @property
     def task(self) -> FlatTask:
@@ -99,6 +110,16 @@ class FlatConfig:
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict) -> FlatConfig:
+        """A configuration from `to_dict`'s output; missing solver settings are the ones it ran with (`LEGACY_SOLVER`)."""
+        return cls(**{**data, **stored_solver(data)})
+
+
+def normalised_config(data: dict) -> dict:
+    """A stored configuration read through today's FlatConfig (solver settings it lacks: `LEGACY_SOLVER`)."""
+    return FlatConfig.from_dict(data).to_dict()
 
 
 def _config(variant, batch, init, generations, block) -> FlatConfig:
@@ -129,7 +150,7 @@ def preset(name: str, variant: str) -> FlatConfig:
 
 def flat_algorithm(config: FlatConfig) -> BatchedMapElites:
     """The batched MAP-Elites of a configuration: one run per damage, each from its own standing state."""
-    robot = load_robot()
+    robot = load_robot(config.robot)
     task = config.task
     masks = jnp.asarray(damage_masks(config.damages))
     conditions = {"damage": masks, "start": standing_state(robot, masks)}
@@ -169,7 +190,7 @@ def train_flat(
     plots: bool = True,
 ) -> FlatOutcome:
     """Train (or finish training) a variant's repertoires; see the module docstring for the outputs."""
-    out = io.prepare_run_dir(out_dir, config.to_dict(), resume_run)
+    out = io.prepare_run_dir(out_dir, config.to_dict(), resume_run, normalise=normalised_config)
     algo = flat_algorithm(config)
     checkpoint = out / "checkpoint.npz"
     began = time.perf_counter()

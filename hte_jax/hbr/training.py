@@ -36,7 +36,7 @@ from hte_jax.hbr.top import TopTask, evaluate_top
 from hte_jax.qd import io
 from hte_jax.qd.archive import Archive
 from hte_jax.qd.loop import MapElites, MapElitesConfig, QDState, resume, run
-from hte_jax.sim.robot import Robot, load_robot
+from hte_jax.sim.robot import Robot, RobotConfig, SOLVER_FIELDS, load_robot, stored_solver
 from hte_jax.sim.rollout import standing_state
 
 LAYERS = ("bottom", "middle", "top")
@@ -95,6 +95,8 @@ class HBRConfig:
     contact_threshold: fraction of a second a foot must be down for its contact bit.
     bottom_l / middle_l: archive distance thresholds. top_bins: grid cells per axis.
     bottom_fitness: "commands" (measured joint commands) or "genes" (the original's gene sum).
+    solver_iterations / ls_iterations / solver_tolerance: the physics' Newton solver (`RobotConfig`);
+      a configuration stored without them ran 4 / 8 / 1e-8 and resumes with that.
     """
 
     bottom: LayerSchedule
@@ -107,6 +109,9 @@ class HBRConfig:
     middle_l: float = 0.05
     top_bins: int = 100
     bottom_fitness: str = "commands"
+    solver_iterations: int = RobotConfig.solver_iterations
+    ls_iterations: int = RobotConfig.ls_iterations
+    solver_tolerance: float = RobotConfig.solver_tolerance
 
     def __post_init__(self):
         require_int("seed", self.seed, minimum=0)
@@ -116,6 +121,12 @@ class HBRConfig:
         require_number("middle_l", self.middle_l, 0.0, open_low=True)
         require_int("top_bins", self.top_bins)
         require_choice("bottom_fitness", self.bottom_fitness, BOTTOM_FITNESSES)
+        self.robot  # noqa: B018 (RobotConfig validates the solver settings)
+
+    @property
+    def robot(self) -> RobotConfig:
+        """The simulated robot's options."""
+        return RobotConfig(**{name: getattr(self, name) for name in SOLVER_FIELDS})
 
     @property
     def bottom_task(self) -> BottomTask:
@@ -134,7 +145,8 @@ class HBRConfig:
 
     @classmethod
     def from_dict(cls, data: dict) -> HBRConfig:
-        data = dict(data)
+        """A configuration from `to_dict`'s output; missing solver settings are the ones it ran with (`LEGACY_SOLVER`)."""
+        data = {**data, **stored_solver(data)}
         for layer in LAYERS:
             try:
                 data[layer] = LayerSchedule(**data[layer])
@@ -181,7 +193,8 @@ PRESETS: dict[str, HBRConfig] = {
 
 
 def normalised_config(data: dict) -> dict:
-    """A stored configuration read through today's HBRConfig: settings added since take their defaults."""
+    """A stored configuration read through today's HBRConfig: settings added since take their defaults,
+    except the solver settings, which take the values such runs were trained with (`LEGACY_SOLVER`)."""
     return HBRConfig.from_dict(data).to_dict()
 
 
@@ -264,7 +277,7 @@ def train_hbr(
     """Train (or finish training) the three layers; see the module docstring for the outputs."""
     out = Path(out_dir)
     io.prepare_run_dir(out, config.to_dict(), resume_run, normalise=normalised_config)
-    robot = load_robot()
+    robot = load_robot(config.robot)
     start = standing_state(robot)
     keys = dict(zip(LAYERS, jax.random.split(jax.random.PRNGKey(config.seed), len(LAYERS))))
     lower: dict = {}

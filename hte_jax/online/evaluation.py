@@ -54,7 +54,7 @@ class EvalConfig:
     original code's). max_actions: the failure cap. iterations, roots, candidates,
     exploration, widening, gamma, depth: MCTS settings (see PlannerConfig). optimism: how many
     standard deviations "hte-miss" takes off each elite's predicted deviation (0: greedy). seed:
-    PRNG seed.
+    PRNG seed. solver_iterations, ls_iterations, solver_tolerance: the physics' Newton solver.
     """
 
     variants: str = "hte"
@@ -73,6 +73,9 @@ class EvalConfig:
     depth: int = 20
     optimism: float = 0.0
     seed: int = 0
+    solver_iterations: int = RobotConfig.solver_iterations
+    ls_iterations: int = RobotConfig.ls_iterations
+    solver_tolerance: float = RobotConfig.solver_tolerance
 
     def __post_init__(self):
         require_int("replicates", self.replicates)
@@ -125,7 +128,8 @@ class EvalConfig:
     @property
     def robot(self) -> RobotConfig:
         """The simulated robot's options (before the maze's walls are added)."""
-        return RobotConfig(damage_model=self.damage_model)
+        return RobotConfig(damage_model=self.damage_model, solver_iterations=self.solver_iterations,
+                           ls_iterations=self.ls_iterations, solver_tolerance=self.solver_tolerance)
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)

@@ -140,6 +140,12 @@ def write_json(path: str | Path, data: dict) -> None:
     os.replace(tmp, path)
 
 
+def stored_config(out: str | Path) -> dict | None:
+    """The configuration a run folder was started with (its `config.json`), or None when it holds no run."""
+    path = Path(out) / "config.json"
+    return json.loads(path.read_text()) if path.exists() else None
+
+
 def prepare_run_dir(out: str | Path, config: dict, resume_run: bool, normalise: Callable[[dict], dict] | None = None) -> Path:
     """Start a run folder holding `config.json`, or check that the run already in it has `config`.
 

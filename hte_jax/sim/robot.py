@@ -29,6 +29,10 @@ WALL_BIT = 2
 WALL_HEIGHT = 0.9
 WALL_CONTACTS = ("bumper", "links", "feet")
 DAMAGE_MODELS = ("raised", "locked")  # the pose of a damaged leg (poses in hte_jax.sim.damage)
+# The solver settings that training and evaluation configurations carry, and the values every
+# configuration stored before they did (run folders, checkpoints, shipped repertoires) ran with.
+SOLVER_FIELDS = ("solver_iterations", "ls_iterations", "solver_tolerance")
+LEGACY_SOLVER = (4, 8, 1e-8)
 
 
 def assets_dir() -> Path:
@@ -49,7 +53,9 @@ class RobotConfig:
 
     timestep: physics step in seconds; must divide `control_dt`.
     control_dt: controller period (the original runs its servos at 100 Hz).
-    solver_iterations / ls_iterations: Newton solver and line-search iterations.
+    solver_iterations / ls_iterations: Newton solver and line-search iterations (caps).
+    solver_tolerance: the Newton loop of a rollout stops early once its cost improvement or its
+      gradient (scaled by the mass-matrix trace) falls below this (MuJoCo's default 1e-8).
     servo_gain: velocity-servo gain kv in N m s/rad (torque = kv (v_cmd - qdot), clipped).
     armature: reflected rotor inertia added to every leg joint, kg m^2.
     max_torque / max_joint_velocity: servo torque (N m) and commanded-velocity (rad/s) limits.
@@ -70,7 +76,8 @@ class RobotConfig:
     timestep: float = 0.01
     control_dt: float = 0.01
     solver_iterations: int = 4
-    ls_iterations: int = 8
+    ls_iterations: int = 4
+    solver_tolerance: float = 1e-8
     servo_gain: float = 1.0
     armature: float = 0.01
     max_torque: float = 4.0
@@ -92,6 +99,7 @@ class RobotConfig:
             )
         require_int("solver_iterations", self.solver_iterations)
         require_int("ls_iterations", self.ls_iterations)
+        require_number("solver_tolerance", self.solver_tolerance, 0.0)
         require_number("armature", self.armature, 0.0)
         require_choice("wall_contact", self.wall_contact, WALL_CONTACTS)
         require_number("bumper_radius", self.bumper_radius, 0.0, open_low=True)
@@ -143,6 +151,7 @@ def build_spec(config: RobotConfig) -> mujoco.MjSpec:
     spec.option.timestep = config.timestep
     spec.option.iterations = config.solver_iterations
     spec.option.ls_iterations = config.ls_iterations
+    spec.option.tolerance = config.solver_tolerance
     for joint in spec.joints:
         if joint.type == mujoco.mjtJoint.mjJNT_HINGE:
             joint.armature = config.armature
@@ -185,6 +194,11 @@ def build_spec(config: RobotConfig) -> mujoco.MjSpec:
             rgba=[0.6, 0.4, 0.3, 1.0],
         )
     return spec
+
+
+def stored_solver(stored: dict) -> dict:
+    """The solver settings of a stored configuration; one stored without them ran `LEGACY_SOLVER`."""
+    return {name: stored.get(name, legacy) for name, legacy in zip(SOLVER_FIELDS, LEGACY_SOLVER)}
 
 
 @functools.lru_cache(maxsize=16)
