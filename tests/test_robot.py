@@ -129,3 +129,14 @@ def test_load_robot_info():
     robot = load_robot()
     assert robot.info.joint_qpos == tuple(range(7, 25))
     assert len(robot.info.foot_geoms) == 6
+
+
+def test_importing_the_physics_prints_nothing():
+    """MJX's "Failed to import warp" notice (warp-lang is optional and unused) never reaches the user."""
+    import subprocess
+    import sys
+
+    proc = subprocess.run([sys.executable, "-c", "import hte_jax.sim.rollout, hte_jax.sim.robot"],
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    assert "warp" not in proc.stdout + proc.stderr and proc.stdout == "", proc.stdout

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import mujoco
 from flax import struct
-from mujoco import mjx
+from hte_jax.sim.mjx_import import mjx
 
 from hte_jax.errors import ConfigError, require_choice, require_int, require_number
 

@@ -19,7 +19,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from flax import struct
-from mujoco import mjx
+from hte_jax.sim.mjx_import import mjx
 
 from hte_jax.errors import ConfigError
 from hte_jax.sim.controller import NUM_PARAMS, SAMPLES_PER_PERIOD, servo_command, target_table
