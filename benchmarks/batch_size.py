@@ -24,12 +24,11 @@ import json
 import os
 import resource
 import statistics
-import subprocess
 import sys
 import time
 from pathlib import Path
 
-from common import environment, parse_setting, result_path, setting_label
+from common import earlier_result, environment, parse_setting, result_path, run_worker, setting_label
 
 CONTROL_DT = 0.01
 
@@ -194,25 +193,14 @@ def _spawn(flag: str, batch: int, args, setting: str | None = None) -> dict:
         cmd.append("--no-joint-limits")
     if setting is not None:
         cmd += ["--worker-setting", setting]
-    env = dict(os.environ, XLA_PYTHON_CLIENT_PREALLOCATE="false")
-    try:
-        proc = subprocess.run(cmd, capture_output=True, text=True, timeout=args.timeout, env=env)
-    except subprocess.TimeoutExpired:
-        return {"batch": batch, "error": f"timeout after {args.timeout:.0f} s"}
-    lines = [line for line in proc.stdout.splitlines() if line.startswith("{")]
-    if proc.returncode != 0 or not lines:
-        tail = (proc.stderr or proc.stdout).strip().splitlines()[-3:]
-        return {"batch": batch, "error": f"exit {proc.returncode}: {' | '.join(tail)}"}
-    return json.loads(lines[-1])
+    return run_worker(cmd, args.timeout, {"batch": batch})
 
 
 def _merged_rows(paths, env, settings) -> list:
     """Rows of earlier partial sweeps (a long sweep may be split across time-limited jobs)."""
     rows = []
     for path in paths:
-        earlier = json.loads(Path(path).read_text())
-        if earlier["environment"]["device"] != env["device"]:
-            raise SystemExit(f"{path} was measured on {earlier['environment']['device']}, not {env['device']}")
+        earlier = earlier_result(path, env)
         if earlier["settings"] != settings:
             raise SystemExit(f"{path} used settings {earlier['settings']}, not {settings}")
         rows += earlier["rows"]

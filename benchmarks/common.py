@@ -1,10 +1,13 @@
-"""Shared pieces of the benchmark scripts: the machine description and result paths."""
+"""Shared pieces of the benchmark scripts: the machine description, result paths, worker
+subprocesses and earlier results."""
 
 from __future__ import annotations
 
 import datetime as dt
+import json
 import os
 import platform
+import subprocess
 from pathlib import Path
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -25,6 +28,29 @@ def environment() -> dict:
         "jax": jax.__version__,
         "mujoco": mujoco.__version__,
     }
+
+
+def run_worker(cmd: list[str], timeout: float, label: dict) -> dict:
+    """Run a worker subprocess (no GPU preallocation) and return the last JSON line it printed;
+    on a timeout or failure, `label` with an "error" saying what happened."""
+    env = dict(os.environ, XLA_PYTHON_CLIENT_PREALLOCATE="false")
+    try:
+        proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, env=env)
+    except subprocess.TimeoutExpired:
+        return {**label, "error": f"timeout after {timeout:.0f} s"}
+    lines = [line for line in proc.stdout.splitlines() if line.startswith("{")]
+    if proc.returncode != 0 or not lines:
+        tail = (proc.stderr or proc.stdout).strip().splitlines()[-3:]
+        return {**label, "error": f"exit {proc.returncode}: {' | '.join(tail)}"}
+    return json.loads(lines[-1])
+
+
+def earlier_result(path: str | Path, env: dict) -> dict:
+    """An earlier result JSON measured on this run's device (SystemExit otherwise)."""
+    earlier = json.loads(Path(path).read_text())
+    if earlier["environment"]["device"] != env["device"]:
+        raise SystemExit(f"{path} was measured on {earlier['environment']['device']}, not {env['device']}")
+    return earlier
 
 
 def result_path(name: str, env: dict) -> Path:

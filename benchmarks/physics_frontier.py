@@ -56,7 +56,6 @@ import json
 import math
 import os
 import statistics
-import subprocess
 import sys
 import tempfile
 import time
@@ -66,7 +65,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from common import environment, parse_setting, result_path, setting_label
+from common import earlier_result, environment, parse_setting, result_path, run_worker, setting_label
 from hte_jax.flat.store import load_flat, shipped_flat_path
 from hte_jax.flat.task import evaluate_flat
 from hte_jax.hbr.execution import execute_skill
@@ -363,16 +362,7 @@ def _spawn(flag: str, setting: str, args, extra=()) -> dict:
     for name in ("hbr", "flat"):
         if getattr(args, name) is not None:
             cmd += [f"--{name}", str(getattr(args, name))]
-    env = dict(os.environ, XLA_PYTHON_CLIENT_PREALLOCATE="false")
-    try:
-        proc = subprocess.run(cmd, capture_output=True, text=True, timeout=args.timeout, env=env)
-    except subprocess.TimeoutExpired:
-        return {"setting": setting, "error": f"timeout after {args.timeout:.0f} s"}
-    lines = [line for line in proc.stdout.splitlines() if line.startswith("{")]
-    if proc.returncode != 0 or not lines:
-        tail = (proc.stderr or proc.stdout).strip().splitlines()[-3:]
-        return {"setting": setting, "error": f"exit {proc.returncode}: {' | '.join(tail)}"}
-    return json.loads(lines[-1])
+    return run_worker(cmd, args.timeout, {"setting": setting})
 
 
 def _fmt(value, spec: str) -> str:
@@ -530,9 +520,7 @@ def _merged(paths, env: dict, settings: dict) -> list[dict]:
     """Payloads of earlier runs with the same device and workload (SystemExit otherwise)."""
     payloads = []
     for path in paths:
-        earlier = json.loads(Path(path).read_text())
-        if earlier["environment"]["device"] != env["device"]:
-            raise SystemExit(f"{path} was measured on {earlier['environment']['device']}, not {env['device']}")
+        earlier = earlier_result(path, env)
         differ = [key for key in SAME_WORKLOAD if earlier["settings"].get(key) != settings[key]]
         if differ:
             raise SystemExit(f"{path} used another workload (differs in: {', '.join(differ)})")

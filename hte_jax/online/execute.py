@@ -192,7 +192,7 @@ def choose_patterns(
         optimism = jnp.zeros(desired.shape[0], jnp.float32)
     every, found_every = candidate_elites(hbr, desired, ALL_PATTERNS)  # (B, 64): pattern p in column p
     columns = jnp.asarray(CANDIDATE_PATTERNS)
-    index, found = every[:, columns], found_every[:, columns]
+    found = found_every[:, columns]
     inputs = hbr.middle.descriptors[every]  # (B, 64, 9)
     mean, variance = jax.vmap(lambda gp, x: posterior(HTE_KERNEL, gp, x))(secondary, inputs)
     score = acquisition(mean[:, columns, :ERROR_DIM], variance[:, columns], ucb_beta(t)[:, None])
