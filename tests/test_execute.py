@@ -16,6 +16,7 @@ from hte_jax.online.execute import (
     ANY_PATTERN_MODE,
     CANDIDATE_PATTERNS,
     DRIFT_MODE,
+    LEGS_MODE,
     MISS_MODE,
     ORACLE_MODE,
     SECONDARY_OUTPUTS,
@@ -191,3 +192,36 @@ def test_drift_choice_aims_against_a_learnt_drift(hbr_setup):
     landing = np.asarray(jnp.stack([first, chosen])[:, :3] + mean[:, 6:9])
     rte_miss, drift_miss = np.linalg.norm(landing - np.asarray(desired), axis=-1)
     assert drift_miss < rte_miss
+
+
+def test_legs_choice_is_rte_until_a_leg_is_seen_to_spoil_steps(hbr_setup):
+    """LEGS_MODE with no observations runs RTE's elite; once steps that put one leg down were
+    seen to deviate, it runs the elite the NumPy evaluation of `leg_miss` over every pattern's
+    nearest elite picks."""
+    hbr, _ = hbr_setup
+    desired = jnp.asarray([[0.6, 0.5, 0.5]])
+    modes = jnp.full(1, LEGS_MODE, jnp.int32)
+    oracle, t = jnp.full(1, 63, jnp.int32), jnp.ones(1, jnp.int32)
+    keys = jax.random.split(jax.random.PRNGKey(0), 1)
+    empty = _batched(empty_gp(24, 9, SECONDARY_OUTPUTS), 1)
+    nearest, _ = select_middle(hbr, desired, jnp.full(1, -1, jnp.int32))
+    chosen = int(choose_patterns(hbr, modes, oracle, empty, desired, t, keys)[0][0])
+    assert chosen == int(hbr.middle_patterns[nearest[0]])
+    index, found = candidate_elites(hbr, desired, ALL_PATTERNS)
+    inputs = np.asarray(hbr.middle.descriptors[index[0]])
+    filled = np.asarray(found[0])
+    leg = int(np.argmax(inputs[filled, 3:].mean(axis=0)))  # the leg most candidates put down
+    gp = jax.tree.map(lambda x: x[0], empty)
+    for row in inputs[filled][:12]:
+        deviation = 0.02 + 0.2 * row[3 + leg]
+        gp = add_observation(gp, jnp.asarray(row), jnp.asarray([0, 0, 0, deviation, 0, 0, 0, 0, 0], jnp.float32))
+    again = int(choose_patterns(hbr, modes, oracle, _batched(gp, 1), desired, t, keys)[0][0])
+    from hte_jax.online.secondary import leg_effects
+
+    effects = np.maximum(np.asarray(leg_effects(gp)), 0.0)
+    miss = np.linalg.norm(inputs[:, :3] - np.asarray(desired[0]), axis=-1) + inputs[:, 3:] @ effects
+    miss[~filled] = np.inf
+    assert again == int(ALL_PATTERNS[np.argmin(miss)])
+    rte_column = int(hbr.middle_patterns[nearest[0]])
+    if inputs[rte_column, 3 + leg] == 1 and miss.min() < miss[rte_column]:
+        assert again != rte_column  # RTE's elite puts the spoilt leg down and something is predicted better

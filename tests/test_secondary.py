@@ -7,6 +7,8 @@ from hte_jax.online.gp import HTE_KERNEL, add_observation, empty_gp, posterior
 from hte_jax.online.secondary import (
     acquisition,
     allowed_patterns,
+    leg_effects,
+    leg_miss,
     oracle_pattern,
     predicted_landing_miss,
     predicted_miss,
@@ -75,3 +77,31 @@ def test_step_targets_and_predicted_miss_hand_values():
     # optimism takes 2 std off each predicted deviation, never below 0
     np.testing.assert_allclose(predicted_miss(desired, candidates, deviation, std, 2.0),
                                [np.hypot(0.1, 0.2), np.sqrt(0.02)], rtol=1e-6)
+
+
+def test_leg_effects_recover_a_damaged_leg_and_score_candidates():
+    """Deviations that grow only when leg 1 is down: the regression gives leg 1 a large weight and
+    the others about 0 (NumPy's least squares with the same ridge agrees); a candidate that lifts
+    leg 1 then beats a slightly nearer one that puts it down. No data: every weight is 0."""
+    assert np.all(np.asarray(leg_effects(empty_gp(8, 9, 9))) == 0.0)
+    rng = np.random.default_rng(0)
+    gp = empty_gp(40, 9, 9)
+    rows = []
+    for _ in range(30):
+        bits = rng.integers(0, 2, 6).astype(np.float32)
+        deviation = 0.03 + 0.12 * bits[1] + rng.normal(0, 0.005)
+        x = np.concatenate([rng.uniform(0.3, 0.7, 3), bits]).astype(np.float32)
+        y = np.concatenate([np.zeros(3), [deviation, 0.0, 0.0], np.zeros(3)]).astype(np.float32)
+        gp = add_observation(gp, jnp.asarray(x), jnp.asarray(y))
+        rows.append((bits, deviation))
+    effects = np.asarray(leg_effects(gp))
+    assert effects[1] > 0.1 and np.all(np.abs(np.delete(effects, 1)) < 0.02)
+    design = np.array([[1.0, *b] for b, _ in rows])
+    target = np.array([d for _, d in rows])
+    reference = np.linalg.solve(design.T @ design + np.diag([1e-6] + [1.0] * 6), design.T @ target)[1:]
+    np.testing.assert_allclose(effects, reference, atol=1e-4)
+    desired = jnp.asarray([0.6, 0.5, 0.5])
+    candidates = jnp.asarray([[0.61, 0.5, 0.5, 1, 1, 1, 1, 1, 1], [0.64, 0.5, 0.5, 1, 0, 1, 1, 1, 1]], jnp.float32)
+    miss = np.asarray(leg_miss(desired, candidates, jnp.asarray(effects)))
+    np.testing.assert_allclose(miss[1] - 0.04, np.sum(np.maximum(np.delete(effects, 1), 0)), atol=1e-5)
+    assert miss[1] < miss[0]

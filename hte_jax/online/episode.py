@@ -37,6 +37,7 @@ from hte_jax.online.execute import (
     ANY_PATTERN_MODE,
     DRIFT_MODE,
     ERROR_DIM,
+    LEGS_MODE,
     MISS_MODE,
     ORACLE_MODE,
     RANDOM_MODE,
@@ -57,7 +58,7 @@ from hte_jax.sim.rollout import SimState
 
 # variant -> how each 1 s step picks its contact pattern (flat repertoires: only "rte")
 VARIANT_MODES = {"rte": ANY_PATTERN_MODE, "hte": UCB_MODE, "perfect-hte": ORACLE_MODE, "random-hte": RANDOM_MODE,
-                 "hte-miss": MISS_MODE, "hte-drift": DRIFT_MODE}
+                 "hte-miss": MISS_MODE, "hte-drift": DRIFT_MODE, "hte-legs": LEGS_MODE}
 
 
 @dataclasses.dataclass(frozen=True)

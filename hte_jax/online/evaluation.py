@@ -33,7 +33,7 @@ from hte_jax.qd.io import CheckpointError, read_checkpoint
 from hte_jax.sim.damage import PAPER_DAMAGES, parse_damage
 from hte_jax.sim.robot import RobotConfig
 
-HBR_VARIANTS = ("hte", "perfect-hte", "random-hte", "rte", "hte-miss", "hte-drift")
+HBR_VARIANTS = ("hte", "perfect-hte", "random-hte", "rte", "hte-miss", "hte-drift", "hte-legs")
 FLAT_VARIANTS = {"2d-rte": "2d", "8d-rte": "8d", "aprol": "aprol"}  # variant -> shipped flat file
 SEED_FILES = {"hbr": "hbr.npz", "2d": "flat2d.npz", "8d": "flat8d.npz", "aprol": "aprol.npz"}  # in a seed folder
 VARIANTS = HBR_VARIANTS + tuple(FLAT_VARIANTS)

@@ -14,6 +14,10 @@ the contact pattern of the middle elite is chosen by the episode's secondary mod
   predicted miss (primary mismatch with the wanted step plus the secondary GP's predicted
   deviation, `secondary.predicted_miss`); the least is run. With no observations this is RTE's
   choice, so RTE on an HBR is the special case of a GP that never learns;
+- `LEGS_MODE` (HTE, ours): every pattern's nearest elite is scored by its primary mismatch plus
+  the learnt effect of each leg it puts down (`secondary.leg_effects`: a ridge regression of the
+  observed step deviations on the executed elites' contact bits), so a damaged leg learnt from any
+  skill is avoided in every skill; RTE's choice when nothing is learnt;
 - `DRIFT_MODE` (HTE, ours): as `MISS_MODE`, but the GP's signed deviation is added to each
   candidate's descriptor (where it will land) and the candidates also include every pattern's
   nearest elite to the wanted step minus the drift predicted for RTE's choice, so a damage that
@@ -54,6 +58,8 @@ from hte_jax.online.gp import HTE_KERNEL, GPData, add_observation, posterior
 from hte_jax.online.secondary import (
     acquisition,
     allowed_patterns,
+    leg_effects,
+    leg_miss,
     predicted_landing_miss,
     predicted_miss,
     relative_error,
@@ -65,7 +71,7 @@ from hte_jax.sim.controller import NUM_PARAMS
 from hte_jax.sim.robot import Robot
 from hte_jax.sim.rollout import RolloutSpec, SimState, ValidityLimits, rollout
 
-ANY_PATTERN_MODE, UCB_MODE, ORACLE_MODE, RANDOM_MODE, MISS_MODE, DRIFT_MODE = 0, 1, 2, 3, 4, 5
+ANY_PATTERN_MODE, UCB_MODE, ORACLE_MODE, RANDOM_MODE, MISS_MODE, DRIFT_MODE, LEGS_MODE = 0, 1, 2, 3, 4, 5, 6
 STEP_CONTROL_STEPS = 100  # one second
 NEUTRAL_CONTROL_STEPS = 100  # the 1 s neutral pose after each skill
 SECONDS_PER_ACTION = STEPS_PER_SKILL + 1
@@ -204,10 +210,14 @@ def choose_patterns(
                           jnp.sqrt(jnp.maximum(variance, 0.0)), optimism[:, None, None])
     least = jnp.argmin(jnp.where(found_every, miss, jnp.inf), axis=-1).astype(jnp.int32)  # column = pattern
     drift, aim = _drift_choice(hbr, secondary, desired, inputs, mean, found_every)
+    by_legs = leg_miss(desired, inputs, jax.vmap(leg_effects)(secondary))
+    legs = jnp.argmin(jnp.where(found_every, by_legs, jnp.inf), axis=-1).astype(jnp.int32)  # column = pattern
     anything = found.any(axis=-1)
     choice = jnp.select(
-        [mode == UCB_MODE, mode == ORACLE_MODE, mode == RANDOM_MODE, mode == MISS_MODE, mode == DRIFT_MODE],
-        [jnp.where(anything, ucb, ANY_PATTERN), oracle, jnp.where(anything, random, ANY_PATTERN), least, drift],
+        [mode == UCB_MODE, mode == ORACLE_MODE, mode == RANDOM_MODE, mode == MISS_MODE, mode == DRIFT_MODE,
+         mode == LEGS_MODE],
+        [jnp.where(anything, ucb, ANY_PATTERN), oracle, jnp.where(anything, random, ANY_PATTERN), least, drift,
+         legs],
         ANY_PATTERN,
     )
     query = jnp.where((mode == DRIFT_MODE)[:, None], aim, desired)

@@ -19,13 +19,15 @@ import numpy as np
 import jax.numpy as jnp
 import jax
 
-from hte_jax.hbr.middle import NUM_PATTERNS
+from hte_jax.hbr.middle import NUM_PATTERNS, PRIMARY
+from hte_jax.online.gp import GPData
 from hte_jax.sim.robot import NUM_LEGS
 
 ERROR_SCALE = np.array([4.0, 4.0, 3.0], np.float32)  # k for x, y, yaw (paper: k = 4; code: 3 for yaw)
 ERROR_CENTRE = 0.5  # c: the normalised descriptor of "no motion"
 ERROR_GUARD = 0.001
 UCB_DELTA = 0.1
+LEG_PRIOR_PRECISION = 1.0  # ridge weight of `leg_effects`: one pseudo-observation of "no effect"
 
 
 def legs_down(pattern: int) -> list[int]:
@@ -83,6 +85,33 @@ def predicted_miss(
     mismatch = jnp.abs(candidates - desired[..., None, :])
     hopeful = jnp.maximum(deviation - optimism * std[..., None], 0.0)
     return jnp.linalg.norm(mismatch + hopeful, axis=-1)
+
+
+def leg_effects(data: GPData, precision: float = LEG_PRIOR_PRECISION) -> jax.Array:
+    """(6,) what each leg's use adds to a step's deviation, learnt from the secondary GP's data.
+
+    Ridge regression (an intercept plus one weight per leg, the weights shrunk towards 0 by
+    `precision`) of each observed step's absolute deviation ||bd' - bd||_2 on its executed elite's
+    contact bits (`data.inputs[:, 3:9]`; deviations are `data.targets[:, 3:6]`, see `step_targets`).
+    A damaged leg shows as a large weight; the weights are 0 before any observation.
+    """
+    weight = data.mask.astype(jnp.float32)
+    bits = data.inputs[:, PRIMARY:]
+    deviation = jnp.linalg.norm(data.targets[:, 3:6], axis=-1)
+    design = jnp.concatenate([jnp.ones_like(bits[:, :1]), bits], axis=-1)  # (N, 7)
+    ridge = jnp.diag(jnp.asarray([1e-6] + [precision] * NUM_LEGS, jnp.float32))
+    with jax.default_matmul_precision("highest"):
+        gram = design.T @ (weight[:, None] * design) + ridge
+        coef = jnp.linalg.solve(gram, design.T @ (weight * deviation))
+    return coef[1:]
+
+
+def leg_miss(desired: jax.Array, candidates: jax.Array, effects: jax.Array) -> jax.Array:
+    """How far from the wanted step (..., 3) each candidate elite (..., C, 9) is predicted to end:
+    its primary mismatch ||candidate - desired||_2 plus the learnt effect (..., 6) of every leg it
+    puts down (negative effects count as 0: using a leg never makes a step more accurate). (..., C)."""
+    mismatch = jnp.linalg.norm(candidates[..., :PRIMARY] - desired[..., None, :], axis=-1)
+    return mismatch + jnp.sum(candidates[..., PRIMARY:] * jnp.maximum(effects, 0.0)[..., None, :], axis=-1)
 
 
 def ucb_beta(t: jax.Array, candidates: int = 36) -> jax.Array:
