@@ -66,6 +66,7 @@ class StepResult:
       has the requested pattern (then the nearest elite of any pattern ran).
     displacement: (B, 3) (x, y, yaw) in the frame of the pose at the start of the step.
     contact_fraction: (B, 6) fraction of the step each foot was on the ground.
+    qpos: (B, F, 25) qpos every `record_every` control steps of the step (replay), or None.
     """
 
     state: SimState
@@ -75,6 +76,7 @@ class StepResult:
     pattern_found: jax.Array
     displacement: jax.Array
     contact_fraction: jax.Array
+    qpos: jax.Array | None = None
 
 
 @struct.dataclass
@@ -116,24 +118,26 @@ def select_middle(hbr: HBR, desired: jax.Array, pattern: jax.Array, chunk: int =
     return map_rows(block, (desired, pattern.astype(jnp.int32)), (0.0, ANY_PATTERN), chunk)
 
 
-def _step_spec(steps: int, limits: ValidityLimits) -> RolloutSpec:
-    return RolloutSpec(num_steps=steps, pose_steps=(0, steps), record_contacts=True, limits=limits)
+def _step_spec(steps: int, limits: ValidityLimits, record_every: int = 0) -> RolloutSpec:
+    return RolloutSpec(num_steps=steps, pose_steps=(0, steps), record_contacts=True, limits=limits,
+                       record_qpos_every=record_every)
 
 
 def execute_step(
     robot: Robot, hbr: HBR, state: SimState, damage: jax.Array, target: jax.Array, pattern: jax.Array,
-    limits: ValidityLimits = ValidityLimits(), query: jax.Array | None = None,
+    limits: ValidityLimits = ValidityLimits(), query: jax.Array | None = None, record_every: int = 0,
 ) -> StepResult:
     """Walk one second towards the world pose `target` (B, 3) with contact `pattern` (B,) (-1: any).
 
     query: (B, 3) normalised primary step to look the elite up with instead of the step to `target`
-    (an adaptation rule that aims off the target to cancel a predicted drift).
+    (an adaptation rule that aims off the target to cancel a predicted drift). record_every: k > 0
+    also returns the qpos every k control steps (`StepResult.qpos`).
     """
     task = hbr.middle_task
     here = state_pose(state)
     desired = task.normalise(relative_pose(here, target)) if query is None else query
     index, found = select_middle(hbr, desired, pattern)
-    result = rollout(robot, hbr.middle_params[index], damage, state, _step_spec(task.steps, limits))
+    result = rollout(robot, hbr.middle_params[index], damage, state, _step_spec(task.steps, limits, record_every))
     poses = planar_pose(result.base_pos, result.base_quat)
     return StepResult(
         state=result.final_state,
@@ -143,6 +147,7 @@ def execute_step(
         pattern_found=found,
         displacement=relative_pose(poses[:, 0], poses[:, 1]),
         contact_fraction=result.foot_contacts.mean(axis=1),
+        qpos=result.qpos,
     )
 
 
@@ -164,10 +169,12 @@ def execute_skill(
     start: SimState,
     damage: jax.Array | None = None,
     patterns: jax.Array | None = None,
+    record_every: int = 0,
 ) -> SkillResult:
     """Execute (B, 9) top genotypes from `start` (B, ...) with damage (B, 6) and contact patterns (B, 3).
 
-    damage None: intact. patterns None or -1 entries: nearest elite of any pattern.
+    damage None: intact. patterns None or -1 entries: nearest elite of any pattern. record_every:
+    k > 0 records the qpos every k control steps (`steps.qpos`, (3, B, F, 25)).
     """
     batch = genotypes.shape[0]
     damage = jnp.zeros((batch, NUM_LEGS), bool) if damage is None else jnp.broadcast_to(damage, (batch, NUM_LEGS))
@@ -178,7 +185,7 @@ def execute_skill(
 
     def one_step(state, xs):
         target, pattern = xs
-        step = execute_step(robot, hbr, state, damage, target, pattern)
+        step = execute_step(robot, hbr, state, damage, target, pattern, record_every=record_every)
         return step.state, step
 
     final, steps = jax.lax.scan(one_step, start, (jnp.swapaxes(targets, 0, 1), jnp.swapaxes(patterns, 0, 1)))

@@ -66,6 +66,8 @@ class RolloutSpec:
     record_contacts: return per-step foot contacts (B, T, 6).
     record_feet: return per-step foot-sphere centres (B, T, 6, 3) (memory: 72 B per step).
     record_joints: return per-step joint angles (B, T, 18) (memory: 72 B per step).
+    record_qpos_every: k > 0 returns the full qpos at the start of every k-th step (B, ceil(T / k), 25),
+      for replay and rendering; 0 (default) records nothing and costs nothing.
     contact_tolerance: a foot is in contact when its sphere is closer than this to the floor (m).
     limits: validity limits.
     """
@@ -75,6 +77,7 @@ class RolloutSpec:
     record_contacts: bool = True
     record_feet: bool = False
     record_joints: bool = False
+    record_qpos_every: int = 0
     contact_tolerance: float = 1e-3
     limits: ValidityLimits = ValidityLimits()
 
@@ -84,6 +87,8 @@ class RolloutSpec:
         for step in self.pose_steps:
             if not (isinstance(step, int) and 0 <= step <= self.num_steps):
                 raise ConfigError(f"pose step {step!r} outside [0, num_steps={self.num_steps}]")
+        if not isinstance(self.record_qpos_every, int) or self.record_qpos_every < 0:
+            raise ConfigError(f"record_qpos_every must be an integer >= 0, got {self.record_qpos_every!r}")
 
 
 @struct.dataclass
@@ -115,6 +120,7 @@ class RolloutResult:
     foot_pos: (B, T, 6, 3) foot-sphere centres at the start of step t, or None.
     command_abs_sum: (B, 18) sum over steps of |commanded joint velocity| * control_dt (rad).
     joint_pos: (B, T, 18) joint angles at the start of step t, or None.
+    qpos: (B, ceil(T / k), 25) full qpos at the start of steps 0, k, 2k, ... (k = record_qpos_every), or None.
     """
 
     final_state: SimState
@@ -127,6 +133,7 @@ class RolloutResult:
     foot_pos: jax.Array | None
     command_abs_sum: jax.Array
     joint_pos: jax.Array | None = None
+    qpos: jax.Array | None = None
 
 
 def initial_state(robot: Robot, damage: jax.Array | None = None) -> SimState:
@@ -223,6 +230,8 @@ def _rollout_one(
             outputs["feet"] = foot_pos
         if spec.record_joints:
             outputs["joints"] = data.qpos[joint_qpos]
+        if spec.record_qpos_every:
+            outputs["qpos"] = data.qpos
         return (stepped, new_reason, invalid_step, poses, command_sum), outputs
 
     data = template.replace(qpos=init.qpos, qvel=init.qvel, qacc_warmstart=init.qacc_warmstart)
@@ -250,6 +259,7 @@ def _rollout_one(
         foot_pos=outputs.get("feet"),
         command_abs_sum=command_sum,
         joint_pos=outputs.get("joints"),
+        qpos=outputs["qpos"][:: spec.record_qpos_every] if spec.record_qpos_every else None,
     )
 
 

@@ -1,0 +1,1 @@
+"""Seeing the robot: rendering recorded states to frames and videos."""

@@ -1,0 +1,170 @@
+"""Rendering recorded hexapod states with MuJoCo's own renderer (`mujoco.Renderer`), headless.
+
+A replay sets each recorded qpos and runs the kinematics only: nothing is re-simulated, so a
+rendered trajectory is exactly the recorded one. The render model is the simulation model plus a
+checkered floor (so motion is visible) with the damaged legs tinted red.
+
+Headless OpenGL: `MUJOCO_GL=egl` on a machine with a GPU driver, `MUJOCO_GL=osmesa` on a CPU
+machine (Debian package `libosmesa6`). The variable must be set before `mujoco` is imported.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import warnings
+from pathlib import Path
+
+import mujoco
+import numpy as np
+
+from hte_jax.errors import ConfigError, require_choice, require_int, require_number
+from hte_jax.sim.robot import NUM_LEGS, RobotConfig, build_spec
+
+CAMERAS = ("track", "top")
+DAMAGED_RGBA = (0.85, 0.1, 0.1, 1.0)
+
+
+class RenderError(RuntimeError):
+    """The OpenGL renderer could not start."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Camera:
+    """Where the camera looks from.
+
+    mode: "track" follows the robot's base from behind-left at `distance` (m), `elevation` and
+    `azimuth` (degrees); "top" looks straight down on the point `centre` (x, y) from `distance`,
+    image right = world +x, image up = world +y.
+    """
+
+    mode: str = "track"
+    distance: float = 1.2
+    elevation: float = -25.0
+    azimuth: float = 135.0
+    centre: tuple[float, float] = (0.0, 0.0)
+
+    def __post_init__(self):
+        require_choice("camera", self.mode, CAMERAS)
+        require_number("camera distance", self.distance, 0.0, open_low=True)
+
+
+def render_model(config: RobotConfig = RobotConfig(), damage: np.ndarray | None = None) -> mujoco.MjModel:
+    """The simulation model with a checkered floor and the links of damaged legs (6,) tinted."""
+    spec = build_spec(config)
+    spec.add_texture(name="checker", type=mujoco.mjtTexture.mjTEXTURE_2D, builtin=mujoco.mjtBuiltin.mjBUILTIN_CHECKER,
+                     rgb1=[0.82, 0.82, 0.82], rgb2=[0.62, 0.62, 0.66], width=256, height=256)
+    spec.add_material(name="checker", textures=["", "checker"], texrepeat=[8, 8], texuniform=True)
+    for geom in spec.geoms:
+        if geom.name == "floor":
+            geom.material = "checker"
+            geom.rgba = [1.0, 1.0, 1.0, 1.0]
+    damage = np.zeros(NUM_LEGS, bool) if damage is None else np.asarray(damage, bool)
+    for leg in np.flatnonzero(damage):
+        for geom in spec.geoms:
+            if geom.name.startswith((f"leg_{leg}_", f"foot_{leg}")):
+                geom.rgba = list(DAMAGED_RGBA)
+    return spec.compile()
+
+
+def open_renderer(model: mujoco.MjModel, width: int, height: int) -> mujoco.Renderer:
+    """A renderer of `width` x `height` pixels; RenderError naming the MUJOCO_GL to try if none starts."""
+    require_int("width", width)
+    require_int("height", height)
+    try:
+        with warnings.catch_warnings():  # a failing GLFW warns before it raises; the error says it all
+            warnings.simplefilter("ignore")
+            return mujoco.Renderer(model, height=height, width=width)
+    except Exception as error:  # mujoco raises several kinds when no GL context can be made
+        backend = os.environ.get("MUJOCO_GL", "(unset)")
+        raise RenderError(
+            f"the renderer could not start with MUJOCO_GL={backend} ({type(error).__name__}: {error}); "
+            "try MUJOCO_GL=egl on a machine with a GPU driver or MUJOCO_GL=osmesa (Debian package "
+            "libosmesa6) on a CPU machine"
+        ) from None
+
+
+def _camera(camera: Camera, base: np.ndarray) -> mujoco.MjvCamera:
+    view = mujoco.MjvCamera()
+    view.type = mujoco.mjtCamera.mjCAMERA_FREE
+    if camera.mode == "track":
+        view.lookat[:] = (base[0], base[1], 0.1)
+        view.distance, view.elevation, view.azimuth = camera.distance, camera.elevation, camera.azimuth
+    else:
+        view.lookat[:] = (camera.centre[0], camera.centre[1], 0.0)
+        view.distance, view.elevation, view.azimuth = camera.distance, -90.0, 90.0
+    return view
+
+
+def render_frames(
+    model: mujoco.MjModel, qpos: np.ndarray, renderer: mujoco.Renderer, camera: Camera = Camera(), progress=None,
+) -> np.ndarray:
+    """Frames (T, H, W, 3) uint8 of the recorded states `qpos` (T, nq), one per state."""
+    qpos = np.asarray(qpos, np.float64)
+    if qpos.ndim != 2 or qpos.shape[1] != model.nq:
+        raise ConfigError(f"qpos must have shape (T, {model.nq}), got {qpos.shape}")
+    data = mujoco.MjData(model)
+    frames = np.empty((qpos.shape[0], renderer.height, renderer.width, 3), np.uint8)
+    for t, state in enumerate(qpos):
+        data.qpos[:] = state
+        mujoco.mj_kinematics(model, data)
+        mujoco.mj_camlight(model, data)
+        renderer.update_scene(data, camera=_camera(camera, state[:3]))
+        frames[t] = renderer.render()
+        if progress is not None:
+            progress.update(1)
+    return frames
+
+
+def tile(videos: list[np.ndarray], columns: int) -> np.ndarray:
+    """Lay equally long videos (T, H, W, 3) out on a grid of `columns` (black where none)."""
+    require_int("columns", columns)
+    count, (frames, height, width, _) = len(videos), videos[0].shape
+    rows = -(-count // columns)
+    grid = np.zeros((frames, rows * height, columns * width, 3), np.uint8)
+    for k, video in enumerate(videos):
+        r, c = divmod(k, columns)
+        grid[:, r * height:(r + 1) * height, c * width:(c + 1) * width] = video
+    return grid
+
+
+def write_video(path: str | Path, frames: np.ndarray, fps: float) -> Path:
+    """Write frames (T, H, W, 3) uint8 as MP4 (imageio-ffmpeg) or GIF (Pillow), by suffix.
+
+    An .mp4 without a usable ffmpeg is written as .gif beside it; returns the path written.
+    """
+    path = Path(path)
+    if path.suffix not in (".mp4", ".gif"):
+        raise ConfigError(f"video file must end in .mp4 or .gif, got {path.name!r}")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if path.suffix == ".mp4":
+        try:
+            import imageio_ffmpeg
+
+            _write_mp4(path, frames, fps, imageio_ffmpeg)
+            return path
+        except (ImportError, OSError, RuntimeError):
+            path = path.with_suffix(".gif")
+    from PIL import Image
+
+    images = [Image.fromarray(frame) for frame in frames]
+    images[0].save(path, save_all=True, append_images=images[1:], duration=round(1000 / fps), loop=0, optimize=True)
+    return path
+
+
+def _write_mp4(path: Path, frames: np.ndarray, fps: float, imageio_ffmpeg) -> None:
+    height, width = frames.shape[1:3]
+    pad = np.zeros((frames.shape[0], height + height % 2, width + width % 2, 3), np.uint8)  # H.264: even sizes
+    pad[:, :height, :width] = frames
+    with warnings.catch_warnings():  # ffmpeg is a subprocess: JAX's fork warning does not apply to exec
+        warnings.filterwarnings("ignore", message=r"os\.fork\(\) was called", category=RuntimeWarning)
+        _send(path, pad, fps, imageio_ffmpeg)
+
+
+def _send(path: Path, pad: np.ndarray, fps: float, imageio_ffmpeg) -> None:
+    writer = imageio_ffmpeg.write_frames(str(path), (pad.shape[2], pad.shape[1]), fps=fps, quality=7,
+                                         macro_block_size=1, ffmpeg_log_level="error")
+    writer.send(None)
+    for frame in pad:
+        writer.send(np.ascontiguousarray(frame))
+    writer.close()

@@ -1,0 +1,131 @@
+"""Recording states in rollouts and rendering them headless (osmesa) with MuJoCo's renderer.
+
+Rendering runs in subprocesses: MUJOCO_GL must be set before mujoco is imported, and the rest of
+the suite has imported it already.
+"""
+
+import os
+import subprocess
+import sys
+import textwrap
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from PIL import Image
+
+from hte_jax.errors import ConfigError
+from hte_jax.sim.robot import load_robot
+from hte_jax.sim.rollout import RolloutSpec, rollout, standing_state
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+OSMESA = dict(os.environ, MUJOCO_GL="osmesa", JAX_PLATFORMS="cpu")
+
+# Renders one shipped Flat-2D elite (of 64 drawn) that walks 0.3 to 0.7 m, looking straight down on the middle
+# of its path, one frame every 10 control steps; saves the frames and the recorded displacement.
+CLIP = textwrap.dedent("""
+    import sys
+    import numpy as np, jax.numpy as jnp
+    from hte_jax.flat.store import load_flat, shipped_flat_path
+    from hte_jax.sim.robot import load_robot, RobotConfig
+    from hte_jax.sim.rollout import RolloutSpec, rollout, standing_state
+    from hte_jax.viz.render import Camera, open_renderer, render_frames, render_model
+    repertoire = load_flat(shipped_flat_path("2d"))[0][0]
+    filled = np.asarray(repertoire.filled)
+    robot = load_robot()
+    some = np.random.default_rng(0).choice(int(filled.sum()), 64, replace=False)
+    params = jnp.asarray(np.asarray(repertoire.genotypes)[filled][some])
+    spec = RolloutSpec(num_steps=300, record_contacts=False, record_qpos_every=10)
+    result = rollout(robot, params, jnp.zeros(6, bool), standing_state(robot), spec)
+    moved = np.linalg.norm(np.asarray(result.final_state.qpos[:, :2]), axis=1)
+    pick = int(np.flatnonzero((moved > 0.3) & (moved < 0.7))[0])
+    qpos = np.concatenate([np.asarray(result.qpos[pick]), np.asarray(result.final_state.qpos[pick])[None]])
+    start, end = qpos[0, :2], qpos[-1, :2]
+    model = render_model(RobotConfig())
+    renderer = open_renderer(model, 160, 120)
+    camera = Camera("top", distance=2.0, centre=tuple(float(v) for v in (start + end) / 2))
+    frames = render_frames(model, qpos, renderer, camera)
+    renderer.close()
+    np.savez(sys.argv[1], frames=frames, displacement=end - start, fovy=model.vis.global_.fovy)
+""")
+
+
+@pytest.fixture(scope="module")
+def clip(tmp_path_factory):
+    out = tmp_path_factory.mktemp("render") / "clip.npz"
+    proc = subprocess.run([sys.executable, "-c", CLIP, str(out)], cwd=ROOT, env=OSMESA, capture_output=True,
+                          text=True, timeout=900)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    return np.load(out)
+
+
+def _footprint(frame: np.ndarray) -> np.ndarray:
+    """(col, row) centroid of the robot's blue base plate."""
+    rgb = frame.astype(np.int32)
+    rows, cols = np.nonzero((rgb[..., 2] - rgb[..., 0] > 60) & (rgb[..., 2] - rgb[..., 1] > 20))
+    assert rows.size > 20, "the base plate is not visible"
+    return np.asarray([cols.mean(), rows.mean()])
+
+
+def test_clip_frames_show_the_robot_moving_along_its_recorded_displacement(clip):
+    frames, displacement = clip["frames"], clip["displacement"]
+    assert frames.shape == (31, 120, 160, 3) and frames.dtype == np.uint8
+    assert all(frame.std() > 10 for frame in frames), "a blank frame"
+    differ = [np.abs(a.astype(int) - b.astype(int)).sum() > 0 for a, b in zip(frames[:-1], frames[1:])]
+    assert all(differ), "two consecutive frames are identical"
+    moved = _footprint(frames[-1]) - _footprint(frames[0])
+    expected = np.asarray([displacement[0], -displacement[1]])  # image right = +x, image down = -y
+    cosine = moved @ expected / (np.linalg.norm(moved) * np.linalg.norm(expected))
+    assert cosine > 0.95
+    # a plate 0.15 m above the floor seen from 2 m: pixels per metre = H / (2 (2 - 0.15) tan(fovy / 2))
+    scale = 120 / (2 * (2.0 - 0.15) * np.tan(np.radians(float(clip["fovy"])) / 2))
+    np.testing.assert_allclose(np.linalg.norm(moved), scale * np.linalg.norm(displacement), rtol=0.25)
+
+
+def test_recorded_states_are_the_rollout_and_recording_changes_nothing():
+    """qpos recorded every 25 steps equals the base poses the rollout reports at those steps, and
+    every other output is bit-identical with recording off (None then)."""
+    robot = load_robot()
+    params = jnp.asarray(np.random.default_rng(0).uniform(0, 1, (2, 36)), jnp.float32)
+    steps = (0, 25, 50, 75)
+    plain = rollout(robot, params, jnp.zeros(6, bool), standing_state(robot), RolloutSpec(100, pose_steps=steps))
+    recorded = rollout(robot, params, jnp.zeros(6, bool), standing_state(robot),
+                       RolloutSpec(100, pose_steps=steps, record_qpos_every=25))
+    assert plain.qpos is None and recorded.qpos.shape == (2, 4, 25)
+    np.testing.assert_array_equal(recorded.qpos[..., :3], recorded.base_pos)
+    np.testing.assert_array_equal(recorded.qpos[..., 3:7], recorded.base_quat)
+    np.testing.assert_array_equal(recorded.final_state.qpos, plain.final_state.qpos)
+    np.testing.assert_array_equal(recorded.foot_contacts, plain.foot_contacts)
+    with pytest.raises(ConfigError, match="record_qpos_every"):
+        RolloutSpec(100, record_qpos_every=-1)
+
+
+def _render_cli(*args, env=OSMESA):
+    return subprocess.run([sys.executable, "-m", "experiments.render", *args], cwd=ROOT, env=env,
+                          capture_output=True, text=True, timeout=900)
+
+
+def test_render_skills_cli_writes_a_grid_gif(tmp_path):
+    out = tmp_path / "skills.gif"
+    proc = _render_cli("skills", "--flat", "2d", "--count", "2", "--damage", "leg1", "--width", "64", "--height", "48",
+                       "--fps", "10", "--no-progress", "--out", str(out))
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert proc.stdout.strip() == f"wrote {out}" and proc.stderr.strip() == ""
+    with Image.open(out) as gif:
+        assert gif.size == (128, 48) and gif.n_frames == 31  # two clips side by side, 3 s at 10 fps + the end
+
+
+@pytest.mark.parametrize("args, env, fragment", [
+    (["--damage", "leg9"], OSMESA, "unknown damage"),
+    (["--hbr", "no/such/hbr.npz"], OSMESA, "no such HBR file"),
+    (["--skills", "999999"], OSMESA, "out of range"),
+    (["--fps", "7"], OSMESA, "--fps must divide 100"),
+    (["--out", "x.avi"], OSMESA, "must end in .mp4 or .gif"),
+    ([], dict(OSMESA, MUJOCO_GL="vulkan"), "MUJOCO_GL"),
+])
+def test_render_cli_bad_input_is_one_line_and_exit_2(args, env, fragment):
+    proc = _render_cli("skills", "--count", "1", "--width", "32", "--height", "24", "--fps", "10", "--no-progress",
+                       *args, env=env)
+    assert proc.returncode == 2
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error:") and fragment in lines[0]
