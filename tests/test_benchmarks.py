@@ -53,6 +53,16 @@ def test_adaptation_benchmark(tmp_path):
     assert "plan med s" in stdout
 
 
+def test_render_speed_benchmark(tmp_path):
+    out = tmp_path / "render.json"
+    stdout = run_benchmark("render_speed.py", "--seconds", "1", "--fps", "10", "--width", "64", "--height", "48",
+                           "--repeats", "2", "--out", str(out))
+    (row,) = json.loads(out.read_text())["rows"]
+    assert row["frames"] == 10 and len(row["render_s_all"]) == 2 and row["render_s_median"] > 0
+    assert row["total_s_median"] >= row["render_s_median"] and row["frames_per_s"] > 0
+    assert "frames/s" in stdout
+
+
 def test_setting_strings():
     assert common.parse_setting("2/4@dt=0.005@tol=1e-6") == {"solver_iterations": 2, "ls_iterations": 4,
                                                        "timestep": 0.005, "solver_tolerance": 1e-6}
