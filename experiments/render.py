@@ -4,11 +4,13 @@
     python -m experiments.render skills --damage leg1 --count 9        # the same under a raised leg 1
     python -m experiments.render skills --flat 2d --camera top         # elites of the shipped Flat-2D
     python -m experiments.render skills --hbr runs/hbr-gpu --skills 10,200,1500 --out runs/render/mine.gif
+    python -m experiments.render patterns --skill 1400 --damage leg1   # one skill, several contact patterns
 
 `skills` simulates each chosen skill for 3 s from standing (top-layer skills of an HBR, or the
 controllers of a flat repertoire, intact or under a named damage), records the state every frame
 and lays the clips out on a grid: a tracking camera (or `--camera top`, looking down), damaged legs
-in red. MP4 through imageio-ffmpeg, GIF through Pillow (by the --out suffix). Headless OpenGL:
+in red. `patterns` executes one HBR skill with several contact patterns held for its three steps
+(what HTE chooses from; "any" is RTE's nearest elite of any pattern), each clip labelled. MP4 through imageio-ffmpeg, GIF through Pillow (by the --out suffix). Headless OpenGL:
 MUJOCO_GL=egl where a GPU driver is present, otherwise osmesa (Debian package libosmesa6); the
 default is chosen for you when MUJOCO_GL is unset. Bad input gives a one-line error and exit 2.
 """
@@ -38,13 +40,16 @@ from tqdm.auto import tqdm  # noqa: E402
 from hte_jax.errors import ConfigError  # noqa: E402
 from hte_jax.flat.comparison import resolve  # noqa: E402
 from hte_jax.flat.store import load_flat, shipped_flat_path  # noqa: E402
-from hte_jax.hbr.execution import execute_skill  # noqa: E402
+from hte_jax.hbr.execution import ANY_PATTERN, execute_skill  # noqa: E402
+from hte_jax.hbr.middle import NUM_PATTERNS  # noqa: E402
 from hte_jax.hbr.store import load_hbr  # noqa: E402
 from hte_jax.qd.io import CheckpointError  # noqa: E402
 from hte_jax.sim.damage import parse_damage  # noqa: E402
 from hte_jax.sim.robot import DAMAGE_MODELS, RobotConfig, load_robot  # noqa: E402
 from hte_jax.sim.rollout import RolloutSpec, rollout, standing_state  # noqa: E402
-from hte_jax.viz.render import CAMERAS, Camera, RenderError, open_renderer, render_model, render_frames, tile, write_video  # noqa: E402
+from hte_jax.viz.render import (  # noqa: E402
+    CAMERAS, Camera, RenderError, label, open_renderer, render_frames, render_model, tile, write_video,
+)
 
 CONTROL_HZ = 100
 SKILL_STEPS = 300  # 3 s
@@ -68,6 +73,15 @@ def parser() -> argparse.ArgumentParser:
     s.add_argument("--columns", type=int, default=3)
     s.add_argument("--out", default="runs/render/skills.mp4", help=".mp4 or .gif")
     s.add_argument("--no-progress", action="store_true")
+    q = sub.add_parser("patterns", help="one HBR skill executed with several contact patterns, side by side")
+    q.add_argument("--hbr", default=None, help="HBR file or run folder (default: the shipped HBR)")
+    q.add_argument("--skill", type=int, default=None, help="skill number (default: the middle one)")
+    q.add_argument("--patterns", default="any,63,47,61,45,31,59",
+                   help="comma-separated contact patterns 0..63 (leg 0 = most significant bit) or any")
+    for flag, default in (("--damage", "none"), ("--damage-model", "raised"), ("--camera", "track"), ("--width", 320),
+                          ("--height", 240), ("--fps", 25), ("--columns", 4), ("--out", "runs/render/patterns.mp4")):
+        q.add_argument(flag, type=type(default), default=default)
+    q.add_argument("--no-progress", action="store_true")
     return p
 
 
@@ -95,19 +109,62 @@ def _flat_states(robot, params, damage, every: int):
 
 
 @functools.partial(jax.jit, static_argnames=("every",))
-def _hbr_states(robot, hbr, genotypes, damage, every: int):
-    result = execute_skill(robot, hbr, genotypes, standing_state(robot, damage), damage, record_every=every)
+def _hbr_states(robot, hbr, genotypes, damage, every: int, patterns=None):
+    result = execute_skill(robot, hbr, genotypes, standing_state(robot, damage), damage, patterns, record_every=every)
     steps = jnp.swapaxes(result.steps.qpos, 0, 1)  # (B, 3, F, 25)
     return jnp.concatenate([steps.reshape(steps.shape[0], -1, steps.shape[-1]), result.state.qpos[:, None]], axis=1)
 
 
-def skill_states(args) -> tuple[np.ndarray, np.ndarray]:
-    """Recorded qpos (N, T, 25) of the chosen skills and the damage mask (6,)."""
+def _setup(args):
     if args.fps < 1 or CONTROL_HZ % args.fps:
         raise ConfigError(f"--fps must divide {CONTROL_HZ}, got {args.fps}")
     damage = parse_damage(args.damage)
-    robot = load_robot(RobotConfig(damage_model=args.damage_model))
-    every = CONTROL_HZ // args.fps
+    return damage, load_robot(RobotConfig(damage_model=args.damage_model)), CONTROL_HZ // args.fps
+
+
+def _load_hbr(path_arg):
+    path = None if path_arg is None else resolve(path_arg)
+    if path is not None and not Path(path).is_file():
+        raise CheckpointError(f"{path}: no such HBR file")
+    hbr, _, _ = load_hbr(path)
+    return hbr, np.asarray(hbr.top.genotypes)[np.asarray(hbr.top.filled)]
+
+
+def _parse_patterns(text: str) -> np.ndarray:
+    patterns = []
+    for item in text.split(","):
+        item = item.strip()
+        if item == "any":
+            patterns.append(ANY_PATTERN)
+        elif item.isdigit() and int(item) < NUM_PATTERNS:
+            patterns.append(int(item))
+        else:
+            raise ConfigError(f"unknown contact pattern {item!r}: use 0..{NUM_PATTERNS - 1} or any")
+    return np.asarray(patterns, np.int32)
+
+
+def _pattern_label(pattern: int) -> str:
+    return "any pattern" if pattern == ANY_PATTERN else f"pattern {pattern} ({pattern:06b})"
+
+
+def pattern_states(args) -> tuple[np.ndarray, np.ndarray, list[str]]:
+    """Recorded qpos (P, T, 25) of one skill under each pattern, the damage (6,) and clip labels."""
+    patterns = _parse_patterns(args.patterns)
+    damage, robot, every = _setup(args)
+    hbr, genotypes = _load_hbr(args.hbr)
+    skill = len(genotypes) // 2 if args.skill is None else args.skill
+    skill = int(_chosen(1, len(genotypes), str(skill))[0])
+    count = patterns.size
+    batch = jnp.broadcast_to(jnp.asarray(damage), (count, damage.size))
+    held = jnp.asarray(np.repeat(patterns[:, None], 3, axis=1))
+    genes = jnp.asarray(np.repeat(genotypes[skill][None], count, axis=0))
+    states = np.asarray(_hbr_states(robot, hbr, genes, batch, every, held))
+    return states, damage, [_pattern_label(int(p)) for p in patterns]
+
+
+def skill_states(args) -> tuple[np.ndarray, np.ndarray]:
+    """Recorded qpos (N, T, 25) of the chosen skills and the damage mask (6,)."""
+    damage, robot, every = _setup(args)
     if args.flat is not None:
         path = shipped_flat_path(args.flat) if args.flat in ("2d", "8d") else resolve(args.flat)
         if not Path(path).is_file():
@@ -118,23 +175,23 @@ def skill_states(args) -> tuple[np.ndarray, np.ndarray]:
         chosen = _chosen(args.count, len(params), args.skills)
         batch = jnp.broadcast_to(jnp.asarray(damage), (chosen.size, damage.size))
         return np.asarray(_flat_states(robot, jnp.asarray(params[chosen]), batch, every)), damage
-    path = None if args.hbr is None else resolve(args.hbr)
-    if path is not None and not Path(path).is_file():
-        raise CheckpointError(f"{path}: no such HBR file")
-    hbr, _, _ = load_hbr(path)
-    genotypes = np.asarray(hbr.top.genotypes)[np.asarray(hbr.top.filled)]
+    hbr, genotypes = _load_hbr(args.hbr)
     chosen = _chosen(args.count, len(genotypes), args.skills)
     batch = jnp.broadcast_to(jnp.asarray(damage), (chosen.size, damage.size))
     return np.asarray(_hbr_states(robot, hbr, jnp.asarray(genotypes[chosen]), batch, every)), damage
 
 
-def render_skills(args) -> Path:
+def render_clips(args) -> Path:
+    """Simulate what `args.command` asks for, render every clip and write the grid video."""
     camera = Camera(args.camera, distance=1.2 if args.camera == "track" else 2.0)
     if args.columns < 1:
         raise ConfigError(f"--columns must be >= 1, got {args.columns}")
     if Path(args.out).suffix not in (".mp4", ".gif"):
         raise ConfigError(f"--out must end in .mp4 or .gif, got {args.out!r}")
-    states, damage = skill_states(args)
+    if args.command == "patterns":
+        states, damage, labels = pattern_states(args)
+    else:
+        (states, damage), labels = skill_states(args), None
     model = render_model(RobotConfig(damage_model=args.damage_model), damage)
     renderer = open_renderer(model, args.width, args.height)
     try:
@@ -143,13 +200,15 @@ def render_skills(args) -> Path:
             clips = [render_frames(model, qpos, renderer, camera, bar) for qpos in states]
     finally:
         renderer.close()
+    if labels is not None:
+        clips = [label(clip, text) for clip, text in zip(clips, labels)]
     return write_video(args.out, tile(clips, min(args.columns, len(clips))), args.fps)
 
 
 def main(argv=None) -> int:
     args = parser().parse_args(argv)
     try:
-        written = render_skills(args)
+        written = render_clips(args)
     except (ConfigError, CheckpointError, RenderError) as error:
         print(f"error: {error}", file=sys.stderr)
         return 2

@@ -115,6 +115,24 @@ def test_render_skills_cli_writes_a_grid_gif(tmp_path):
         assert gif.size == (128, 48) and gif.n_frames == 31  # two clips side by side, 3 s at 10 fps + the end
 
 
+def test_render_patterns_cli_labels_one_clip_per_pattern(tmp_path):
+    """One skill under three patterns: three labelled clips side by side; the clips differ (the
+    patterns run different middle elites) and the label's dark pixels sit in the top-left corner."""
+    out = tmp_path / "patterns.gif"
+    proc = _render_cli("patterns", "--patterns", "any,63,47", "--damage", "leg1", "--width", "96", "--height", "64",
+                       "--fps", "10", "--no-progress", "--out", str(out))
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    with Image.open(out) as gif:
+        assert gif.size == (288, 64) and gif.n_frames == 31
+        gif.seek(30)
+        last = np.asarray(gif.convert("RGB")).astype(int)
+    clips = [last[:, k * 96:(k + 1) * 96] for k in range(3)]
+    assert np.abs(clips[1] - clips[2]).sum() > 0
+    assert all((clip[:14, :60].sum(axis=-1) < 120).any() for clip in clips)  # dark label text
+    bad = _render_cli("patterns", "--patterns", "any,64")
+    assert bad.returncode == 2 and bad.stderr.strip() == "error: unknown contact pattern '64': use 0..63 or any"
+
+
 @pytest.mark.parametrize("args, env, fragment", [
     (["--damage", "leg9"], OSMESA, "unknown damage"),
     (["--hbr", "no/such/hbr.npz"], OSMESA, "no such HBR file"),

@@ -116,6 +116,18 @@ def render_frames(
     return frames
 
 
+def label(frames: np.ndarray, text: str) -> np.ndarray:
+    """Frames (T, H, W, 3) with `text` written in their top-left corner (Pillow's default font)."""
+    from PIL import Image, ImageDraw
+
+    out = np.empty_like(frames)
+    for t, frame in enumerate(frames):
+        image = Image.fromarray(frame)
+        ImageDraw.Draw(image).text((4, 3), text, fill=(10, 10, 10))
+        out[t] = np.asarray(image)
+    return out
+
+
 def tile(videos: list[np.ndarray], columns: int) -> np.ndarray:
     """Lay equally long videos (T, H, W, 3) out on a grid of `columns` (black where none)."""
     require_int("columns", columns)
