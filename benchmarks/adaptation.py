@@ -76,7 +76,7 @@ def main(argv=None) -> int:
                                    "roots": args.roots, "variants": args.variant}.items() if v is not None}
     config = with_overrides(preset(args.preset), overrides)
     path = shipped_flat_path(FLAT_VARIANTS[args.variant]) if args.variant in FLAT_VARIANTS else None
-    skills, info = load_skills(path, maps=args.variant == "aprol")
+    skills, info = load_skills(path, maps=args.variant == "aprol", composition=config.composition)
     env = environment()
     rows = [measure(config, skills, args.variant, int(b), args.repeats, args.seed) for b in args.batch_sizes.split(",")]
     print(f"\n{args.variant} on {env['device']}, planner {config.iterations} iterations x {config.roots} trees, "

@@ -1,5 +1,7 @@
 """Secondary-descriptor modulation (paper Fig. 4 and 5): re-execute every top-layer skill with each
-of the 64 contact patterns held for its 3 steps.
+of the 64 contact patterns (or HTE's 36 candidates) held for its 3 steps, each step planned among the
+pattern's elites to the skill's end (`hte_jax.hbr.composition`; `--composition waypoints`: the paper's
+nearest elite to each waypoint).
 
     python -m experiments.modulation                         # the shipped HBR, all skills (GPU: seconds)
     python -m experiments.modulation --hbr runs/hbr-gpu --max-skills 50   # a subset (CPU: minutes)
@@ -19,9 +21,11 @@ from pathlib import Path
 import numpy as np
 
 from hte_jax.flat.comparison import resolve
+from hte_jax.hbr.composition import COMPOSITIONS, planning_table
 from hte_jax.hbr.modulation import Modulation, modulate
 from hte_jax.hbr.plots import plot_modulation_grid, plot_modulation_map
 from hte_jax.hbr.store import load_hbr
+from hte_jax.online.secondary import allowed_patterns
 from hte_jax.qd.io import CheckpointError, write_json
 from hte_jax.sim.robot import load_robot
 from hte_jax.sim.rollout import standing_state
@@ -37,6 +41,10 @@ def parser() -> argparse.ArgumentParser:
                         "(default: in the skill's own grid cell)")
     p.add_argument("--chunk", type=int, default=4096, help="executions per jitted call")
     p.add_argument("--data", default=None, help="re-plot a modulation.npz written earlier (no simulation)")
+    p.add_argument("--composition", default="planned", choices=COMPOSITIONS,
+                   help="how a pattern's steps are chosen: planned to the skill's end (default) or the paper's waypoints")
+    p.add_argument("--patterns", default="all", choices=("all", "candidates"),
+                   help="all 64 contact patterns (paper Fig. 4, 5) or HTE's 36 candidates")
     p.add_argument("--no-progress", action="store_true")
     return p
 
@@ -66,8 +74,10 @@ def main(argv=None) -> int:
     else:
         robot = load_robot()
         skills = np.flatnonzero(np.asarray(hbr.top.filled))[: args.max_skills]
-        mod = modulate(robot, hbr, task, standing_state(robot), skills=skills, chunk=args.chunk,
-                       progress=not args.no_progress)
+        table = planning_table(hbr) if args.composition == "planned" else None
+        patterns = allowed_patterns() if args.patterns == "candidates" else None
+        mod = modulate(robot, hbr, task, standing_state(robot), skills=skills, patterns=patterns, chunk=args.chunk,
+                       progress=not args.no_progress, table=table)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     plot_modulation_map(mod, out / "modulation_map.png", task.extent, args.radius)
@@ -76,6 +86,8 @@ def main(argv=None) -> int:
     summary = mod.summary()
     write_json(out / "modulation.json", {
         "summary": summary,
+        "composition": None if args.data is not None else args.composition,
+        "step_model": hbr.step_model is not None,
         "radius_m": args.radius,
         "per_skill": {"slot": mod.slots.tolist(), **{k: np.asarray(v).tolist() for k, v in counts.items()}},
     })

@@ -17,6 +17,7 @@ from hte_jax.hbr.middle import PRIMARY, evaluate_controllers
 from hte_jax.hbr.store import load_hbr
 from hte_jax.hbr.training import PRESETS, normalised_config, preset, train_hbr, with_overrides
 from hte_jax.errors import ConfigError
+from experiments.measure_steps import main as measure_main
 from hte_jax.qd.io import CheckpointError, prepare_run_dir, read_checkpoint, save_checkpoint
 from hte_jax.sim import load_robot, standing_state
 
@@ -67,6 +68,10 @@ def test_tiny_preset_writes_a_complete_hbr(tiny_run):
     assert sum(band["cells"] for band in bands) == summary["statistics"]["top"]["elites"]
     assert meta["training"]["config"] == config.to_dict()
     assert top_task == config.top_task and hbr.middle_task == config.middle_task
+    filled = np.asarray(hbr.middle.filled)  # the step model measured at the end of training
+    assert summary["step_model"]["starts"] == config.step_starts == 2
+    steps, spread = np.asarray(hbr.step_model.steps)[filled], np.asarray(hbr.step_model.spread)[filled]
+    assert np.all((steps > 0) & (steps < 1)) and np.all(np.isfinite(spread) & (spread >= 0))
     for name in ("top_xy_fitness", "middle_xy_yaw_patterns", "bottom_projections", "bottom_metrics", "middle_metrics",
                  "top_metrics"):
         image = matplotlib.image.imread(tiny_run / "plots" / f"{name}.png")
@@ -239,3 +244,19 @@ def test_hbr_files_are_checked_on_load(tiny_run, tmp_path):
         load_hbr(truncated)
     with pytest.raises(CheckpointError, match="not an HBR file"):
         load_hbr(tiny_run / "top" / "checkpoint.npz")
+
+
+def test_measure_steps_cli_adds_a_step_model(tiny_run, tmp_path, capsys):
+    out = tmp_path / "measured.npz"
+    assert measure_main(["--hbr", str(tiny_run), "--out", str(out), "--starts", "1"]) == 0
+    trained, _, _ = load_hbr(tiny_run / "hbr.npz")
+    measured, _, meta = load_hbr(out)
+    filled = np.asarray(trained.middle.filled)
+    assert meta["step_model"]["starts"] == 1 and meta["training"] == load_hbr(tiny_run / "hbr.npz")[2]["training"]
+    np.testing.assert_array_equal(np.asarray(measured.step_model.spread)[filled], 0.0)  # one start: no spread
+    np.testing.assert_array_equal(measured.middle.genotypes, trained.middle.genotypes)
+    capsys.readouterr()
+    assert measure_main(["--hbr", str(tiny_run), "--starts", "0"]) == 2
+    assert measure_main(["--hbr", str(tmp_path / "missing.npz")]) == 2
+    errors = capsys.readouterr().err.strip().splitlines()
+    assert len(errors) == 2 and "--starts must be >= 1" in errors[0] and "missing.npz" in errors[1]

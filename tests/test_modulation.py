@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from experiments.modulation import main as modulation_main
+from hte_jax.hbr.composition import planning_table, skill_ends
 from hte_jax.hbr.execution import STEPS_PER_SKILL, execute_skill
 from hte_jax.hbr.middle import pattern_code
 from hte_jax.hbr.modulation import Modulation
@@ -59,14 +60,17 @@ def test_reexecutions_match_direct_hierarchical_execution(tmp_path):
     for name in ("modulation_map", "modulation_grid"):
         image = matplotlib.image.imread(out / f"{name}.png")
         assert image.ndim == 3 and image.std() > 0
-    # two (skill, pattern) pairs re-executed directly with the pattern held for the 3 steps
+    # two (skill, pattern) pairs re-executed directly with the pattern held for the 3 steps, each
+    # step planned to the skill's end (the CLI's default composition)
     hbr, task, _ = load_hbr()
     robot = load_robot()
     pairs = [(0, 63), (1, 27)]
-    genes = hbr.top.genotypes[np.array([mod.slots[s] for s, _ in pairs])]
+    slots = np.array([mod.slots[s] for s, _ in pairs])
+    genes = hbr.top.genotypes[slots]
+    ends = skill_ends(hbr.top.descriptors[slots], hbr.top.extras["arrival_yaw"][slots], task.extent)
     held = jnp.asarray([[p] * STEPS_PER_SKILL for _, p in pairs], jnp.int32)
     start = jax.tree.map(lambda x: jnp.broadcast_to(x, (2, *x.shape)), standing_state(robot))
-    skill = execute_skill(robot, hbr, genes, start, patterns=held)
+    skill = execute_skill(robot, hbr, genes, start, patterns=held, table=planning_table(hbr), ends=ends)
     shown = np.asarray(pattern_code((skill.steps.contact_fraction.mean(axis=0) > 0.3).astype(jnp.float32)))
     for row, (s, p) in enumerate(pairs):
         np.testing.assert_allclose(mod.final_xy[s, p], np.asarray(skill.displacement[row, :2]), atol=2e-3)

@@ -18,6 +18,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
+from hte_jax.hbr.composition import PatternTable, StepModel, plan_batch
 from hte_jax.hbr.geometry import compose_pose, planar_pose, relative_pose
 from hte_jax.hbr.middle import PRIMARY, MiddleTask, decode, leg_controllers, pattern_code
 from hte_jax.qd.archive import map_rows, squared_distance
@@ -39,6 +40,8 @@ class HBR:
     middle_params: (Cm, 36) the controller of every middle elite (zeros where empty).
     middle_patterns: (Cm,) int32 contact pattern of every middle elite (-1 where empty).
     middle_task: how the middle layer was evaluated (static).
+    step_model: the middle elites' steps measured from several start states (`composition.StepModel`,
+      (Cm, 3) and (Cm,)), or None when not measured.
     """
 
     bottom: Repertoire
@@ -47,13 +50,15 @@ class HBR:
     middle_params: jax.Array
     middle_patterns: jax.Array
     middle_task: MiddleTask = struct.field(pytree_node=False, default=MiddleTask())
+    step_model: StepModel | None = None
 
     @classmethod
-    def build(cls, bottom: Repertoire, middle: Repertoire, top: Repertoire, middle_task: MiddleTask) -> HBR:
+    def build(cls, bottom: Repertoire, middle: Repertoire, top: Repertoire, middle_task: MiddleTask,
+              step_model: StepModel | None = None) -> HBR:
         """Assemble the layers and precompute the middle elites' controllers and patterns."""
         params = jnp.where(middle.filled[:, None], leg_controllers(bottom, decode(middle.genotypes)), 0.0)
         patterns = jnp.where(middle.filled, pattern_code(middle.descriptors[:, PRIMARY:]), ANY_PATTERN)
-        return cls(bottom, middle, top, params, patterns.astype(jnp.int32), middle_task)
+        return cls(bottom, middle, top, params, patterns.astype(jnp.int32), middle_task, step_model)
 
 
 @struct.dataclass
@@ -126,17 +131,21 @@ def _step_spec(steps: int, limits: ValidityLimits, record_every: int = 0) -> Rol
 def execute_step(
     robot: Robot, hbr: HBR, state: SimState, damage: jax.Array, target: jax.Array, pattern: jax.Array,
     limits: ValidityLimits = ValidityLimits(), query: jax.Array | None = None, record_every: int = 0,
+    elite: jax.Array | None = None,
 ) -> StepResult:
     """Walk one second towards the world pose `target` (B, 3) with contact `pattern` (B,) (-1: any).
 
     query: (B, 3) normalised primary step to look the elite up with instead of the step to `target`
-    (an adaptation rule that aims off the target to cancel a predicted drift). record_every: k > 0
-    also returns the qpos every k control steps (`StepResult.qpos`).
+    (an adaptation rule that aims off the target to cancel a predicted drift). elite: (B,) int32
+    middle elite to run where >= 0 (chosen by a planner), instead of the looked-up one. record_every:
+    k > 0 also returns the qpos every k control steps (`StepResult.qpos`).
     """
     task = hbr.middle_task
     here = state_pose(state)
     desired = task.normalise(relative_pose(here, target)) if query is None else query
     index, found = select_middle(hbr, desired, pattern)
+    if elite is not None:
+        index, found = jnp.where(elite >= 0, elite, index), found | (elite >= 0)
     result = rollout(robot, hbr.middle_params[index], damage, state, _step_spec(task.steps, limits, record_every))
     poses = planar_pose(result.base_pos, result.base_quat)
     return StepResult(
@@ -170,11 +179,16 @@ def execute_skill(
     damage: jax.Array | None = None,
     patterns: jax.Array | None = None,
     record_every: int = 0,
+    table: PatternTable | None = None,
+    ends: jax.Array | None = None,
 ) -> SkillResult:
     """Execute (B, 9) top genotypes from `start` (B, ...) with damage (B, 6) and contact patterns (B, 3).
 
     damage None: intact. patterns None or -1 entries: nearest elite of any pattern. record_every:
-    k > 0 records the qpos every k control steps (`steps.qpos`, (3, B, F, 25)).
+    k > 0 records the qpos every k control steps (`steps.qpos`, (3, B, F, 25)). table and ends
+    (B, 3) (the skills' end poses in the start frame): steps with a pattern >= 0 run the first step
+    of a plan among that pattern's elites towards the end (`composition`), not the nearest elite to
+    the next waypoint.
     """
     batch = genotypes.shape[0]
     damage = jnp.zeros((batch, NUM_LEGS), bool) if damage is None else jnp.broadcast_to(damage, (batch, NUM_LEGS))
@@ -183,12 +197,19 @@ def execute_skill(
     origin = state_pose(start)
     targets = compose_pose(origin[:, None, :], skill_waypoints(hbr.middle_task, genotypes))  # (B, 3, 3)
 
+    goal = None if table is None else compose_pose(origin, ends)
+
     def one_step(state, xs):
-        target, pattern = xs
-        step = execute_step(robot, hbr, state, damage, target, pattern, record_every=record_every)
+        target, pattern, remaining = xs
+        elite = None
+        if table is not None:
+            elite = plan_batch(table, hbr.middle_task, state_pose(state), goal, pattern, remaining)
+        step = execute_step(robot, hbr, state, damage, target, pattern, record_every=record_every, elite=elite)
         return step.state, step
 
-    final, steps = jax.lax.scan(one_step, start, (jnp.swapaxes(targets, 0, 1), jnp.swapaxes(patterns, 0, 1)))
+    remaining = jnp.arange(STEPS_PER_SKILL, 0, -1, dtype=jnp.int32)
+    xs = (jnp.swapaxes(targets, 0, 1), jnp.swapaxes(patterns, 0, 1), remaining)
+    final, steps = jax.lax.scan(one_step, start, xs)
     end = state_pose(final)
     return SkillResult(
         state=final,

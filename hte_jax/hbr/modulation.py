@@ -15,6 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm.auto import tqdm
 
+from hte_jax.hbr.composition import PatternTable, skill_ends
 from hte_jax.hbr.execution import HBR, STEPS_PER_SKILL, execute_skill
 from hte_jax.hbr.middle import NUM_PATTERNS, pattern_code
 from hte_jax.hbr.top import TopTask
@@ -92,7 +93,10 @@ class Modulation:
         within = {}
         for radius in radii:
             near = self.counts(radius)
-            within[f"{radius:g}"] = {"reaches": float(near["reaches"].mean()), "both": float(near["both"].mean())}
+            some = near["shows"] > 0
+            share = near["both"][some] / near["shows"][some] if some.any() else np.array([np.nan])
+            within[f"{radius:g}"] = {"reaches": float(near["reaches"].mean()), "both": float(near["both"].mean()),
+                                     "share_of_shown": float(share.mean())}
         return {
             "skills": int(self.slots.size),
             "patterns": int(self.patterns.size),
@@ -118,10 +122,13 @@ def modulate(
     patterns: np.ndarray | None = None,
     chunk: int = 4096,
     progress: bool = True,
+    table: PatternTable | None = None,
 ) -> Modulation:
     """Re-execute top skills (default all; `skills` = top-grid cells) with each pattern (default all 64).
 
     start: the unbatched standing state. Runs in fixed-size jitted chunks of `chunk` executions.
+    table: plan each step among the pattern's elites towards the skill's end (`composition`)
+    instead of the paper's nearest elite to each waypoint.
     """
     filled = np.flatnonzero(np.asarray(hbr.top.filled))
     slots = filled if skills is None else np.asarray(skills, np.int64)
@@ -133,15 +140,18 @@ def modulate(
     genotypes = np.asarray(hbr.top.genotypes)[slots]
     pair_genes = np.repeat(genotypes, patterns.size, axis=0)
     pair_patterns = np.tile(patterns, slots.size)
+    ends = np.asarray(skill_ends(np.asarray(hbr.top.descriptors)[slots], np.asarray(hbr.top.extras["arrival_yaw"])[slots],
+                                 task.extent))
+    pair_ends = np.repeat(ends, patterns.size, axis=0)
     total = pair_genes.shape[0]
     chunk = min(chunk, total)
     threshold = hbr.middle_task.contact_threshold
     starts = jax.tree.map(lambda x: jnp.broadcast_to(x, (chunk, *x.shape)), start)
 
     @jax.jit
-    def run_chunk(hbr, genes, wanted):
+    def run_chunk(hbr, table, genes, wanted, ends):
         held = jnp.broadcast_to(wanted[:, None], (wanted.shape[0], STEPS_PER_SKILL))
-        skill = execute_skill(robot, hbr, genes, starts, patterns=held)
+        skill = execute_skill(robot, hbr, genes, starts, patterns=held, table=table, ends=ends)
         fraction = skill.steps.contact_fraction.mean(axis=0)  # (B, 6) over the 3 s
         xy = skill.displacement[:, :2]
         cell = task.grid().cell_index(task.normalise(xy))
@@ -151,10 +161,12 @@ def modulate(
     for begin in tqdm(range(0, total, chunk), disable=not progress, desc="modulation", unit="chunk"):
         genes = pair_genes[begin:begin + chunk]
         wanted = pair_patterns[begin:begin + chunk]
+        end = pair_ends[begin:begin + chunk]
         pad = chunk - genes.shape[0]
         genes = np.concatenate([genes, np.repeat(genes[-1:], pad, axis=0)])
         wanted = np.concatenate([wanted, np.repeat(wanted[-1:], pad)])
-        out = jax.device_get(run_chunk(hbr, jnp.asarray(genes), jnp.asarray(wanted, jnp.int32)))
+        end = np.concatenate([end, np.repeat(end[-1:], pad, axis=0)])
+        out = jax.device_get(run_chunk(hbr, table, jnp.asarray(genes), jnp.asarray(wanted, jnp.int32), jnp.asarray(end)))
         outputs.append([np.asarray(o)[: chunk - pad] for o in out])
     xy, measured, valid, available, cell = (np.concatenate(parts) for parts in zip(*outputs))
     shape = (slots.size, patterns.size)

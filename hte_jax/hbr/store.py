@@ -11,11 +11,13 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
+import jax.numpy as jnp
 import numpy as np
 
 from hte_jax.hbr import bottom as bottom_layer
 from hte_jax.hbr import middle as middle_layer
 from hte_jax.hbr import top as top_layer
+from hte_jax.hbr.composition import StepModel
 from hte_jax.hbr.execution import HBR, STEPS_PER_SKILL
 from hte_jax.hbr.middle import MiddleTask
 from hte_jax.hbr.top import TopTask
@@ -38,6 +40,10 @@ def save_hbr(path: str | Path, hbr: HBR, top_task: TopTask, metadata: dict | Non
     arrays = {}
     for layer in ("bottom", "middle", "top"):
         arrays.update(elite_arrays(getattr(hbr, layer), f"{layer}_"))
+    if hbr.step_model is not None:
+        count = int(np.asarray(hbr.middle.filled).sum())
+        arrays["middle_step_mean"] = np.asarray(hbr.step_model.steps, np.float32)[:count]
+        arrays["middle_step_spread"] = np.asarray(hbr.step_model.spread, np.float32)[:count]
     header = {
         "kind": KIND,
         "kind_version": KIND_VERSION,
@@ -92,5 +98,26 @@ def load_hbr(path: str | Path | None = None) -> tuple[HBR, TopTask, dict]:
         raise CheckpointError(f"{path}: top elites refer to middle elites that are not in the file")
     if not top_task.grid().cell_matches(arrays["top_descriptors"], arrays["top_slots"]).all():
         raise CheckpointError(f"{path}: top elites are not stored in the grid cells of their descriptors")
-    hbr = HBR.build(layers["bottom"], layers["middle"], layers["top"], middle_task)
+    hbr = HBR.build(layers["bottom"], layers["middle"], layers["top"], middle_task,
+                    _step_model(path, arrays, middle_count, capacity["middle"]))
     return hbr, top_task, meta
+
+
+def _step_model(path, arrays, count: int, capacity: int) -> StepModel | None:
+    """The measured step model (`composition.measure_steps`) if the file has one, padded to capacity."""
+    if "middle_step_mean" not in arrays and "middle_step_spread" not in arrays:
+        return None
+    want = {"middle_step_mean": (count, 3), "middle_step_spread": (count,)}
+    for key, shape in want.items():
+        value = arrays.get(key)
+        if value is None or value.shape != shape or value.dtype != np.float32:
+            got = "missing" if value is None else f"shape {value.shape} {value.dtype}"
+            raise CheckpointError(f"{path}: {key} is {got}, expected {shape} float32")
+    steps, spread = arrays["middle_step_mean"], arrays["middle_step_spread"]
+    if not np.isfinite(steps).all() or np.isnan(spread).any() or (spread < 0).any():
+        raise CheckpointError(f"{path}: the measured step model has non-finite steps or negative spreads")
+    padded_steps = np.zeros((capacity, 3), np.float32)
+    padded_steps[:count] = steps
+    padded_spread = np.full(capacity, np.inf, np.float32)
+    padded_spread[:count] = spread
+    return StepModel(steps=jnp.asarray(padded_steps), spread=jnp.asarray(padded_spread))

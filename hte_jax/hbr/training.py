@@ -28,6 +28,7 @@ from hte_jax.hbr import middle as middle_layer
 from hte_jax.hbr import top as top_layer
 from hte_jax.hbr.analysis import hbr_statistics
 from hte_jax.hbr.bottom import BOTTOM_FITNESSES, BottomTask, evaluate_bottom
+from hte_jax.hbr.composition import measure_steps
 from hte_jax.hbr.execution import HBR, STEPS_PER_SKILL
 from hte_jax.hbr.middle import MiddleTask, evaluate_middle
 from hte_jax.hbr.plots import plot_hbr
@@ -97,6 +98,8 @@ class HBRConfig:
     bottom_fitness: "commands" (measured joint commands) or "genes" (the original's gene sum).
     solver_iterations / ls_iterations / solver_tolerance: the physics' Newton solver (`RobotConfig`);
       a configuration stored without them ran 4 / 8 / 1e-8 and resumes with that.
+    step_starts: start states from which every middle elite's step is measured once the layers
+      are trained (`composition.measure_steps`, stored in hbr.npz); 0: no step model.
     """
 
     bottom: LayerSchedule
@@ -112,10 +115,12 @@ class HBRConfig:
     solver_iterations: int = RobotConfig.solver_iterations
     ls_iterations: int = RobotConfig.ls_iterations
     solver_tolerance: float = RobotConfig.solver_tolerance
+    step_starts: int = 8
 
     def __post_init__(self):
         require_int("seed", self.seed, minimum=0)
         require_int("middle_samples", self.middle_samples)
+        require_int("step_starts", self.step_starts, minimum=0)
         require_number("contact_threshold", self.contact_threshold, 0.0, 1.0)
         require_number("bottom_l", self.bottom_l, 0.0, open_low=True)
         require_number("middle_l", self.middle_l, 0.0, open_low=True)
@@ -167,6 +172,7 @@ PRESETS: dict[str, HBRConfig] = {
         middle=_schedule(16, 32, 2, 1, 0.11, capacity=256),
         top=_schedule(16, 32, 2, 1, 0.14),
         middle_samples=2,
+        step_starts=2,
     ),
     # The default: a usable small HBR on a 2-core CPU in about 15 minutes.
     "cpu": HBRConfig(
@@ -314,6 +320,13 @@ def train_hbr(
             "wall_time_s": time.perf_counter() - began,
         }
     hbr = HBR.build(lower["bottom"], lower["middle"], lower["top"], config.middle_task)
+    if config.step_starts:
+        began = time.perf_counter()
+        key = jax.random.fold_in(jax.random.PRNGKey(config.seed), len(LAYERS))
+        model = measure_steps(robot, hbr.middle_params, hbr.middle.filled, config.middle_task, start, key,
+                              starts=config.step_starts)
+        hbr = hbr.replace(step_model=model)
+        summary["step_model"] = {"starts": config.step_starts, "wall_time_s": time.perf_counter() - began}
     summary["statistics"] = hbr_statistics(hbr, config.top_task)
     summary["devices"] = [str(d) for d in jax.devices()]
     save_hbr(out / "hbr.npz", hbr, config.top_task, {"training": summary})

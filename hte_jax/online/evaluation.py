@@ -20,12 +20,13 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from hte_jax.errors import ConfigError, require_int, require_number
+from hte_jax.errors import ConfigError, require_choice, require_int, require_number
 from hte_jax.errors import with_overrides as with_overrides  # the configuration's override rule, re-exported
 from hte_jax.flat.store import load_flat, shipped_flat_path
 from hte_jax.hbr.store import load_hbr
 from hte_jax.online.arena import maze_robot, start_states
 from hte_jax.online.episode import AdaptationConfig, Episodes, RunTimings, run_episodes, start_episodes, variant_mode
+from hte_jax.hbr.composition import COMPOSITIONS
 from hte_jax.online.execute import Skills, flat_skill_maps, flat_skills, hbr_skills
 from hte_jax.online.maze import PAPER_MAZE, Maze
 from hte_jax.online.mcts import PlannerConfig
@@ -53,7 +54,10 @@ class EvalConfig:
     damaged leg blocked in the air, the paper's words) or "locked" (in the standing pose, the
     original code's). max_actions: the failure cap. iterations, roots, candidates,
     exploration, widening, gamma, depth: MCTS settings (see PlannerConfig). optimism: how many
-    standard deviations "hte-miss" takes off each elite's predicted deviation (0: greedy). seed:
+    standard deviations "hte-miss" takes off each elite's predicted deviation (0: greedy).
+    composition: how an HBR step with a chosen contact pattern picks its elite: "planned" (ours,
+    `hbr.composition`: a plan among the pattern's elites to the skill's end) or "waypoints" (the
+    paper's nearest elite to the next waypoint); RTE's steps are the same in both. seed:
     PRNG seed. solver_iterations, ls_iterations, solver_tolerance: the physics' Newton solver.
     """
 
@@ -72,6 +76,7 @@ class EvalConfig:
     gamma: float = 0.9
     depth: int = 20
     optimism: float = 0.0
+    composition: str = "planned"
     seed: int = 0
     solver_iterations: int = RobotConfig.solver_iterations
     ls_iterations: int = RobotConfig.ls_iterations
@@ -81,6 +86,7 @@ class EvalConfig:
         require_int("replicates", self.replicates)
         require_int("seed", self.seed, 0)
         require_number("optimism", self.optimism, 0.0)
+        require_choice("composition", self.composition, COMPOSITIONS)
         for name in self.variant_list:
             if name not in VARIANTS:
                 raise ConfigError(f"unknown variant {name!r}; choose from {', '.join(VARIANTS)}")
@@ -157,18 +163,19 @@ def preset(name: str) -> EvalConfig:
     return PRESETS[name]
 
 
-def load_skills(path: str | Path | None, maps: bool = False) -> tuple[Skills, dict]:
+def load_skills(path: str | Path | None, maps: bool = False, composition: str = "planned") -> tuple[Skills, dict]:
     """Actions of an HBR file (its top layer) or of a file holding one flat repertoire; None: the
-    shipped HBR. maps: accept a flat file of several repertoires (APROL's set): actions (K, A)."""
+    shipped HBR. maps: accept a flat file of several repertoires (APROL's set): actions (K, A).
+    composition: see `execute.hbr_skills`."""
     if path is None or str(path) == "":
         hbr, task, _ = load_hbr()
-        skills = hbr_skills(hbr, task)
+        skills = hbr_skills(hbr, task, composition=composition)
         return skills, {"kind": "hbr", "path": "shipped", "actions": int(skills.actions.mask.sum())}
     _, header = read_checkpoint(path)
     kind = header.get("metadata", {}).get("kind")
     if kind == "hte_jax.hbr":
         hbr, task, _ = load_hbr(path)
-        skills = hbr_skills(hbr, task)
+        skills = hbr_skills(hbr, task, composition=composition)
         return skills, {"kind": "hbr", "path": str(path), "actions": int(skills.actions.mask.sum())}
     if kind == "hte_jax.flat":
         count = len(header["metadata"].get("damages", ()))
@@ -230,7 +237,7 @@ def run_batch(config: EvalConfig, path: str | None, variants: list[str], maze: M
               progress: bool = True, key: jax.Array | None = None, seed: int = 0) -> BatchResult:
     """Every (variant, damage, replicate) of `variants` on one repertoire (of seed `seed`), as one
     batch of episodes."""
-    skills, info = load_skills(path, maps=variants == ["aprol"])
+    skills, info = load_skills(path, maps=variants == ["aprol"], composition=config.composition)
     labels = [(v, d, r) for v in variants for d in config.damage_list for r in range(config.replicates)]
     modes = np.array([variant_mode("rte" if v in FLAT_VARIANTS else v, skills.hierarchical) for v, _, _ in labels])
     damages = np.stack([parse_damage(d) for _, d, _ in labels])

@@ -41,6 +41,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
+from hte_jax.hbr.composition import COMPOSITIONS, PatternTable, plan_batch, planning_table
 from hte_jax.hbr.execution import (
     ANY_PATTERN,
     HBR,
@@ -53,7 +54,7 @@ from hte_jax.hbr.execution import (
 from hte_jax.hbr.geometry import compose_pose, planar_pose, relative_pose
 from hte_jax.hbr.middle import NUM_PATTERNS, PRIMARY
 from hte_jax.hbr.top import TopTask
-from hte_jax.online.actions import ActionSet, action_set
+from hte_jax.online.actions import ActionSet, action_set, displacement_of
 from hte_jax.online.gp import HTE_KERNEL, GPData, add_observation, posterior
 from hte_jax.online.secondary import (
     acquisition,
@@ -91,11 +92,15 @@ class Skills:
     genotypes: (A, G) top-layer genotypes (G = 9) of an HBR, or controllers (G = 36) of a flat
       repertoire; (K, A, 36) for K flat repertoires.
     hbr: the HBR the top genotypes belong to, or None for flat repertoires.
+    table: the HBR's elites grouped by pattern when a step with a chosen pattern plans its way to
+      the skill's end (`composition="planned"`), or None for the paper's nearest elite to the
+      next waypoint.
     """
 
     actions: ActionSet
     genotypes: jax.Array
     hbr: HBR | None = None
+    table: PatternTable | None = None
 
     @property
     def hierarchical(self) -> bool:
@@ -117,11 +122,19 @@ class Skills:
         return self.genotypes if self.actions.mask.ndim == 2 else self.genotypes[None]
 
 
-def hbr_skills(hbr: HBR, top_task: TopTask, pad_to: int | None = None) -> Skills:
-    """The filled top-layer cells of an HBR as actions."""
+def hbr_skills(hbr: HBR, top_task: TopTask, pad_to: int | None = None, composition: str = "planned") -> Skills:
+    """The filled top-layer cells of an HBR as actions.
+
+    composition: how a step with a chosen contact pattern picks its elite: "waypoints" (the
+    paper's nearest elite to the next waypoint) or "planned" (`hbr.composition`: a plan among the
+    pattern's elites to the skill's end, with the HBR's measured step model when it has one).
+    """
+    if composition not in COMPOSITIONS:
+        raise ValueError(f"unknown composition {composition!r}; choose from {', '.join(COMPOSITIONS)}")
     actions = action_set(hbr.top, top_task.extent, pad_to)
     genotypes = hbr.top.genotypes[jnp.maximum(actions.slots, 0)]
-    return Skills(actions=actions, genotypes=genotypes, hbr=hbr)
+    table = planning_table(hbr) if composition == "planned" else None
+    return Skills(actions=actions, genotypes=genotypes, hbr=hbr, table=table)
 
 
 def flat_skills(repertoire: Repertoire, extent: float, pad_to: int | None = None) -> Skills:
@@ -291,14 +304,19 @@ def execute_hbr(
     task = hbr.middle_task
     origin = state_pose(state)
     targets = compose_pose(origin[:, None, :], skill_waypoints(task, skills.genotypes[index]))  # (B, 3, 3)
+    goal = compose_pose(origin, displacement_of(skills.actions.prior[index]))  # (B, 3) the skills' stored ends
 
     def one_step(carry, xs):
         state, gp = carry
         target, step, step_keys = xs
-        desired = task.normalise(relative_pose(state_pose(state), target))
+        here = state_pose(state)
+        desired = task.normalise(relative_pose(here, target))
         t = 1 + step + STEPS_PER_SKILL * action_number
         pattern, query = choose_patterns(hbr, mode, oracle, gp, desired, t, step_keys, optimism)
-        result = execute_step(robot, hbr, state, damage, target, pattern, ONLINE_LIMITS, query=query)
+        elite = None
+        if skills.table is not None:
+            elite = plan_batch(skills.table, task, here, goal, pattern, STEPS_PER_SKILL - step)
+        result = execute_step(robot, hbr, state, damage, target, pattern, ONLINE_LIMITS, query=query, elite=elite)
         executed = hbr.middle.descriptors[result.middle_index]  # (B, 9)
         observed = task.normalise(result.displacement)
         error = relative_error(executed[:, :PRIMARY], observed)
