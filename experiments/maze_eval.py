@@ -8,6 +8,7 @@
     python -m experiments.maze_eval --protocol paper --preset gpu    # the paper's Fig. 6 / 7 experiment
     python -m experiments.maze_eval --protocol paper --damage-model locked
     python -m experiments.maze_eval --protocol paper --preset gpu --repertoire-dir runs/seeds  # R seeds
+    python -m experiments.maze_eval --variant hte --damage leg1 --video 1   # and a video of the episode
 
 Variants: hte, perfect-hte, random-hte, rte (on an HBR: the shipped one or --repertoire; rte
 also on a flat file), 2d-rte, 8d-rte (shipped flat repertoires), aprol (shipped 21 damaged
@@ -20,6 +21,10 @@ Writes config.json, episodes.json (one record per episode), summary.json (per va
 damage), statistics.json (the paper's statistics: quartiles of the replication medians, failure
 rates, pairwise Wilcoxon-Mann-Whitney tests with Bonferroni correction), episodes_<k>.npz
 (trajectories, plans, patterns of batch k) and plots/ under --out (default runs/maze-eval).
+--video N records the first N episodes of each variant (the full state 25 times per simulated
+second; recording changes no result) as replays/<variant>_ep<I>.npz and, once the results are
+written, renders them as videos/<variant>_ep<I>_<damage>.mp4 with `python -m experiments.render
+episode` (headless: MUJOCO_GL=egl with a GPU driver, osmesa on a CPU machine, chosen when unset).
 Bad values give a one-line error and exit status 2.
 """
 
@@ -28,25 +33,33 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import subprocess
 import sys
+import warnings
 from pathlib import Path
 
 import numpy as np
 
-from hte_jax.errors import ConfigError
+from tqdm.auto import tqdm
+
+from hte_jax.errors import ConfigError, require_int
 from hte_jax.online.evaluation import (
     PRESETS,
     PROTOCOLS,
     EvalConfig,
+    batch_labels,
     batches,
+    episode_numbers,
     episode_records,
     prediction_errors,
     preset,
     protocol_overrides,
+    rows_to_record,
     run_batch,
     summarise,
     with_overrides,
 )
+from hte_jax.online.recording import replay_path, save_replay
 from hte_jax.online.maze import PAPER_MAZE
 from hte_jax.online.plots import (
     episode_track,
@@ -61,6 +74,8 @@ from hte_jax.online.statistics import PAPER_FAILURE_REDUCTION, PAPER_QUARTILES, 
 from hte_jax.qd.io import CheckpointError, save_checkpoint, write_json
 
 SETTINGS = [f.name for f in dataclasses.fields(EvalConfig)]
+RECORD_EVERY = 4  # control steps between the recorded states of --video episodes (25 per simulated second)
+ROOT = Path(__file__).resolve().parents[1]
 ALIASES = {"variants": "--variant", "damages": "--damage"}
 
 
@@ -71,6 +86,8 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default="runs/maze-eval", help="output folder (default runs/maze-eval)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--show-config", action="store_true", help="print the resolved configuration and exit")
+    p.add_argument("--video", default="0", metavar="N",
+                   help="record the first N episodes of each variant and write their videos (default 0: none)")
     for key in SETTINGS:
         flag = ALIASES.get(key, "--" + key.replace("_", "-"))
         p.add_argument(flag, dest=key, default=None, metavar="V", help=f"override {key}")
@@ -83,6 +100,7 @@ def main(argv=None) -> int:
         overrides = protocol_overrides(args.protocol) if args.protocol is not None else {}
         overrides.update({k: getattr(args, k) for k in SETTINGS if getattr(args, k) is not None})
         config = with_overrides(preset(args.preset), overrides)
+        videos = _video_count(args.video)
         if args.show_config:
             print(json.dumps(config.to_dict(), indent=2))
             return 0
@@ -90,11 +108,16 @@ def main(argv=None) -> int:
         out.mkdir(parents=True, exist_ok=True)
         write_json(out / "config.json", {"preset": args.preset, "protocol": args.protocol, **config.to_dict()})
         records, curves, tracks = [], {}, {}
+        earlier, recorded = {}, []  # episodes of each variant in earlier batches; (variant, episode) recorded
         for k, (seed, path, variants) in enumerate(batches(config)):
-            result = run_batch(config, path, variants, progress=not args.no_progress, seed=seed)
+            labels = [v for v, _, _ in batch_labels(config, variants)]
+            result = run_batch(config, path, variants, progress=not args.no_progress, seed=seed,
+                               record=rows_to_record(labels, videos, earlier), record_every=RECORD_EVERY)
             rows = episode_records(result, config.max_actions)
             records += rows
             _save_batch(out / f"episodes_{k}.npz", result)
+            recorded += _save_replays(out, result, episode_numbers(labels, earlier), k)
+            earlier = {v: earlier.get(v, 0) + labels.count(v) for v in {*earlier, *labels}}
             _plot_batch(out / "plots", result, curves, tracks)
             print(f"batch {k} ({'/'.join(variants)} on seed {seed}: {result.repertoire['path']}, "
                   f"{result.repertoire['actions']} actions): "
@@ -119,13 +142,53 @@ def main(argv=None) -> int:
     plot_protocol_box(out / "plots" / "fig6_actions.png", statistics, config.max_actions, PAPER_QUARTILES)
     plot_failures(out / "plots" / "fig7_failures.png", statistics)
     plot_variant_mazes(out / "plots" / "maze_variants.png", PAPER_MAZE, tracks)
+    failed = _write_videos(out, recorded, progress=not args.no_progress)
     print(f"{'variant':<12} {'damage':<8} {'rep':>3} {'actions':>7}  result")
     for r in records:
         result = "goal" if r["reached"] else ("flipped" if r["broken"] else "failed")
         print(f"{r['variant']:<12} {r['damage']:<8} {r['replicate']:>3} {r['actions']:>7}  {result}")
     _print_statistics(statistics)
+    if failed:
+        print(f"error: {failed}", file=sys.stderr)
+        return 2
     print(f"wrote {out}")
     return 0
+
+
+def _video_count(text: str) -> int:
+    try:
+        count = int(text)
+    except ValueError:
+        raise ConfigError(f"--video must be an integer >= 0 (episodes per variant), got {text!r}") from None
+    require_int("--video", count, 0)
+    return count
+
+
+def _save_replays(out: Path, result, numbers: list[int], batch: int) -> list[tuple[str, int]]:
+    """Write the batch's recorded episodes as replay files; returns their (variant, episode number)."""
+    saved = []
+    for replay in result.replays:
+        variant, number = replay.info["variant"], numbers[replay.info["row"]]
+        save_replay(replay_path(out, variant, number),
+                    dataclasses.replace(replay, info={**replay.info, "episode": number, "batch": batch}))
+        saved.append((variant, number))
+    return saved
+
+
+def _write_videos(out: Path, recorded: list[tuple[str, int]], progress: bool) -> str | None:
+    """Render every recorded episode with `python -m experiments.render episode` (its own process:
+    it chooses MUJOCO_GL before importing mujoco) into out/videos; the error line if one fails."""
+    for variant, number in tqdm(recorded, desc="videos", unit="video", disable=not progress):
+        command = [sys.executable, "-m", "experiments.render", "episode", str(out.resolve()), "--variant", variant,
+                   "--episode", str(number), "--no-progress"]
+        with warnings.catch_warnings():  # JAX's fork warning does not apply to a subprocess that execs at once
+            warnings.filterwarnings("ignore", message=r"os\.fork\(\) was called", category=RuntimeWarning)
+            proc = subprocess.run(command, cwd=ROOT, capture_output=True, text=True)
+        if proc.returncode != 0:
+            lines = proc.stderr.strip().splitlines() or [f"exit status {proc.returncode}"]
+            return (f"videos not written ({lines[-1].removeprefix('error: ')}); the replays are in {out / 'replays'}: "
+                    f"python -m experiments.render episode {out} --variant {variant} --episode {number}")
+    return None
 
 
 def _print_statistics(statistics: dict) -> None:

@@ -5,12 +5,19 @@
     python -m experiments.render skills --flat 2d --camera top         # elites of the shipped Flat-2D
     python -m experiments.render skills --hbr runs/hbr-gpu --skills 10,200,1500 --out runs/render/mine.gif
     python -m experiments.render patterns --skill 1400 --damage leg1   # one skill, several contact patterns
+    python -m experiments.render episode runs/maze-eval --variant hte --episode 0  # a recorded maze episode
 
 `skills` simulates each chosen skill for 3 s from standing (top-layer skills of an HBR, or the
 controllers of a flat repertoire, intact or under a named damage), records the state every frame
 and lays the clips out on a grid: a tracking camera (or `--camera top`, looking down), damaged legs
 in red. `patterns` executes one HBR skill with several contact patterns held for its three steps
-(what HTE chooses from; "any" is RTE's nearest elite of any pattern), each clip labelled. MP4 through imageio-ffmpeg, GIF through Pillow (by the --out suffix). Headless OpenGL:
+(what HTE chooses from; "any" is RTE's nearest elite of any pattern), each clip labelled.
+`episode` replays a maze episode recorded by `python -m experiments.maze_eval --video N` (the
+replay files under <run>/replays/; --episode I is the variant's I-th episode of the run): the
+whole maze seen from above (or --camera track), the goal in green, the path so far as a blue
+trail, and a panel naming the action, the executed skill and each step's contact pattern;
+--speed simulated seconds per video second (default 4). MP4 through imageio-ffmpeg, GIF through
+Pillow (by the --out suffix). Headless OpenGL:
 MUJOCO_GL=egl where a GPU driver is present, otherwise osmesa (Debian package libosmesa6); the
 default is chosen for you when MUJOCO_GL is unset. Bad input gives a one-line error and exit 2.
 """
@@ -43,10 +50,12 @@ from hte_jax.flat.store import load_flat, shipped_flat_path  # noqa: E402
 from hte_jax.hbr.execution import ANY_PATTERN, execute_skill  # noqa: E402
 from hte_jax.hbr.middle import NUM_PATTERNS  # noqa: E402
 from hte_jax.hbr.store import load_hbr  # noqa: E402
+from hte_jax.online.recording import REPLAY_DIR, Replay, load_replay, recorded_episodes, replay_path  # noqa: E402
 from hte_jax.qd.io import CheckpointError  # noqa: E402
 from hte_jax.sim.damage import parse_damage  # noqa: E402
 from hte_jax.sim.robot import DAMAGE_MODELS, RobotConfig, load_robot  # noqa: E402
 from hte_jax.sim.rollout import RolloutSpec, rollout, standing_state  # noqa: E402
+from hte_jax.viz.episode import frame_states, render_episode  # noqa: E402
 from hte_jax.viz.render import (  # noqa: E402
     CAMERAS, Camera, RenderError, label, open_renderer, render_frames, render_model, tile, write_video,
 )
@@ -82,6 +91,17 @@ def parser() -> argparse.ArgumentParser:
                           ("--height", 240), ("--fps", 25), ("--columns", 4), ("--out", "runs/render/patterns.mp4")):
         q.add_argument(flag, type=type(default), default=default)
     q.add_argument("--no-progress", action="store_true")
+    e = sub.add_parser("episode", help="a maze episode replayed from a maze_eval run folder (recorded with --video)")
+    e.add_argument("run", help="run folder of python -m experiments.maze_eval --video N")
+    e.add_argument("--variant", default=None, help="variant (default: the first recorded, in name order)")
+    e.add_argument("--episode", type=int, default=0, help="the variant's episode number in the run (default 0, its first)")
+    e.add_argument("--camera", default="top", help=f"one of {', '.join(CAMERAS)} (default top: the whole maze)")
+    e.add_argument("--width", type=int, default=480)
+    e.add_argument("--height", type=int, default=360)
+    e.add_argument("--fps", type=int, default=25, help="video frames per second (default 25)")
+    e.add_argument("--speed", type=float, default=4.0, help="simulated seconds per video second (default 4)")
+    e.add_argument("--out", default=None, help=".mp4 or .gif (default <run>/videos/<variant>_ep<I>_<damage>.mp4)")
+    e.add_argument("--no-progress", action="store_true")
     return p
 
 
@@ -205,10 +225,54 @@ def render_clips(args) -> Path:
     return write_video(args.out, tile(clips, min(args.columns, len(clips))), args.fps)
 
 
+def _numbers(numbers: list[int]) -> str:
+    if len(numbers) > 2 and numbers == list(range(numbers[0], numbers[-1] + 1)):
+        return f"{numbers[0]}..{numbers[-1]}"
+    return ", ".join(map(str, numbers))
+
+
+def chosen_replay(args) -> Replay:
+    """The recorded episode `args` names in run folder `args.run`; ConfigError listing what is there."""
+    run = Path(args.run)
+    if not run.is_dir():
+        raise ConfigError(f"{run}: no such run folder")
+    available = recorded_episodes(run)
+    if not available:
+        raise ConfigError(f"{run} holds no recorded episodes ({REPLAY_DIR}/); record them with "
+                          f"python -m experiments.maze_eval --video N --out {run} ...")
+    listed = "; ".join(f"{v}: episodes {_numbers(n)}" for v, n in available.items())
+    variant = next(iter(available)) if args.variant is None else args.variant
+    if variant not in available:
+        raise ConfigError(f"no recorded episode of variant {variant!r} in {run} (recorded: {listed})")
+    if args.episode not in available[variant]:
+        raise ConfigError(f"episode {args.episode} of {variant} is not recorded in {run} (recorded: {listed}; "
+                          "maze_eval --video N records the first N episodes of each variant)")
+    return load_replay(replay_path(run, variant, args.episode))
+
+
+def episode_video(args) -> Path:
+    """Render the chosen recorded episode and write its video."""
+    if args.fps < 1:
+        raise ConfigError(f"--fps must be >= 1, got {args.fps}")
+    if args.out is not None and Path(args.out).suffix not in (".mp4", ".gif"):
+        raise ConfigError(f"--out must end in .mp4 or .gif, got {args.out!r}")
+    replay = chosen_replay(args)
+    stride = args.speed * CONTROL_HZ / replay.every / args.fps  # recorded states per frame
+    if not (stride >= 1 and abs(stride - round(stride)) < 1e-9):
+        raise ConfigError(f"--speed {args.speed} at --fps {args.fps} shows {stride:g} recorded states per frame "
+                          f"({CONTROL_HZ // replay.every} per simulated second); choose them to make it a whole number >= 1")
+    info = replay.info
+    out = args.out or Path(args.run) / "videos" / f"{info['variant']}_ep{info['episode']}_{info['damage']}.mp4"
+    frames = frame_states(replay, round(stride))
+    with tqdm(total=len(frames), desc="render", unit="frame", disable=args.no_progress) as bar:
+        video = render_episode(replay, args.width, args.height, args.camera, round(stride), hold=args.fps, progress=bar)
+    return write_video(out, video, args.fps)
+
+
 def main(argv=None) -> int:
     args = parser().parse_args(argv)
     try:
-        written = render_clips(args)
+        written = episode_video(args) if args.command == "episode" else render_clips(args)
     except (ConfigError, CheckpointError, RenderError) as error:
         print(f"error: {error}", file=sys.stderr)
         return 2

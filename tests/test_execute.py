@@ -92,6 +92,14 @@ def test_flat_action_is_the_trained_controller_and_walls_stop_it():
     x_reached = float(np.max(np.asarray(result.poses[0, :, 0])))
     assert x_reached < wall_x - walled.robot_radius + 0.03
     assert abs(float(result.poses[1, 2, 0])) > wall_x  # unblocked, it walks further than that
+    # Recording the states every 25 control steps changes nothing; every 4th state starts a second.
+    recorded = execute_flat(maze_robot(walled), skills.genotypes[jnp.asarray([index, index])], standing,
+                            jnp.zeros((2, 6), bool), _empty_secondary(2), record_every=25)
+    assert result.qpos is None and recorded.qpos.shape == (2, 16, 25)
+    np.testing.assert_array_equal(recorded.poses, result.poses)
+    np.testing.assert_array_equal(recorded.state.qpos, result.state.qpos)
+    np.testing.assert_array_equal(recorded.qpos[:, 0], standing.qpos)
+    np.testing.assert_array_equal(recorded.qpos[:, 4::4, :2], result.poses[:, :3, :2])
 
 
 @pytest.fixture(scope="module")

@@ -22,6 +22,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import time
+from typing import TYPE_CHECKING
 
 import jax
 import jax.numpy as jnp
@@ -44,6 +45,7 @@ from hte_jax.online.execute import (
     SECONDARY_DIM,
     SECONDARY_OUTPUTS,
     SECONDS_PER_ACTION,
+    STEP_CONTROL_STEPS,
     UCB_MODE,
     Skills,
     execute_flat,
@@ -55,6 +57,9 @@ from hte_jax.online.mcts import PlannerConfig, PlanResult, plan, world_of
 from hte_jax.online.secondary import oracle_pattern
 from hte_jax.sim.robot import Robot
 from hte_jax.sim.rollout import SimState
+
+if TYPE_CHECKING:
+    from hte_jax.online.recording import Recorder
 
 # variant -> how each 1 s step picks its contact pattern (flat repertoires: only "rte")
 VARIANT_MODES = {"rte": ANY_PATTERN_MODE, "hte": UCB_MODE, "perfect-hte": ORACLE_MODE, "random-hte": RANDOM_MODE,
@@ -253,20 +258,28 @@ def plan_step(maze: Maze, config: AdaptationConfig, skills: Skills, field: jax.A
     return Decision(plan=result, map=chosen_map, action=action, start=start, predicted=predicted, keys=keys)
 
 
-@functools.partial(jax.jit, static_argnames=("maze", "config"))
+@functools.partial(jax.jit, static_argnames=("maze", "config", "record_every"))
 def act_step(maze: Maze, config: AdaptationConfig, robot: Robot, skills: Skills, episodes: Episodes,
-             decision: Decision) -> Episodes:
-    """Execute every active episode's planned action, learn from it, and record it."""
+             decision: Decision, record_every: int = 0) -> tuple[Episodes, jax.Array | None]:
+    """Execute every active episode's planned action, learn from it, and record it.
+
+    Returns the episodes and, when `record_every` = k > 0 (k divides 100), the state of every robot
+    every k control steps of the action, (B, 400 / k, 25) from its start (None when k = 0: the
+    program is then the one without recording).
+    """
+    if record_every and (not isinstance(record_every, int) or STEP_CONTROL_STEPS % record_every):
+        raise ConfigError(f"record_every must divide {STEP_CONTROL_STEPS}, got {record_every!r}")
     active = ~episodes.done
     index, chosen_map = decision.action, decision.map
     keys = decision.keys
     maps = skills.map_actions
     if skills.hierarchical:
         outcome = execute_hbr(robot, skills, index, episodes.sim, episodes.damage, episodes.secondary,
-                              episodes.mode, episodes.oracle, episodes.taken, keys[:, 2], episodes.optimism)
+                              episodes.mode, episodes.oracle, episodes.taken, keys[:, 2], episodes.optimism,
+                              record_every=record_every)
     else:
         outcome = execute_flat(robot, skills.map_genotypes[chosen_map, index], episodes.sim, episodes.damage,
-                               episodes.secondary)
+                               episodes.secondary, record_every=record_every)
 
     def learn(gps, belief, k, i, displacement):
         """The chosen repertoire's GP and APROL belief learn what its skill did."""
@@ -318,7 +331,7 @@ def act_step(maze: Maze, config: AdaptationConfig, robot: Robot, skills: Skills,
         trajectory=trajectory,
         history=recorded,
     )
-    return keep(updated, episodes)
+    return keep(updated, episodes), outcome.qpos
 
 
 @dataclasses.dataclass
@@ -339,9 +352,11 @@ def run_episodes(
     progress: bool = True,
     description: str = "episodes",
     max_steps: int | None = None,
+    recorder: Recorder | None = None,
 ) -> tuple[Episodes, RunTimings]:
     """Run the batch until every episode has ended (or for `max_steps` actions); returns the
-    episodes and timings."""
+    episodes and timings. recorder: collects the states of its rows during every action (the
+    step program then also returns states; without a recorder it is the one without recording)."""
     # Commit every input to the default device: jit keys its cache on committed-ness, so uncommitted
     # first inputs would compile each step function twice.
     device = jax.devices()[0]
@@ -358,9 +373,16 @@ def run_episodes(
         jax.block_until_ready(decision)
         timings.plan.append(time.perf_counter() - tick)
         tick = time.perf_counter()
-        episodes = act_step(maze, config, robot, skills, episodes, decision)
-        jax.block_until_ready(episodes)
-        timings.act.append(time.perf_counter() - tick)
+        if recorder is None:
+            episodes, _ = act_step(maze, config, robot, skills, episodes, decision)
+            jax.block_until_ready(episodes)
+            timings.act.append(time.perf_counter() - tick)
+        else:
+            active = np.asarray(~episodes.done)
+            episodes, states = act_step(maze, config, robot, skills, episodes, decision, record_every=recorder.every)
+            jax.block_until_ready(episodes)
+            timings.act.append(time.perf_counter() - tick)
+            recorder.add(states, active)
         bar.update(1)
         bar.set_postfix(reached=int(episodes.reached.sum()), running=int((~episodes.done).sum()))
     bar.close()

@@ -30,6 +30,7 @@ from hte_jax.hbr.composition import COMPOSITIONS
 from hte_jax.online.execute import Skills, flat_skill_maps, flat_skills, hbr_skills
 from hte_jax.online.maze import PAPER_MAZE, Maze
 from hte_jax.online.mcts import PlannerConfig
+from hte_jax.online.recording import Recorder, Replay, maze_to_dict, replay_of
 from hte_jax.qd.io import CheckpointError, read_checkpoint
 from hte_jax.sim.damage import PAPER_DAMAGES, parse_damage
 from hte_jax.sim.robot import RobotConfig
@@ -193,8 +194,8 @@ def load_skills(path: str | Path | None, maps: bool = False, composition: str = 
 
 @dataclasses.dataclass
 class BatchResult:
-    """One batch of episodes on one repertoire (of repertoire seed `seed`): labels per episode and
-    the final `Episodes`."""
+    """One batch of episodes on one repertoire (of repertoire seed `seed`): labels per episode, the
+    final `Episodes` and the replays of the recorded episodes (in row order)."""
 
     seed: int
     repertoire: dict
@@ -203,6 +204,7 @@ class BatchResult:
     replicates: list[int]
     episodes: Episodes
     timings: RunTimings
+    replays: list[Replay] = dataclasses.field(default_factory=list)
 
 
 def seed_folders(config: EvalConfig) -> list[Path | None]:
@@ -233,12 +235,19 @@ def batches(config: EvalConfig) -> list[tuple[int, str | None, list[str]]]:
     return out
 
 
+def batch_labels(config: EvalConfig, variants: list[str]) -> list[tuple[str, str, int]]:
+    """(variant, damage, replicate) of each episode of a batch of `variants`, in batch order."""
+    return [(v, d, r) for v in variants for d in config.damage_list for r in range(config.replicates)]
+
+
 def run_batch(config: EvalConfig, path: str | None, variants: list[str], maze: Maze = PAPER_MAZE,
-              progress: bool = True, key: jax.Array | None = None, seed: int = 0) -> BatchResult:
+              progress: bool = True, key: jax.Array | None = None, seed: int = 0,
+              record: tuple[int, ...] = (), record_every: int = 4) -> BatchResult:
     """Every (variant, damage, replicate) of `variants` on one repertoire (of seed `seed`), as one
-    batch of episodes."""
+    batch of episodes. record: batch rows whose states are recorded every `record_every` control
+    steps (`BatchResult.replays`); none by default, and then nothing is recorded."""
     skills, info = load_skills(path, maps=variants == ["aprol"], composition=config.composition)
-    labels = [(v, d, r) for v in variants for d in config.damage_list for r in range(config.replicates)]
+    labels = batch_labels(config, variants)
     modes = np.array([variant_mode("rte" if v in FLAT_VARIANTS else v, skills.hierarchical) for v, _, _ in labels])
     damages = np.stack([parse_damage(d) for _, d, _ in labels])
     adaptation = config.adaptation
@@ -249,8 +258,13 @@ def run_batch(config: EvalConfig, path: str | None, variants: list[str], maze: M
     optimism = np.full(len(labels), config.optimism, np.float32)
     episodes = start_episodes(adaptation, skills, start, damages, modes, key, optimism)
     robot = maze_robot(maze, config.robot)
+    recorder = Recorder(tuple(record), record_every) if record else None
     episodes, timings = run_episodes(maze, adaptation, robot, skills, episodes, progress=progress,
-                                     description="/".join(variants))
+                                     description="/".join(variants), recorder=recorder)
+    replays = [replay_of(recorder, episodes, row, {
+        "variant": labels[row][0], "damage": labels[row][1], "replicate": labels[row][2], "seed": seed,
+        "repertoire": info["path"], "hierarchical": skills.hierarchical, "damage_model": config.damage_model,
+        "max_actions": config.max_actions, "maze": maze_to_dict(maze)}) for row in record]
     return BatchResult(
         seed=seed,
         repertoire=info,
@@ -259,7 +273,23 @@ def run_batch(config: EvalConfig, path: str | None, variants: list[str], maze: M
         replicates=[r for _, _, r in labels],
         episodes=episodes,
         timings=timings,
+        replays=replays,
     )
+
+
+def episode_numbers(variants: list[str], earlier: dict[str, int]) -> list[int]:
+    """Each row's episode number among its variant's episodes in run order, for a batch of
+    `variants` (B,) (one per row) after `earlier[v]` episodes of variant v in earlier batches."""
+    seen, numbers = dict(earlier), []
+    for variant in variants:
+        numbers.append(seen.get(variant, 0))
+        seen[variant] = numbers[-1] + 1
+    return numbers
+
+
+def rows_to_record(variants: list[str], count: int, earlier: dict[str, int]) -> tuple[int, ...]:
+    """Rows of a batch whose episodes are among the first `count` of their variant (see `episode_numbers`)."""
+    return tuple(row for row, number in enumerate(episode_numbers(variants, earlier)) if number < count)
 
 
 def episode_records(result: BatchResult, max_actions: int) -> list[dict]:

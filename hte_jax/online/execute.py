@@ -166,6 +166,8 @@ class ActionOutcome:
     for flat skills). middle_index: (B, 3) int32 executed middle elite (-1 for flat skills).
     errors: (B, 3, 3) relative error (x, y, yaw) of each step (0 for flat skills).
     secondary: GPData (B, ...) the secondary GP after this action's observations.
+    qpos: (B, F, 25) the state every k = `record_every` control steps of the action, from its start
+      (F = 400 / k; k divides 100, so every F / 4-th state starts a second), or None (not recorded).
     """
 
     state: SimState
@@ -177,10 +179,12 @@ class ActionOutcome:
     middle_index: jax.Array
     errors: jax.Array
     secondary: GPData
+    qpos: jax.Array | None = None
 
 
-def _neutral(robot: Robot, state: SimState, damage: jax.Array):
-    spec = RolloutSpec(num_steps=NEUTRAL_CONTROL_STEPS, record_contacts=False, limits=ONLINE_LIMITS)
+def _neutral(robot: Robot, state: SimState, damage: jax.Array, record_every: int = 0):
+    spec = RolloutSpec(num_steps=NEUTRAL_CONTROL_STEPS, record_contacts=False, limits=ONLINE_LIMITS,
+                       record_qpos_every=record_every)
     return rollout(robot, jnp.zeros((state.qpos.shape[0], NUM_PARAMS)), damage, state, spec)
 
 
@@ -259,12 +263,16 @@ def _drift_choice(hbr: HBR, secondary: GPData, desired: jax.Array, inputs: jax.A
     return (best % NUM_PATTERNS).astype(jnp.int32), query
 
 
-def execute_flat(robot: Robot, params: jax.Array, state: SimState, damage: jax.Array, secondary: GPData) -> ActionOutcome:
-    """Run flat controllers `params` (B, 36): each for 3 s, then 1 s neutral, in one rollout."""
+def execute_flat(robot: Robot, params: jax.Array, state: SimState, damage: jax.Array, secondary: GPData,
+                 record_every: int = 0) -> ActionOutcome:
+    """Run flat controllers `params` (B, 36): each for 3 s, then 1 s neutral, in one rollout.
+
+    record_every: k > 0 also returns the state every k control steps (`ActionOutcome.qpos`).
+    """
     segments = jnp.stack([params] * STEPS_PER_SKILL + [jnp.zeros_like(params)], axis=1)  # (B, 4, 36)
     total = SECONDS_PER_ACTION * STEP_CONTROL_STEPS
     spec = RolloutSpec(num_steps=total, pose_steps=tuple(range(0, total + 1, STEP_CONTROL_STEPS)), record_contacts=False,
-                       limits=ONLINE_LIMITS)
+                       limits=ONLINE_LIMITS, record_qpos_every=record_every)
     # A controller's clock restarts with each 1 s segment; its period is 1 s, so 3 segments are one 3 s run.
     result = rollout(robot, segments, damage, state, spec)
     poses = planar_pose(result.base_pos, result.base_quat)  # (B, 5, 3)
@@ -279,6 +287,7 @@ def execute_flat(robot: Robot, params: jax.Array, state: SimState, damage: jax.A
         middle_index=jnp.full((batch, STEPS_PER_SKILL), -1, jnp.int32),
         errors=jnp.zeros((batch, STEPS_PER_SKILL, ERROR_DIM), jnp.float32),
         secondary=secondary,
+        qpos=result.qpos,
     )
 
 
@@ -294,11 +303,13 @@ def execute_hbr(
     action_number: jax.Array,
     keys: jax.Array,
     optimism: jax.Array | None = None,
+    record_every: int = 0,
 ) -> ActionOutcome:
     """Run HBR skills `index` (B,) step by step, choosing each step's contact pattern, then 1 s neutral.
 
     action_number: (B,) int32 actions already taken (the GP-UCB count is t = 1 + step + 3 action_number).
     keys: (B, 2) PRNG keys (random patterns). optimism: (B,) MISS_MODE's confidence weight (default 0).
+    record_every: k > 0 also returns the state every k control steps (`ActionOutcome.qpos`).
     """
     hbr = skills.hbr
     task = hbr.middle_task
@@ -316,19 +327,24 @@ def execute_hbr(
         elite = None
         if skills.table is not None:
             elite = plan_batch(skills.table, task, here, goal, pattern, STEPS_PER_SKILL - step)
-        result = execute_step(robot, hbr, state, damage, target, pattern, ONLINE_LIMITS, query=query, elite=elite)
+        result = execute_step(robot, hbr, state, damage, target, pattern, ONLINE_LIMITS, query=query, elite=elite,
+                              record_every=record_every)
         executed = hbr.middle.descriptors[result.middle_index]  # (B, 9)
         observed = task.normalise(result.displacement)
         error = relative_error(executed[:, :PRIMARY], observed)
         gp = jax.vmap(add_observation)(gp, executed, step_targets(executed[:, :PRIMARY], observed))
-        return (result.state, gp), (pattern, result.middle_index, error, result.invalid_reason, state_pose(result.state))
+        return (result.state, gp), (pattern, result.middle_index, error, result.invalid_reason, state_pose(result.state),
+                                    result.qpos)
 
     steps = jnp.arange(STEPS_PER_SKILL, dtype=jnp.int32)
     step_keys = jnp.swapaxes(jax.vmap(lambda k: jax.random.split(k, STEPS_PER_SKILL))(keys), 0, 1)  # (3, B, 2)
     xs = (jnp.swapaxes(targets, 0, 1), steps, step_keys)
-    (state, secondary), (patterns, middle, errors, reasons, poses) = jax.lax.scan(one_step, (state, secondary), xs)
-    rest = _neutral(robot, state, damage)
+    (state, secondary), (patterns, middle, errors, reasons, poses, qpos) = jax.lax.scan(one_step, (state, secondary), xs)
+    rest = _neutral(robot, state, damage, record_every)
     end = state_pose(rest.final_state)
+    if record_every:  # (3, B, F / 4, 25) steps and (B, F / 4, 25) neutral -> (B, F, 25)
+        steps = jnp.swapaxes(qpos, 0, 1)
+        qpos = jnp.concatenate([steps.reshape(steps.shape[0], -1, steps.shape[-1]), rest.qpos], axis=1)
     return ActionOutcome(
         state=rest.final_state,
         valid=(reasons == 0).all(axis=0) & rest.valid,
@@ -339,5 +355,6 @@ def execute_hbr(
         middle_index=middle.T,
         errors=jnp.swapaxes(errors, 0, 1),
         secondary=secondary,
+        qpos=qpos,
     )
 

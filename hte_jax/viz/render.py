@@ -13,6 +13,7 @@ from __future__ import annotations
 import dataclasses
 import os
 import warnings
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 
 import mujoco
@@ -49,12 +50,14 @@ class Camera:
         require_number("camera distance", self.distance, 0.0, open_low=True)
 
 
-def render_model(config: RobotConfig = RobotConfig(), damage: np.ndarray | None = None) -> mujoco.MjModel:
-    """The simulation model with a checkered floor and the links of damaged legs (6,) tinted."""
+def render_spec(config: RobotConfig = RobotConfig(), damage: np.ndarray | None = None,
+                checks: float = 8.0) -> mujoco.MjSpec:
+    """The simulation model's spec with a checkered floor (`checks` texture repeats per metre) and
+    the links of damaged legs (6,) tinted."""
     spec = build_spec(config)
     spec.add_texture(name="checker", type=mujoco.mjtTexture.mjTEXTURE_2D, builtin=mujoco.mjtBuiltin.mjBUILTIN_CHECKER,
                      rgb1=[0.82, 0.82, 0.82], rgb2=[0.62, 0.62, 0.66], width=256, height=256)
-    spec.add_material(name="checker", textures=["", "checker"], texrepeat=[8, 8], texuniform=True)
+    spec.add_material(name="checker", textures=["", "checker"], texrepeat=[checks, checks], texuniform=True)
     for geom in spec.geoms:
         if geom.name == "floor":
             geom.material = "checker"
@@ -64,7 +67,12 @@ def render_model(config: RobotConfig = RobotConfig(), damage: np.ndarray | None 
         for geom in spec.geoms:
             if geom.name.startswith((f"leg_{leg}_", f"foot_{leg}")):
                 geom.rgba = list(DAMAGED_RGBA)
-    return spec.compile()
+    return spec
+
+
+def render_model(config: RobotConfig = RobotConfig(), damage: np.ndarray | None = None) -> mujoco.MjModel:
+    """The simulation model with a checkered floor and the links of damaged legs (6,) tinted."""
+    return render_spec(config, damage).compile()
 
 
 def open_renderer(model: mujoco.MjModel, width: int, height: int) -> mujoco.Renderer:
@@ -96,34 +104,55 @@ def _camera(camera: Camera, base: np.ndarray) -> mujoco.MjvCamera:
     return view
 
 
-def render_frames(
-    model: mujoco.MjModel, qpos: np.ndarray, renderer: mujoco.Renderer, camera: Camera = Camera(), progress=None,
-) -> np.ndarray:
-    """Frames (T, H, W, 3) uint8 of the recorded states `qpos` (T, nq), one per state."""
+def posed(model: mujoco.MjModel, qpos: np.ndarray) -> Iterator[mujoco.MjData]:
+    """For each recorded state of `qpos` (T, nq), the model's data with that state set and its
+    kinematics computed (nothing is simulated); one MjData, updated in place."""
     qpos = np.asarray(qpos, np.float64)
     if qpos.ndim != 2 or qpos.shape[1] != model.nq:
         raise ConfigError(f"qpos must have shape (T, {model.nq}), got {qpos.shape}")
     data = mujoco.MjData(model)
-    frames = np.empty((qpos.shape[0], renderer.height, renderer.width, 3), np.uint8)
-    for t, state in enumerate(qpos):
+    for state in qpos:
         data.qpos[:] = state
         mujoco.mj_kinematics(model, data)
+        yield data
+
+
+def render_frames(
+    model: mujoco.MjModel, qpos: np.ndarray, renderer: mujoco.Renderer, camera: Camera = Camera(), progress=None,
+    decorate: Callable[[int, mujoco.MjvScene], None] | None = None,
+) -> np.ndarray:
+    """Frames (T, H, W, 3) uint8 of the recorded states `qpos` (T, nq), one per state.
+
+    decorate(t, scene): adds geoms to frame t's scene (after the model's, before rendering).
+    """
+    frames = np.empty((len(qpos), renderer.height, renderer.width, 3), np.uint8)
+    for t, data in enumerate(posed(model, qpos)):
         mujoco.mj_camlight(model, data)
-        renderer.update_scene(data, camera=_camera(camera, state[:3]))
+        renderer.update_scene(data, camera=_camera(camera, data.qpos[:3]))
+        if decorate is not None:
+            decorate(t, renderer.scene)
         frames[t] = renderer.render()
         if progress is not None:
             progress.update(1)
     return frames
 
 
-def label(frames: np.ndarray, text: str) -> np.ndarray:
-    """Frames (T, H, W, 3) with `text` written in their top-left corner (Pillow's default font)."""
+def label(frames: np.ndarray, text: str | Sequence[str], background: tuple[int, int, int] | None = None) -> np.ndarray:
+    """Frames (T, H, W, 3) with `text` (one for all frames, or one per frame; lines split by
+    newlines) written in their top-left corner in Pillow's default font, on a `background` box if given."""
     from PIL import Image, ImageDraw
 
+    texts = [text] * len(frames) if isinstance(text, str) else list(text)
+    if len(texts) != len(frames):
+        raise ConfigError(f"{len(texts)} labels for {len(frames)} frames")
     out = np.empty_like(frames)
-    for t, frame in enumerate(frames):
+    for t, (frame, words) in enumerate(zip(frames, texts)):
         image = Image.fromarray(frame)
-        ImageDraw.Draw(image).text((4, 3), text, fill=(10, 10, 10))
+        draw = ImageDraw.Draw(image)
+        if background is not None:
+            left, top, right, bottom = draw.multiline_textbbox((4, 3), words)
+            draw.rectangle((0, 0, right + 3, bottom + 3), fill=background)
+        draw.multiline_text((4, 3), words, fill=(10, 10, 10))
         out[t] = np.asarray(image)
     return out
 

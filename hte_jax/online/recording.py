@@ -1,0 +1,162 @@
+"""Recording chosen episodes for replay: the robot's full state every k control steps, and the
+replay files that `python -m experiments.render episode` reads.
+
+`Recorder` collects on the host, while `run_episodes` runs a batch, the states of the batch rows
+asked for (only those rows leave the device; recording is off unless a recorder is given).
+`replay_of` assembles one episode's `Replay`: its states from the start to the end of its last
+action and what a video annotates (the executed skills, each step's contact pattern, the pose
+after every second, the outcome). A replay file (`save_replay`, written atomically) is a
+checkpoint (`hte_jax.qd.io`) with the arrays of `Replay` and its labels as metadata; a run
+folder keeps them as `replays/<variant>_ep<I>.npz`, I counting the variant's episodes in run order.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import jax.numpy as jnp
+import numpy as np
+
+from hte_jax.errors import ConfigError, require_int
+from hte_jax.online.episode import Episodes
+from hte_jax.online.execute import SECONDS_PER_ACTION, STEP_CONTROL_STEPS
+from hte_jax.online.maze import Maze
+from hte_jax.qd.io import CheckpointError, read_checkpoint, save_checkpoint
+
+KIND = "hte_jax.replay"
+REPLAY_DIR = "replays"
+ARRAYS = ("qpos", "action", "map", "patterns", "trajectory", "damage")
+
+
+@dataclasses.dataclass
+class Recorder:
+    """Collects the states of chosen episodes of a batch, on the host, during `run_episodes`.
+
+    rows: the batch rows (episodes) to record. every: control steps between recorded states
+    (divides 100; 4 gives 25 states per simulated second). frames: row -> one (400 / every, 25)
+    float32 array per action the episode took, filled by `add`.
+    """
+
+    rows: tuple[int, ...]
+    every: int = 4
+    frames: dict[int, list[np.ndarray]] = dataclasses.field(default_factory=dict)
+
+    def __post_init__(self):
+        require_int("record every", self.every)
+        if STEP_CONTROL_STEPS % self.every:
+            raise ConfigError(f"record every must divide {STEP_CONTROL_STEPS} control steps, got {self.every}")
+        self.rows = tuple(int(r) for r in self.rows)
+        if any(r < 0 for r in self.rows) or len(set(self.rows)) != len(self.rows):
+            raise ConfigError(f"recorded rows must be distinct and >= 0, got {self.rows}")
+
+    def add(self, qpos, active: np.ndarray) -> None:
+        """Keep one action's states (B, F, 25) of the recorded rows that were running (`active` (B,))."""
+        if not self.rows:
+            return
+        kept = np.asarray(qpos[jnp.asarray(self.rows)])  # only the recorded rows leave the device
+        for row, states in zip(self.rows, kept):
+            if active[row]:
+                self.frames.setdefault(row, []).append(states)
+
+
+@dataclasses.dataclass(frozen=True)
+class Replay:
+    """One recorded episode: N actions taken, k = `every`, F = 400 / k states per action.
+
+    qpos: (N F + 1, 25) float32 the state every k control steps from the start to the end of the
+      last action (state j F + s F / 4 starts second s of action j; every F / 4-th state's base is at
+      `trajectory`). action: (N,) int32 the executed skill. map: (N,) int32 its repertoire (0
+      unless APROL). patterns: (N, 3) int32 the contact pattern asked for at each 1 s step (-1:
+      any, as for RTE and flat skills). trajectory: (4 N + 1, 3) float32 the pose (x, y, yaw) after
+      every second. damage: (6,) bool. info: JSON-able labels (variant, damage, seed, replicate,
+      row, reached, broken, damage_model, maze, max_actions, every, episode).
+    """
+
+    qpos: np.ndarray
+    action: np.ndarray
+    map: np.ndarray
+    patterns: np.ndarray
+    trajectory: np.ndarray
+    damage: np.ndarray
+    info: dict
+
+    @property
+    def every(self) -> int:
+        return int(self.info["every"])
+
+    @property
+    def actions(self) -> int:
+        return int(self.action.shape[0])
+
+    @property
+    def states_per_action(self) -> int:
+        return SECONDS_PER_ACTION * STEP_CONTROL_STEPS // self.every
+
+    @property
+    def maze(self) -> Maze:
+        return maze_from_dict(self.info["maze"])
+
+
+def maze_to_dict(maze: Maze) -> dict:
+    return dataclasses.asdict(maze)
+
+
+def maze_from_dict(data: dict) -> Maze:
+    """The maze stored by `maze_to_dict` (JSON lists back to tuples)."""
+    return Maze(obstacles=tuple(tuple(box) for box in data["obstacles"]), bounds=tuple(data["bounds"]),
+                start=tuple(data["start"]), goal=tuple(data["goal"]), goal_radius=data["goal_radius"],
+                robot_radius=data["robot_radius"])
+
+
+def replay_of(recorder: Recorder, episodes: Episodes, row: int, info: dict) -> Replay:
+    """The recorded episode in batch `row` after `run_episodes` (with `recorder`) has ended."""
+    taken = int(episodes.taken[row])
+    frames = recorder.frames.get(row, [])
+    if len(frames) != taken:
+        raise ValueError(f"row {row}: {len(frames)} recorded actions for {taken} taken")
+    final = np.asarray(episodes.sim.qpos[row], np.float32)[None]
+    history = episodes.history
+    return Replay(
+        qpos=np.concatenate([*frames, final]).astype(np.float32),
+        action=np.asarray(history.action[row, :taken]),
+        map=np.asarray(history.map[row, :taken]),
+        patterns=np.asarray(history.patterns[row, :taken]),
+        trajectory=np.asarray(episodes.trajectory[row, : SECONDS_PER_ACTION * taken + 1]),
+        damage=np.asarray(episodes.damage[row], bool),
+        info={**info, "row": int(row), "every": recorder.every, "actions": taken,
+              "reached": bool(episodes.reached[row]), "broken": bool(episodes.broken[row])},
+    )
+
+
+def replay_path(run: str | Path, variant: str, episode: int) -> Path:
+    return Path(run) / REPLAY_DIR / f"{variant}_ep{episode}.npz"
+
+
+def save_replay(path: str | Path, replay: Replay) -> None:
+    arrays = {name: getattr(replay, name) for name in ARRAYS}
+    save_checkpoint(path, arrays, {"kind": KIND, **replay.info}, compress=True)
+
+
+def load_replay(path: str | Path) -> Replay:
+    """A replay file; CheckpointError naming the problem if it is not one."""
+    arrays, header = read_checkpoint(path)
+    info = header.get("metadata", {})
+    if info.get("kind") != KIND or any(name not in arrays for name in ARRAYS):
+        raise CheckpointError(f"{path}: not a replay file")
+    info = {key: value for key, value in info.items() if key != "kind"}
+    replay = Replay(**{name: arrays[name] for name in ARRAYS}, info=info)
+    if replay.qpos.shape[0] != replay.actions * replay.states_per_action + 1:
+        raise CheckpointError(f"{path}: {replay.qpos.shape[0]} states do not match {replay.actions} actions")
+    return replay
+
+
+def recorded_episodes(run: str | Path) -> dict[str, list[int]]:
+    """variant -> the episode numbers with a replay file in run folder `run`, in order."""
+    found: dict[str, list[int]] = {}
+    folder = Path(run) / REPLAY_DIR
+    for path in sorted(folder.glob("*_ep*.npz")) if folder.is_dir() else ():
+        variant, _, number = path.stem.rpartition("_ep")
+        if number.isdigit():
+            found.setdefault(variant, []).append(int(number))
+    return {variant: sorted(numbers) for variant, numbers in found.items()}
