@@ -15,17 +15,21 @@ from hte_jax.online.episode import SECONDS_PER_ACTION
 from hte_jax.online.execute import CANDIDATE_PATTERNS
 from hte_jax.online.maze import PAPER_MAZE
 from hte_jax.qd.io import read_checkpoint
+from tests.golden import MAZE_ARGS, check
 
 MAX_ACTIONS = 30
+assert MAZE_ARGS[MAZE_ARGS.index("--max-actions") + 1] == str(MAX_ACTIONS)
 
 
 @pytest.fixture(scope="module")
 def run(tmp_path_factory):
     out = tmp_path_factory.mktemp("maze") / "hbr"
-    args = ["--variant", "hte,rte", "--damage", "none,leg1", "--replicates", "1", "--max-actions", str(MAX_ACTIONS),
-            "--iterations", "200", "--roots", "2", "--out", str(out), "--no-progress"]
-    assert maze_main(args) == 0
+    assert maze_main([*MAZE_ARGS, "--out", str(out)]) == 0
     return out
+
+
+def test_short_run_matches_the_golden_output(run):
+    check("maze_short", run)
 
 
 def _records(run):

@@ -20,6 +20,7 @@ from hte_jax.errors import ConfigError
 from experiments.measure_steps import main as measure_main
 from hte_jax.qd.io import CheckpointError, prepare_run_dir, read_checkpoint, save_checkpoint
 from hte_jax.sim import load_robot, standing_state
+from tests.golden import HBR_ARGS, check
 
 LAYERS = ("bottom", "middle", "top")
 
@@ -37,7 +38,7 @@ def start(robot):
 @pytest.fixture(scope="module")
 def tiny_run(tmp_path_factory):
     out = tmp_path_factory.mktemp("hbr") / "tiny"
-    assert train_main(["--preset", "tiny", "--out", str(out), "--no-progress"]) == 0
+    assert train_main([*HBR_ARGS, "--out", str(out)]) == 0
     return out
 
 
@@ -76,6 +77,10 @@ def test_tiny_preset_writes_a_complete_hbr(tiny_run):
                  "top_metrics"):
         image = matplotlib.image.imread(tiny_run / "plots" / f"{name}.png")
         assert image.ndim == 3 and image.shape[0] > 100 and image.std() > 0
+
+
+def test_tiny_run_matches_the_golden_output(tiny_run):
+    check("hbr_tiny", tiny_run)
 
 
 def test_killed_run_resumes_bit_identical(tiny_run, tmp_path):

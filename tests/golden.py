@@ -1,0 +1,110 @@
+"""Golden outputs: small arrays of three same-seed CPU runs, recorded before a refactor and
+compared after it, so a change that should alter nothing provably alters nothing.
+
+The runs (the same commands the test fixtures use):
+- `train_hbr --preset tiny`: its `hbr.npz`;
+- `train_flat --variant 8d --preset tiny`: its `repertoires.npz`;
+- `maze_eval` (HTE and RTE, intact and leg 1, 30 actions, a small planner, the shipped
+  repertoires): its `episodes_0.npz`.
+
+Arrays are compared bit for bit, so they are only comparable on the toolchain they were recorded
+with (jax, jaxlib, mujoco, numpy, CPU architecture and vector extensions: XLA's CPU code differs
+between AVX2 and AVX-512 machines). Each toolchain gets its own folder, `tests/golden/<machine>-
+<vector>/` with a `toolchain.json`; on a machine with no matching folder, or other versions, the
+check skips and says so. Record on a new kind of machine, or re-record every folder after a change
+that is meant to alter results (a new shipped HBR, a new default), with
+
+    python -m tests.golden
+"""
+
+from __future__ import annotations
+
+import json
+import platform
+import shutil
+import sys
+import tempfile
+from importlib import metadata
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from hte_jax.qd.io import read_checkpoint
+
+GOLDEN_DIR = Path(__file__).resolve().parent / "golden"
+HBR_ARGS = ["--preset", "tiny", "--no-progress"]
+FLAT_ARGS = ["--variant", "8d", "--preset", "tiny", "--no-progress"]
+MAZE_ARGS = ["--variant", "hte,rte", "--damage", "none,leg1", "--replicates", "1", "--max-actions", "30",
+             "--iterations", "200", "--roots", "2", "--no-progress"]
+# golden name -> the run's output file it keeps
+OUTPUTS = {"hbr_tiny": "hbr.npz", "flat8d_tiny": "repertoires.npz", "maze_short": "episodes_0.npz"}
+_VECTOR_FLAGS = ("avx512f", "avx2", "avx", "sse4_2", "neon", "asimd")
+
+
+def toolchain() -> dict:
+    """What bit-identical CPU results depend on besides our code."""
+    versions = {name: metadata.version(name) for name in ("jax", "jaxlib", "mujoco", "mujoco-mjx", "numpy")}
+    flags = set()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith(("flags", "Features")):
+                flags = set(line.split(":", 1)[1].split())
+                break
+    except OSError:
+        pass
+    vector = next((flag for flag in _VECTOR_FLAGS if flag in flags), "unknown")
+    return {**versions, "machine": platform.machine(), "vector": vector}
+
+
+def golden_dir(chain: dict) -> Path:
+    """The folder holding the golden outputs of one toolchain."""
+    return GOLDEN_DIR / f"{chain['machine']}-{chain['vector']}"
+
+
+def arrays_of(path: Path) -> dict[str, np.ndarray]:
+    """A checkpoint file's arrays (its metadata, which holds timings, left out)."""
+    arrays, _ = read_checkpoint(path)
+    return {name: np.asarray(value) for name, value in arrays.items() if name != "__metadata__"}
+
+
+def check(name: str, run_dir: Path) -> None:
+    """Assert that `run_dir`'s output equals the golden `name` array for array, bit for bit."""
+    here = toolchain()
+    folder = golden_dir(here)
+    if not (folder / "toolchain.json").exists():
+        recorded_on = ", ".join(sorted(p.name for p in GOLDEN_DIR.iterdir() if p.is_dir())) or "nothing"
+        pytest.skip(f"no golden outputs for {folder.name} (recorded: {recorded_on}); record them: python -m tests.golden")
+    recorded = json.loads((folder / "toolchain.json").read_text())
+    if recorded != here:
+        differ = ", ".join(f"{k} {recorded.get(k)} -> {here.get(k)}" for k in here if recorded.get(k) != here.get(k))
+        pytest.skip(f"golden outputs were recorded on another toolchain ({differ}); re-record: python -m tests.golden")
+    golden = arrays_of(folder / f"{name}.npz")
+    produced = arrays_of(run_dir / OUTPUTS[name])
+    assert sorted(produced) == sorted(golden), f"{name}: arrays {sorted(produced)} != golden {sorted(golden)}"
+    for key, value in golden.items():
+        assert produced[key].dtype == value.dtype and produced[key].shape == value.shape, f"{name}/{key}"
+        np.testing.assert_array_equal(produced[key], value, err_msg=f"{name}/{key} differs from the golden output")
+
+
+def record() -> None:
+    """Run the three commands and store their outputs and the toolchain in this toolchain's folder."""
+    from experiments.maze_eval import main as maze_main
+    from experiments.train_flat import main as flat_main
+    from experiments.train_hbr import main as hbr_main
+
+    folder = golden_dir(toolchain())
+    folder.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory() as tmp:
+        runs = {"hbr_tiny": (hbr_main, HBR_ARGS), "flat8d_tiny": (flat_main, FLAT_ARGS), "maze_short": (maze_main, MAZE_ARGS)}
+        for name, (main, args) in runs.items():
+            out = Path(tmp) / name
+            if main([*args, "--out", str(out)]) != 0:
+                sys.exit(f"error: the {name} run failed; nothing recorded")
+            shutil.copyfile(out / OUTPUTS[name], folder / f"{name}.npz")
+    (folder / "toolchain.json").write_text(json.dumps(toolchain(), indent=2) + "\n")
+    print(f"recorded {', '.join(OUTPUTS)} in {folder}")
+
+
+if __name__ == "__main__":
+    record()
