@@ -25,14 +25,15 @@ from common import environment, result_path
 from hte_jax.flat.store import shipped_flat_path
 from hte_jax.online.arena import maze_robot, start_states
 from hte_jax.online.episode import run_episodes, start_episodes, variant_mode
-from hte_jax.online.evaluation import FLAT_VARIANTS, load_skills, preset, with_overrides
+from hte_jax.online.evaluation import load_skills, preset, with_overrides
+from hte_jax.online.variants import variant as variant_named
 from hte_jax.online.maze import PAPER_MAZE
 from hte_jax.sim.damage import paper_damage_masks
 
 
 def measure(config, skills, variant: str, batch: int, repeats: int, seed: int) -> dict:
     damages = paper_damage_masks()[(np.arange(batch) + 1) % 7]
-    modes = np.full(batch, variant_mode("rte" if variant in FLAT_VARIANTS else variant, skills.hierarchical))
+    modes = np.full(batch, variant_mode(variant, skills.hierarchical))
     adaptation = config.adaptation
     robot = maze_robot(PAPER_MAZE)
     start = start_states(PAPER_MAZE, damages)
@@ -75,8 +76,9 @@ def main(argv=None) -> int:
     overrides = {k: v for k, v in {"max_actions": args.max_actions, "iterations": args.iterations,
                                    "roots": args.roots, "variants": args.variant}.items() if v is not None}
     config = with_overrides(preset(args.preset), overrides)
-    path = shipped_flat_path(FLAT_VARIANTS[args.variant]) if args.variant in FLAT_VARIANTS else None
-    skills, info = load_skills(path, maps=args.variant == "aprol", composition=config.composition)
+    kind = variant_named(args.variant).repertoire
+    path = shipped_flat_path(kind) if kind != "hbr" else None
+    skills, info = load_skills(path, maps=kind == "aprol", composition=config.composition)
     env = environment()
     rows = [measure(config, skills, args.variant, int(b), args.repeats, args.seed) for b in args.batch_sizes.split(",")]
     print(f"\n{args.variant} on {env['device']}, planner {config.iterations} iterations x {config.roots} trees, "

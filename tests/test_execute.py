@@ -12,9 +12,7 @@ from hte_jax.hbr.geometry import planar_pose, relative_pose
 from hte_jax.hbr.store import load_hbr
 from hte_jax.online.arena import maze_robot, place, start_states
 from hte_jax.online.execute import (
-    ALL_PATTERNS,
     ANY_PATTERN_MODE,
-    CANDIDATE_PATTERNS,
     DRIFT_MODE,
     LEGS_MODE,
     MISS_MODE,
@@ -22,13 +20,13 @@ from hte_jax.online.execute import (
     SECONDARY_OUTPUTS,
     RANDOM_MODE,
     UCB_MODE,
-    candidate_elites,
     choose_patterns,
     execute_flat,
     flat_skills,
 )
 from hte_jax.hbr.execution import select_middle
 from hte_jax.online.gp import add_observation, empty_gp
+from hte_jax.online.variants import ALL_PATTERNS, CANDIDATE_PATTERNS, candidate_elites
 from hte_jax.online.secondary import step_targets
 from hte_jax.online.maze import PAPER_MAZE, Maze
 from hte_jax.sim.robot import load_robot

@@ -5,6 +5,8 @@ import numpy as np
 
 from hte_jax.online.gp import HTE_KERNEL, add_observation, empty_gp, posterior
 from hte_jax.online.secondary import (
+    CONTACT_EVIDENCE,
+    CONTACT_RATIO,
     acquisition,
     allowed_patterns,
     leg_effects,
@@ -15,6 +17,8 @@ from hte_jax.online.secondary import (
     relative_error,
     step_targets,
     ucb_beta,
+    unusable_legs,
+    usable_pattern,
 )
 from hte_jax.sim.damage import paper_damage_masks
 
@@ -105,3 +109,23 @@ def test_leg_effects_recover_a_damaged_leg_and_score_candidates():
     miss = np.asarray(leg_miss(desired, candidates, jnp.asarray(effects)))
     np.testing.assert_allclose(miss[1] - 0.04, np.sum(np.maximum(np.delete(effects, 1), 0)), atol=1e-5)
     assert miss[1] < miss[0]
+
+
+def test_unusable_legs_and_usable_pattern_match_a_numpy_reference():
+    rng = np.random.default_rng(3)
+    contacts = rng.uniform(0.0, 1.0, (200, 2, 6)).astype(np.float32)
+    contacts[:50, 0, 2] = 0.0  # leg 2 never sensed down while expected half a second
+    contacts[:50, 1, 2] = 0.5
+    contacts[50:60, 1] = 0.1  # too little expected contact to judge
+    sensed, expected = contacts[:, 0], contacts[:, 1]
+    bad = (expected >= CONTACT_EVIDENCE) & (sensed < CONTACT_RATIO * expected)
+    np.testing.assert_array_equal(np.asarray(unusable_legs(jnp.asarray(contacts))), bad)
+    reference = np.array([sum(1 << (5 - leg) for leg in range(6) if not row[leg]) if row.any() else -1 for row in bad])
+    np.testing.assert_array_equal(np.asarray(usable_pattern(jnp.asarray(contacts))), reference)
+    assert bad[:50, 2].all() and not bad[50:60].any()
+    # a leg blocked in the air: the pattern of the intact legs, the same as Perfect HTE's oracle
+    raised = np.zeros((2, 6), np.float32)
+    raised[1] = 0.6
+    raised[0] = 0.7
+    raised[0, 1] = 0.0
+    assert int(usable_pattern(jnp.asarray(raised))) == oracle_pattern(np.array([False, True] + [False] * 4)) == 47

@@ -35,18 +35,11 @@ from hte_jax.hbr.execution import STEPS_PER_SKILL, state_pose
 from hte_jax.online.actions import OUTCOME_DIM, displacement_of, observe, predict
 from hte_jax.online.aprol import MapBelief, closeness, initial_belief, select_entry, update_belief
 from hte_jax.online.execute import (
-    ANY_PATTERN_MODE,
-    DRIFT_MODE,
     ERROR_DIM,
-    LEGS_MODE,
-    MISS_MODE,
-    ORACLE_MODE,
-    RANDOM_MODE,
     SECONDARY_DIM,
     SECONDARY_OUTPUTS,
     SECONDS_PER_ACTION,
     STEP_CONTROL_STEPS,
-    UCB_MODE,
     Skills,
     execute_flat,
     execute_hbr,
@@ -55,15 +48,13 @@ from hte_jax.online.gp import GPData, empty_gp
 from hte_jax.online.maze import GridSpec, Maze, distance_field, planning_start, reached_goal
 from hte_jax.online.mcts import PlannerConfig, PlanResult, plan, world_of
 from hte_jax.online.secondary import oracle_pattern
-from hte_jax.sim.robot import Robot
+from hte_jax.online.variants import VARIANTS, PatternState, rule_index, variant
+from hte_jax.sim.robot import NUM_LEGS, Robot
 from hte_jax.sim.rollout import SimState
 
 if TYPE_CHECKING:
     from hte_jax.online.recording import Recorder
 
-# variant -> how each 1 s step picks its contact pattern (flat repertoires: only "rte")
-VARIANT_MODES = {"rte": ANY_PATTERN_MODE, "hte": UCB_MODE, "perfect-hte": ORACLE_MODE, "random-hte": RANDOM_MODE,
-                 "hte-miss": MISS_MODE, "hte-drift": DRIFT_MODE, "hte-legs": LEGS_MODE}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -112,11 +103,10 @@ class History:
 class Episodes:
     """B adaptation episodes.
 
-    sim: SimState (B, ...) the robots. damage: (B, 6) bool. mode: (B,) int32 secondary mode.
-    oracle: (B,) int32 the true damage's pattern. rte: GPData (B, K, L, D, 4), the action model of
-    each of the K repertoires. belief: MapBelief (B, K), APROL's belief about them.
-    secondary: GPData (B, 3 L, 9, 9), HTE's error model (relative errors, absolute and signed deviations).
-    optimism: (B,) float32 confidence weight of the predicted-miss choice. key: (B, 2) PRNG keys.
+    sim: SimState (B, ...) the robots. damage: (B, 6) bool. rte: GPData (B, K, L, D, 4), the action
+    model of each of the K repertoires. belief: MapBelief (B, K), APROL's belief about them.
+    learnt: PatternState (B, ...), each episode's pattern rule and what it has learnt (HTE's
+    secondary GP, the sensed contacts). key: (B, 2) PRNG keys.
     taken: (B,) int32 actions so far. reached: (B,) bool at the goal. broken: (B,) bool the
     simulation went invalid; reason: (B,) int32 its `InvalidReason` bits (0 if not broken). trajectory: (B, 4 L + 1, 3) world pose (x, y, yaw) every second,
     the last pose repeated after the end. history: History.
@@ -124,12 +114,9 @@ class Episodes:
 
     sim: SimState
     damage: jax.Array
-    mode: jax.Array
-    oracle: jax.Array
     rte: GPData
     belief: MapBelief
-    secondary: GPData
-    optimism: jax.Array
+    learnt: PatternState
     key: jax.Array
     taken: jax.Array
     reached: jax.Array
@@ -147,12 +134,14 @@ class Episodes:
         return state_pose(self.sim)
 
 
-def variant_mode(variant: str, hierarchical: bool) -> int:
-    if variant not in VARIANT_MODES:
-        raise ConfigError(f"unknown variant {variant!r}; expected one of {sorted(VARIANT_MODES)}")
-    if not hierarchical and variant != "rte":
-        raise ConfigError(f"variant {variant!r} needs an HBR (a flat repertoire has no secondary descriptor)")
-    return VARIANT_MODES[variant]
+def variant_mode(name: str, hierarchical: bool) -> int:
+    """The integer of the rule variant `name` runs with on a repertoire (`variants.rule_index`)."""
+    if name not in VARIANTS:
+        raise ConfigError(f"unknown variant {name!r}; expected one of {sorted(VARIANTS)}")
+    rule = variant(name).rule
+    if not hierarchical and rule != "any":
+        raise ConfigError(f"variant {name!r} needs an HBR (a flat repertoire has no secondary descriptor)")
+    return rule_index(rule)
 
 
 def start_episodes(
@@ -191,12 +180,15 @@ def start_episodes(
     return Episodes(
         sim=start,
         damage=jnp.asarray(damages),
-        mode=jnp.asarray(modes, jnp.int32),
-        oracle=jnp.asarray([oracle_pattern(d) for d in damages], jnp.int32),
         rte=stacked(empty_gp(length, skills.actions.inputs.shape[-1], OUTCOME_DIM), batch, maps),
         belief=jax.vmap(lambda k: initial_belief(maps, k))(first_map),
-        secondary=stacked(empty_gp(STEPS_PER_SKILL * length, SECONDARY_DIM, SECONDARY_OUTPUTS), batch),
-        optimism=jnp.zeros(batch, jnp.float32) if optimism is None else jnp.asarray(optimism, jnp.float32),
+        learnt=PatternState(
+            mode=jnp.asarray(modes, jnp.int32),
+            oracle=jnp.asarray([oracle_pattern(d) for d in damages], jnp.int32),
+            optimism=jnp.zeros(batch, jnp.float32) if optimism is None else jnp.asarray(optimism, jnp.float32),
+            secondary=stacked(empty_gp(STEPS_PER_SKILL * length, SECONDARY_DIM, SECONDARY_OUTPUTS), batch),
+            contacts=jnp.zeros((batch, 2, NUM_LEGS), jnp.float32),
+        ),
         key=jax.random.split(key, batch),
         taken=jnp.zeros(batch, jnp.int32),
         reached=jnp.zeros(batch, bool),
@@ -274,12 +266,11 @@ def act_step(maze: Maze, config: AdaptationConfig, robot: Robot, skills: Skills,
     keys = decision.keys
     maps = skills.map_actions
     if skills.hierarchical:
-        outcome = execute_hbr(robot, skills, index, episodes.sim, episodes.damage, episodes.secondary,
-                              episodes.mode, episodes.oracle, episodes.taken, keys[:, 2], episodes.optimism,
-                              record_every=record_every)
+        outcome = execute_hbr(robot, skills, index, episodes.sim, episodes.damage, episodes.learnt, episodes.taken,
+                              keys[:, 2], record_every=record_every)
     else:
         outcome = execute_flat(robot, skills.map_genotypes[chosen_map, index], episodes.sim, episodes.damage,
-                               episodes.secondary, record_every=record_every)
+                               episodes.learnt, record_every=record_every)
 
     def learn(gps, belief, k, i, displacement):
         """The chosen repertoire's GP and APROL belief learn what its skill did."""
@@ -322,7 +313,7 @@ def act_step(maze: Maze, config: AdaptationConfig, robot: Robot, skills: Skills,
         sim=outcome.state,
         rte=rte,
         belief=belief,
-        secondary=outcome.secondary,
+        learnt=outcome.learnt,
         key=keys[:, 0],
         taken=episodes.taken + 1,
         reached=reached_goal(maze, end[:, :2]) & outcome.valid,

@@ -26,6 +26,7 @@ from hte_jax.flat.store import load_flat, shipped_flat_path
 from hte_jax.hbr.store import load_hbr
 from hte_jax.online.arena import maze_robot, start_states
 from hte_jax.online.episode import AdaptationConfig, Episodes, RunTimings, run_episodes, start_episodes, variant_mode
+from hte_jax.online.variants import variant as variant_named
 from hte_jax.hbr.composition import COMPOSITIONS
 from hte_jax.online.execute import Skills, flat_skill_maps, flat_skills, hbr_skills
 from hte_jax.online.maze import PAPER_MAZE, Maze
@@ -35,10 +36,7 @@ from hte_jax.qd.io import CheckpointError, read_checkpoint
 from hte_jax.sim.damage import PAPER_DAMAGES, parse_damage
 from hte_jax.sim.robot import RobotConfig
 
-HBR_VARIANTS = ("hte", "perfect-hte", "random-hte", "rte", "hte-miss", "hte-drift", "hte-legs")
-FLAT_VARIANTS = {"2d-rte": "2d", "8d-rte": "8d", "aprol": "aprol"}  # variant -> shipped flat file
 SEED_FILES = {"hbr": "hbr.npz", "2d": "flat2d.npz", "8d": "flat8d.npz", "aprol": "aprol.npz"}  # in a seed folder
-VARIANTS = HBR_VARIANTS + tuple(FLAT_VARIANTS)
 # The paper's Fig. 6 variants, in its order.
 PROTOCOLS = {"paper": ("perfect-hte", "hte", "2d-rte", "8d-rte", "aprol", "random-hte")}
 
@@ -89,8 +87,7 @@ class EvalConfig:
         require_number("optimism", self.optimism, 0.0)
         require_choice("composition", self.composition, COMPOSITIONS)
         for name in self.variant_list:
-            if name not in VARIANTS:
-                raise ConfigError(f"unknown variant {name!r}; choose from {', '.join(VARIANTS)}")
+            variant_named(name)  # validates the name
         self.damage_list  # noqa: B018 (validates the names)
         if self.repertoire and self.repertoire_dir:
             raise ConfigError("give either repertoire (one HBR file) or repertoire_dir (seed folders), not both")
@@ -222,16 +219,16 @@ def seed_folders(config: EvalConfig) -> list[Path | None]:
 
 def batches(config: EvalConfig) -> list[tuple[int, str | None, list[str]]]:
     """(seed index, repertoire path or None for the shipped HBR, variants) for each batch to run."""
-    hbr = [v for v in config.variant_list if v in HBR_VARIANTS]
+    hbr = [v for v in config.variant_list if variant_named(v).hierarchical]
     out = []
     for seed, folder in enumerate(seed_folders(config)):
         if hbr:
             out.append((seed, config.repertoire or None if folder is None else str(folder / SEED_FILES["hbr"]), hbr))
-        for variant in config.variant_list:
-            if variant in FLAT_VARIANTS:
-                kind = FLAT_VARIANTS[variant]
+        for name in config.variant_list:
+            kind = variant_named(name).repertoire
+            if kind != "hbr":
                 path = shipped_flat_path(kind) if folder is None else folder / SEED_FILES[kind]
-                out.append((seed, str(path), [variant]))
+                out.append((seed, str(path), [name]))
     return out
 
 
@@ -246,9 +243,10 @@ def run_batch(config: EvalConfig, path: str | None, variants: list[str], maze: M
     """Every (variant, damage, replicate) of `variants` on one repertoire (of seed `seed`), as one
     batch of episodes. record: batch rows whose states are recorded every `record_every` control
     steps (`BatchResult.replays`); none by default, and then nothing is recorded."""
-    skills, info = load_skills(path, maps=variants == ["aprol"], composition=config.composition)
+    maps = len(variants) == 1 and variant_named(variants[0]).repertoire == "aprol"
+    skills, info = load_skills(path, maps=maps, composition=config.composition)
     labels = batch_labels(config, variants)
-    modes = np.array([variant_mode("rte" if v in FLAT_VARIANTS else v, skills.hierarchical) for v, _, _ in labels])
+    modes = np.array([variant_mode(v, skills.hierarchical) for v, _, _ in labels])
     damages = np.stack([parse_damage(d) for _, d, _ in labels])
     adaptation = config.adaptation
     start = start_states(maze, damages, config.robot)

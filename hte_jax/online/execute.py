@@ -3,40 +3,23 @@
 An action is a 3 s skill followed by 1 s of the neutral pose (all controller parameters 0).
 A flat repertoire's skill is its 36-parameter controller run for 3 s. An HBR's skill is a
 top-layer genotype executed step by step (`hbr.execution.execute_step`); before each 1 s step
-the contact pattern of the middle elite is chosen by the episode's secondary mode:
-
-- `ANY_PATTERN_MODE` (RTE on an HBR): the nearest elite in primary descriptor, any pattern,
-  exactly as in training;
-- `UCB_MODE` (HTE): GP-UCB over the 36 allowed patterns, on the secondary GP's predicted errors;
-- `ORACLE_MODE` (Perfect HTE): the pattern of the true damage (the intact legs down);
-- `RANDOM_MODE` (Random HTE): a uniform pattern among the allowed ones the repertoire holds;
-- `MISS_MODE` (HTE, ours): the nearest elite of every one of the 64 patterns is scored by its
-  predicted miss (primary mismatch with the wanted step plus the secondary GP's predicted
-  deviation, `secondary.predicted_miss`); the least is run. With no observations this is RTE's
-  choice, so RTE on an HBR is the special case of a GP that never learns;
-- `LEGS_MODE` (HTE, ours): every pattern's nearest elite is scored by its primary mismatch plus
-  the learnt effect of each leg it puts down (`secondary.leg_effects`: a ridge regression of the
-  observed step deviations on the executed elites' contact bits), so a damaged leg learnt from any
-  skill is avoided in every skill; RTE's choice when nothing is learnt;
-- `DRIFT_MODE` (HTE, ours): as `MISS_MODE`, but the GP's signed deviation is added to each
-  candidate's descriptor (where it will land) and the candidates also include every pattern's
-  nearest elite to the wanted step minus the drift predicted for RTE's choice, so a damage that
-  pulls the robot one way is aimed against.
+the contact pattern of the middle elite is chosen by the episode's rule (`variants`: the paper's
+GP-UCB, the oracle, a random pattern, RTE's any pattern, and ours).
 
 Rollouts here use `ONLINE_LIMITS`: the robot of the online phase has its body collide with the
 floor, so a body on the floor is no longer an error, and only a robot tilted past 90 degrees (on
 its side or back: it cannot get up), a non-finite or an exploding state ends an episode.
 
 After each step the relative error (and the absolute deviation) between the executed elite's
-stored primary descriptor and what the robot did is added to the secondary GP (in every mode, so
-that all variants report it).
+stored primary descriptor and what the robot did is added to the secondary GP, and each leg's
+sensed floor contact is added up beside the contact the elite expected (in every variant, so that
+all of them report it).
 """
 
 from __future__ import annotations
 
 import math
 
-import numpy as np
 import jax
 import jax.numpy as jnp
 from flax import struct
@@ -47,39 +30,28 @@ from hte_jax.hbr.execution import (
     HBR,
     STEPS_PER_SKILL,
     execute_step,
-    select_middle,
     skill_waypoints,
     state_pose,
 )
 from hte_jax.hbr.geometry import compose_pose, planar_pose, relative_pose
-from hte_jax.hbr.middle import NUM_PATTERNS, PRIMARY
+from hte_jax.hbr.middle import PRIMARY
 from hte_jax.hbr.top import TopTask
 from hte_jax.online.actions import ActionSet, action_set, displacement_of
-from hte_jax.online.gp import HTE_KERNEL, GPData, add_observation, posterior
-from hte_jax.online.secondary import (
-    acquisition,
-    allowed_patterns,
-    leg_effects,
-    leg_miss,
-    predicted_landing_miss,
-    predicted_miss,
-    relative_error,
-    step_targets,
-    ucb_beta,
-)
+from hte_jax.online.gp import GPData, add_observation
+from hte_jax.online.secondary import relative_error, step_targets
+from hte_jax.online.variants import ERROR_DIM, PatternState, choose, rule_index, step_context
 from hte_jax.qd.repertoire import Repertoire
 from hte_jax.sim.controller import NUM_PARAMS
-from hte_jax.sim.robot import Robot
+from hte_jax.sim.robot import NUM_LEGS, Robot
 from hte_jax.sim.rollout import RolloutSpec, SimState, ValidityLimits, rollout
 
-ANY_PATTERN_MODE, UCB_MODE, ORACLE_MODE, RANDOM_MODE, MISS_MODE, DRIFT_MODE, LEGS_MODE = 0, 1, 2, 3, 4, 5, 6
+# The built-in rules' integers (`variants.rule_index`).
+ANY_PATTERN_MODE, UCB_MODE, ORACLE_MODE, RANDOM_MODE, MISS_MODE, DRIFT_MODE, LEGS_MODE, CONTACTS_MODE = (
+    rule_index(name) for name in ("any", "gp-ucb", "oracle", "random", "least-miss", "drift", "legs", "contacts"))
 STEP_CONTROL_STEPS = 100  # one second
 NEUTRAL_CONTROL_STEPS = 100  # the 1 s neutral pose after each skill
 SECONDS_PER_ACTION = STEPS_PER_SKILL + 1
-CANDIDATE_PATTERNS = allowed_patterns()  # (36,) the paper's candidates
-ALL_PATTERNS = np.arange(NUM_PATTERNS, dtype=np.int32)  # (64,) MISS_MODE's candidates
 SECONDARY_DIM = 9  # the middle descriptor: x, y, yaw, 6 contact bits
-ERROR_DIM = 3
 SECONDARY_OUTPUTS = 3 * ERROR_DIM  # relative errors (the paper's), absolute deviations, signed deviations
 ONLINE_LIMITS = ValidityLimits(max_tilt=math.pi / 2, min_base_height=0.0, body_on_floor=False)
 
@@ -165,7 +137,8 @@ class ActionOutcome:
     pre-action frame. patterns: (B, 3) int32 contact pattern asked for at each step (-1: any, and
     for flat skills). middle_index: (B, 3) int32 executed middle elite (-1 for flat skills).
     errors: (B, 3, 3) relative error (x, y, yaw) of each step (0 for flat skills).
-    secondary: GPData (B, ...) the secondary GP after this action's observations.
+    learnt: PatternState (B, ...) the pattern rules' state after this action's observations, or
+      None for flat skills.
     qpos: (B, F, 25) the state every k = `record_every` control steps of the action, from its start
       (F = 400 / k; k divides 100, so every F / 4-th state starts a second), or None (not recorded).
     """
@@ -178,7 +151,7 @@ class ActionOutcome:
     patterns: jax.Array
     middle_index: jax.Array
     errors: jax.Array
-    secondary: GPData
+    learnt: PatternState | None
     qpos: jax.Array | None = None
 
 
@@ -188,82 +161,25 @@ def _neutral(robot: Robot, state: SimState, damage: jax.Array, record_every: int
     return rollout(robot, jnp.zeros((state.qpos.shape[0], NUM_PARAMS)), damage, state, spec)
 
 
-def candidate_elites(hbr: HBR, desired: jax.Array, patterns: np.ndarray = CANDIDATE_PATTERNS):
-    """For desired primary descriptors (B, 3): the middle elite each of `patterns` (C,) would execute.
-
-    Returns index (B, C) and found (B, C) (False where the repertoire has no elite with that pattern).
-    """
-    batch, count = desired.shape[0], patterns.size
-    queries = jnp.repeat(desired, count, axis=0)
-    wanted = jnp.tile(jnp.asarray(patterns), batch)
-    index, found = select_middle(hbr, queries, wanted)
-    return index.reshape(batch, count), found.reshape(batch, count)
-
-
 def choose_patterns(
     hbr: HBR, mode: jax.Array, oracle: jax.Array, secondary: GPData, desired: jax.Array, t: jax.Array,
-    keys: jax.Array, optimism: jax.Array | None = None,
+    keys: jax.Array, optimism: jax.Array | None = None, contacts: jax.Array | None = None,
 ) -> tuple[jax.Array, jax.Array]:
-    """Contact pattern (B,) for the next step of each robot (see the module docstring), and the
-    primary step (B, 3) to look its elite up with (`desired`, except where DRIFT_MODE aims off it).
+    """Contact pattern (B,) for the next step of each robot by its rule (`variants.RULES`), and the
+    primary step (B, 3) to look its elite up with (`desired`, except where a rule aims off it).
 
     mode, oracle: (B,) int32. secondary: GPData (B, ...). desired: (B, 3) normalised primary
     descriptor the step aims at. t: (B,) GP-UCB step count (>= 1). keys: (B, 2) PRNG keys.
-    optimism: (B,) MISS_MODE's confidence-bound weight (default 0).
+    optimism: (B,) the predicted-miss rule's confidence weight (default 0). contacts: (B, 2, 6)
+    sensed and expected contact seconds (default 0: nothing sensed yet).
     """
-    if optimism is None:
-        optimism = jnp.zeros(desired.shape[0], jnp.float32)
-    every, found_every = candidate_elites(hbr, desired, ALL_PATTERNS)  # (B, 64): pattern p in column p
-    columns = jnp.asarray(CANDIDATE_PATTERNS)
-    found = found_every[:, columns]
-    inputs = hbr.middle.descriptors[every]  # (B, 64, 9)
-    mean, variance = jax.vmap(lambda gp, x: posterior(HTE_KERNEL, gp, x))(secondary, inputs)
-    score = acquisition(mean[:, columns, :ERROR_DIM], variance[:, columns], ucb_beta(t)[:, None])
-    candidates = jnp.asarray(CANDIDATE_PATTERNS)
-    ucb = candidates[jnp.argmax(jnp.where(found, score, -jnp.inf), axis=-1)]  # ties: the lowest pattern
-    logits = jnp.where(found, 0.0, -jnp.inf)
-    random = candidates[jax.vmap(jax.random.categorical)(keys, logits)]
-    miss = predicted_miss(desired, inputs[..., :PRIMARY], mean[..., ERROR_DIM:2 * ERROR_DIM],
-                          jnp.sqrt(jnp.maximum(variance, 0.0)), optimism[:, None, None])
-    least = jnp.argmin(jnp.where(found_every, miss, jnp.inf), axis=-1).astype(jnp.int32)  # column = pattern
-    drift, aim = _drift_choice(hbr, secondary, desired, inputs, mean, found_every)
-    by_legs = leg_miss(desired, inputs, jax.vmap(leg_effects)(secondary))
-    legs = jnp.argmin(jnp.where(found_every, by_legs, jnp.inf), axis=-1).astype(jnp.int32)  # column = pattern
-    anything = found.any(axis=-1)
-    choice = jnp.select(
-        [mode == UCB_MODE, mode == ORACLE_MODE, mode == RANDOM_MODE, mode == MISS_MODE, mode == DRIFT_MODE,
-         mode == LEGS_MODE],
-        [jnp.where(anything, ucb, ANY_PATTERN), oracle, jnp.where(anything, random, ANY_PATTERN), least, drift,
-         legs],
-        ANY_PATTERN,
-    )
-    query = jnp.where((mode == DRIFT_MODE)[:, None], aim, desired)
-    return choice.astype(jnp.int32), query
+    batch = desired.shape[0]
+    optimism = jnp.zeros(batch, jnp.float32) if optimism is None else optimism
+    contacts = jnp.zeros((batch, 2, NUM_LEGS), jnp.float32) if contacts is None else contacts
+    return choose(step_context(hbr, desired, t, keys, oracle, optimism, secondary, contacts), mode)
 
 
-def _drift_choice(hbr: HBR, secondary: GPData, desired: jax.Array, inputs: jax.Array, mean: jax.Array,
-                  found: jax.Array) -> tuple[jax.Array, jax.Array]:
-    """DRIFT_MODE's pattern (B,) and the step to look its elite up with (B, 3): among every pattern's
-    nearest elite to the wanted step and to the wanted step less the drift predicted for RTE's
-    choice, the one predicted to land nearest the wanted step."""
-    signed = mean[..., 2 * ERROR_DIM:]  # (B, 64, 3)
-    nearest, _ = select_middle(hbr, desired, jnp.full(desired.shape[0], ANY_PATTERN, jnp.int32))
-    rte_column = hbr.middle_patterns[nearest]  # RTE's elite is the nearest of its own pattern
-    aim = desired - jnp.take_along_axis(signed, rte_column[:, None, None], axis=1)[:, 0]
-    aimed, aimed_found = candidate_elites(hbr, aim, ALL_PATTERNS)
-    aimed_inputs = hbr.middle.descriptors[aimed]
-    aimed_mean, _ = jax.vmap(lambda gp, x: posterior(HTE_KERNEL, gp, x))(secondary, aimed_inputs)
-    miss = jnp.concatenate([
-        jnp.where(found, predicted_landing_miss(desired, inputs[..., :PRIMARY], signed), jnp.inf),
-        jnp.where(aimed_found, predicted_landing_miss(desired, aimed_inputs[..., :PRIMARY],
-                                                      aimed_mean[..., 2 * ERROR_DIM:]), jnp.inf),
-    ], axis=-1)
-    best = jnp.argmin(miss, axis=-1)
-    query = jnp.where((best >= NUM_PATTERNS)[:, None], aim, desired)
-    return (best % NUM_PATTERNS).astype(jnp.int32), query
-
-
-def execute_flat(robot: Robot, params: jax.Array, state: SimState, damage: jax.Array, secondary: GPData,
+def execute_flat(robot: Robot, params: jax.Array, state: SimState, damage: jax.Array, learnt: PatternState | None = None,
                  record_every: int = 0) -> ActionOutcome:
     """Run flat controllers `params` (B, 36): each for 3 s, then 1 s neutral, in one rollout.
 
@@ -286,7 +202,7 @@ def execute_flat(robot: Robot, params: jax.Array, state: SimState, damage: jax.A
         patterns=jnp.full((batch, STEPS_PER_SKILL), ANY_PATTERN, jnp.int32),
         middle_index=jnp.full((batch, STEPS_PER_SKILL), -1, jnp.int32),
         errors=jnp.zeros((batch, STEPS_PER_SKILL, ERROR_DIM), jnp.float32),
-        secondary=secondary,
+        learnt=learnt,
         qpos=result.qpos,
     )
 
@@ -297,19 +213,16 @@ def execute_hbr(
     index: jax.Array,
     state: SimState,
     damage: jax.Array,
-    secondary: GPData,
-    mode: jax.Array,
-    oracle: jax.Array,
+    learnt: PatternState,
     action_number: jax.Array,
     keys: jax.Array,
-    optimism: jax.Array | None = None,
     record_every: int = 0,
 ) -> ActionOutcome:
-    """Run HBR skills `index` (B,) step by step, choosing each step's contact pattern, then 1 s neutral.
+    """Run HBR skills `index` (B,) step by step, choosing each step's contact pattern by each
+    episode's rule (`learnt`: what the rules know so far), then 1 s neutral.
 
     action_number: (B,) int32 actions already taken (the GP-UCB count is t = 1 + step + 3 action_number).
-    keys: (B, 2) PRNG keys (random patterns). optimism: (B,) MISS_MODE's confidence weight (default 0).
-    record_every: k > 0 also returns the state every k control steps (`ActionOutcome.qpos`).
+    keys: (B, 2) PRNG keys (random patterns). record_every: k > 0 also returns the state every k control steps (`ActionOutcome.qpos`).
     """
     hbr = skills.hbr
     task = hbr.middle_task
@@ -317,13 +230,16 @@ def execute_hbr(
     targets = compose_pose(origin[:, None, :], skill_waypoints(task, skills.genotypes[index]))  # (B, 3, 3)
     goal = compose_pose(origin, displacement_of(skills.actions.prior[index]))  # (B, 3) the skills' stored ends
 
+    expected_contact = hbr.middle.extras["contact_fraction"]  # (Cm, 6)
+
     def one_step(carry, xs):
-        state, gp = carry
+        state, gp, contacts = carry
         target, step, step_keys = xs
         here = state_pose(state)
         desired = task.normalise(relative_pose(here, target))
         t = 1 + step + STEPS_PER_SKILL * action_number
-        pattern, query = choose_patterns(hbr, mode, oracle, gp, desired, t, step_keys, optimism)
+        pattern, query = choose_patterns(hbr, learnt.mode, learnt.oracle, gp, desired, t, step_keys, learnt.optimism,
+                                         contacts)
         elite = None
         if skills.table is not None:
             elite = plan_batch(skills.table, task, here, goal, pattern, STEPS_PER_SKILL - step)
@@ -333,13 +249,15 @@ def execute_hbr(
         observed = task.normalise(result.displacement)
         error = relative_error(executed[:, :PRIMARY], observed)
         gp = jax.vmap(add_observation)(gp, executed, step_targets(executed[:, :PRIMARY], observed))
-        return (result.state, gp), (pattern, result.middle_index, error, result.invalid_reason, state_pose(result.state),
+        contacts = contacts + jnp.stack([result.contact_fraction, expected_contact[result.middle_index]], axis=1)
+        return (result.state, gp, contacts), (pattern, result.middle_index, error, result.invalid_reason, state_pose(result.state),
                                     result.qpos)
 
     steps = jnp.arange(STEPS_PER_SKILL, dtype=jnp.int32)
     step_keys = jnp.swapaxes(jax.vmap(lambda k: jax.random.split(k, STEPS_PER_SKILL))(keys), 0, 1)  # (3, B, 2)
     xs = (jnp.swapaxes(targets, 0, 1), steps, step_keys)
-    (state, secondary), (patterns, middle, errors, reasons, poses, qpos) = jax.lax.scan(one_step, (state, secondary), xs)
+    (state, secondary, contacts), (patterns, middle, errors, reasons, poses, qpos) = jax.lax.scan(
+        one_step, (state, learnt.secondary, learnt.contacts), xs)
     rest = _neutral(robot, state, damage, record_every)
     end = state_pose(rest.final_state)
     if record_every:  # (3, B, F / 4, 25) steps and (B, F / 4, 25) neutral -> (B, F, 25)
@@ -354,7 +272,7 @@ def execute_hbr(
         patterns=patterns.T,
         middle_index=middle.T,
         errors=jnp.swapaxes(errors, 0, 1),
-        secondary=secondary,
+        learnt=learnt.replace(secondary=secondary, contacts=contacts),
         qpos=qpos,
     )
 

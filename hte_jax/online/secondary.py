@@ -6,6 +6,10 @@ input: the elite's 9-D descriptor, output: the three relative errors of x, y, ya
 errors on the damaged robot; the score of a candidate is ||exp(-k max(0, mu))||_2 + beta_t var
 (k = 4, 4, 3), with the GP-UCB schedule beta_t of the original.
 
+Ours (`usable_pattern`, not the paper's): the robot compares each leg's sensed floor contact with
+the contact its executed elites expected; a leg that stays off the floor (blocked in the air) is
+judged unusable and the steps take the pattern with every other leg down.
+
 Ours (`predicted_miss`, not the paper's): the GP also learns each executed elite's absolute
 deviation |bd' - bd| (normalised units), and every pattern's nearest elite is scored by how far
 from the wanted step it is predicted to end: primary mismatch plus predicted deviation. With no
@@ -28,6 +32,8 @@ ERROR_CENTRE = 0.5  # c: the normalised descriptor of "no motion"
 ERROR_GUARD = 0.001
 UCB_DELTA = 0.1
 LEG_PRIOR_PRECISION = 1.0  # ridge weight of `leg_effects`: one pseudo-observation of "no effect"
+CONTACT_EVIDENCE = 0.3  # seconds of expected floor contact before a leg is judged (`unusable_legs`)
+CONTACT_RATIO = 0.1  # a leg sensed down for less than this share of its expected contact is unusable
 
 
 def legs_down(pattern: int) -> list[int]:
@@ -112,6 +118,23 @@ def leg_miss(desired: jax.Array, candidates: jax.Array, effects: jax.Array) -> j
     puts down (negative effects count as 0: using a leg never makes a step more accurate). (..., C)."""
     mismatch = jnp.linalg.norm(candidates[..., :PRIMARY] - desired[..., None, :], axis=-1)
     return mismatch + jnp.sum(candidates[..., PRIMARY:] * jnp.maximum(effects, 0.0)[..., None, :], axis=-1)
+
+
+def unusable_legs(contacts: jax.Array, evidence: float = CONTACT_EVIDENCE, ratio: float = CONTACT_RATIO) -> jax.Array:
+    """(..., 2, 6) seconds each leg was sensed on the floor and expected on it -> (..., 6) bool, the
+    legs that touched the floor for less than `ratio` of the contact the executed elites expected,
+    once they expected at least `evidence` seconds (a leg blocked in the air senses none)."""
+    sensed, expected = contacts[..., 0, :], contacts[..., 1, :]
+    return (expected >= evidence) & (sensed < ratio * expected)
+
+
+def usable_pattern(contacts: jax.Array) -> jax.Array:
+    """(..., 2, 6) sensed and expected contact -> (...,) int32: the pattern with every leg down but
+    the unusable ones (`unusable_legs`), or -1 (any pattern) while every leg seems usable."""
+    bad = unusable_legs(contacts)
+    weights = jnp.asarray([1 << (NUM_LEGS - 1 - leg) for leg in range(NUM_LEGS)], jnp.int32)
+    pattern = jnp.sum(jnp.where(bad, 0, weights), axis=-1)
+    return jnp.where(bad.any(axis=-1), pattern, -1).astype(jnp.int32)
 
 
 def ucb_beta(t: jax.Array, candidates: int = 36) -> jax.Array:

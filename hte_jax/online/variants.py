@@ -1,0 +1,285 @@
+"""The adaptation variants, one table entry each, and the rules that pick a step's contact pattern.
+
+A `Variant` names the repertoire an episode plans with (the HBR, or a shipped flat repertoire)
+and, for the HBR, the `rule` that picks the contact pattern of each 1 s step. A rule is a
+function of a `StepContext` (what B robots know before a step) that returns the pattern (B,)
+(-1: any pattern, RTE's nearest elite) and, optionally, the primary step (B, 3) to look its elite
+up with. Jitted code sees a rule only as its integer, its position in `RULES`: every rule's choice
+is computed for the whole batch and each episode takes its own, so all variants share one
+compiled program.
+
+Adding a variant is one entry (`add_variant`); adding a rule is one function (`add_rule`), e.g.
+
+    def mean_only(ctx):  # HTE on the GP's mean alone, no UCB bonus
+        score = acquisition(ctx.mean[:, columns, :ERROR_DIM], ctx.variance[:, columns], 0.0)
+        ...
+    add_rule("gp-mean", mean_only)
+    add_variant(Variant("hte-mean", rule="gp-mean", summary="HTE without the UCB bonus"))
+
+(`docs/extending.md` has the whole example.)
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+from hte_jax.errors import ConfigError
+from hte_jax.hbr.execution import ANY_PATTERN, HBR, select_middle
+from hte_jax.hbr.middle import NUM_PATTERNS, PRIMARY
+from hte_jax.online.gp import HTE_KERNEL, GPData, posterior
+from hte_jax.online.secondary import (
+    acquisition,
+    allowed_patterns,
+    leg_effects,
+    leg_miss,
+    predicted_landing_miss,
+    predicted_miss,
+    ucb_beta,
+    usable_pattern,
+)
+
+CANDIDATE_PATTERNS = allowed_patterns()  # (36,) the paper's candidates
+ALL_PATTERNS = np.arange(NUM_PATTERNS, dtype=np.int32)  # (64,) the predicted-miss rules' candidates
+ERROR_DIM = 3  # the secondary GP's outputs: 3 relative errors, 3 absolute, 3 signed deviations
+
+
+@struct.dataclass
+class StepContext:
+    """What B robots know before one 1 s step (shared by every rule; computed once).
+
+    hbr: the HBR. desired: (B, 3) normalised primary step wanted. t: (B,) GP-UCB step count (>= 1).
+    keys: (B, 2) PRNG keys. oracle: (B,) int32 the true damage's pattern (Perfect HTE only).
+    optimism: (B,) confidence weight of the predicted-miss rule. secondary: GPData (B, ...) the
+    secondary GP. contacts: (B, 2, 6) seconds each leg was sensed on the floor (row 0) and expected
+    on it by the executed elites' stored contact fractions (row 1), summed over the episode.
+    every: (B, 64) int32 nearest elite of each pattern p (column p) to `desired`; found: (B, 64)
+    bool, the pattern has elites. inputs: (B, 64, 9) their descriptors. mean: (B, 64, 9) and
+    variance: (B, 64) the secondary GP's posterior at them.
+    """
+
+    hbr: HBR
+    desired: jax.Array
+    t: jax.Array
+    keys: jax.Array
+    oracle: jax.Array
+    optimism: jax.Array
+    secondary: GPData
+    contacts: jax.Array
+    every: jax.Array
+    found: jax.Array
+    inputs: jax.Array
+    mean: jax.Array
+    variance: jax.Array
+
+
+Rule = Callable[[StepContext], "tuple[jax.Array, jax.Array | None]"]
+
+
+@struct.dataclass
+class PatternState:
+    """What the pattern rules of B episodes carry from step to step.
+
+    mode: (B,) int32 each episode's rule (`rule_index`). oracle: (B,) int32 the true damage's
+    pattern. optimism: (B,) float32 confidence weight of the predicted-miss rule. secondary: GPData
+    (B, 3 L, 9, 9) HTE's error model (relative errors, absolute and signed deviations of each
+    executed elite). contacts: (B, 2, 6) float32 seconds each leg was sensed on the floor (row 0)
+    and expected on it by the executed elites' stored contact fractions (row 1), summed.
+    """
+
+    mode: jax.Array
+    oracle: jax.Array
+    optimism: jax.Array
+    secondary: GPData
+    contacts: jax.Array
+
+
+def candidate_elites(hbr: HBR, desired: jax.Array, patterns: np.ndarray = CANDIDATE_PATTERNS):
+    """For desired primary descriptors (B, 3): the middle elite each of `patterns` (C,) would execute.
+
+    Returns index (B, C) and found (B, C) (False where the repertoire has no elite with that pattern).
+    """
+    batch, count = desired.shape[0], patterns.size
+    queries = jnp.repeat(desired, count, axis=0)
+    wanted = jnp.tile(jnp.asarray(patterns), batch)
+    index, found = select_middle(hbr, queries, wanted)
+    return index.reshape(batch, count), found.reshape(batch, count)
+
+
+def step_context(hbr: HBR, desired: jax.Array, t: jax.Array, keys: jax.Array, oracle: jax.Array,
+                 optimism: jax.Array, secondary: GPData, contacts: jax.Array) -> StepContext:
+    """The context every rule reads: each pattern's nearest elite and the GP's posterior there."""
+    every, found = candidate_elites(hbr, desired, ALL_PATTERNS)
+    inputs = hbr.middle.descriptors[every]
+    mean, variance = jax.vmap(lambda gp, x: posterior(HTE_KERNEL, gp, x))(secondary, inputs)
+    return StepContext(hbr=hbr, desired=desired, t=t, keys=keys, oracle=oracle, optimism=optimism,
+                       secondary=secondary, contacts=contacts, every=every, found=found, inputs=inputs,
+                       mean=mean, variance=variance)
+
+
+def any_pattern(ctx: StepContext):
+    """RTE on an HBR: the nearest elite in primary descriptor, any pattern, exactly as in training."""
+    return jnp.full(ctx.desired.shape[0], ANY_PATTERN, jnp.int32), None
+
+
+def gp_ucb(ctx: StepContext):
+    """HTE (the paper's): GP-UCB over the 36 allowed patterns on the predicted relative errors."""
+    columns = jnp.asarray(CANDIDATE_PATTERNS)
+    found = ctx.found[:, columns]
+    score = acquisition(ctx.mean[:, columns, :ERROR_DIM], ctx.variance[:, columns], ucb_beta(ctx.t)[:, None])
+    ucb = columns[jnp.argmax(jnp.where(found, score, -jnp.inf), axis=-1)]  # ties: the lowest pattern
+    return jnp.where(found.any(axis=-1), ucb, ANY_PATTERN), None
+
+
+def oracle(ctx: StepContext):
+    """Perfect HTE: the pattern of the true damage (the intact legs down)."""
+    return ctx.oracle, None
+
+
+def random_pattern(ctx: StepContext):
+    """Random HTE: a uniform pattern among the allowed ones the repertoire holds."""
+    columns = jnp.asarray(CANDIDATE_PATTERNS)
+    found = ctx.found[:, columns]
+    drawn = columns[jax.vmap(jax.random.categorical)(ctx.keys, jnp.where(found, 0.0, -jnp.inf))]
+    return jnp.where(found.any(axis=-1), drawn, ANY_PATTERN), None
+
+
+def least_miss(ctx: StepContext):
+    """Ours: every pattern's nearest elite scored by its predicted miss (primary mismatch plus the
+    GP's predicted deviation, `secondary.predicted_miss`); RTE's choice while nothing is learnt."""
+    miss = predicted_miss(ctx.desired, ctx.inputs[..., :PRIMARY], ctx.mean[..., ERROR_DIM:2 * ERROR_DIM],
+                          jnp.sqrt(jnp.maximum(ctx.variance, 0.0)), ctx.optimism[:, None, None])
+    return jnp.argmin(jnp.where(ctx.found, miss, jnp.inf), axis=-1).astype(jnp.int32), None
+
+
+def drift(ctx: StepContext):
+    """Ours: as `least_miss`, but each candidate lands where the GP's signed deviation moves it, and
+    the candidates also include every pattern's nearest elite to the wanted step less the drift
+    predicted for RTE's choice (a damage that pulls the robot one way is aimed against)."""
+    hbr, desired = ctx.hbr, ctx.desired
+    signed = ctx.mean[..., 2 * ERROR_DIM:]  # (B, 64, 3)
+    nearest, _ = select_middle(hbr, desired, jnp.full(desired.shape[0], ANY_PATTERN, jnp.int32))
+    rte_column = hbr.middle_patterns[nearest]  # RTE's elite is the nearest of its own pattern
+    aim = desired - jnp.take_along_axis(signed, rte_column[:, None, None], axis=1)[:, 0]
+    aimed, aimed_found = candidate_elites(hbr, aim, ALL_PATTERNS)
+    aimed_inputs = hbr.middle.descriptors[aimed]
+    aimed_mean, _ = jax.vmap(lambda gp, x: posterior(HTE_KERNEL, gp, x))(ctx.secondary, aimed_inputs)
+    miss = jnp.concatenate([
+        jnp.where(ctx.found, predicted_landing_miss(desired, ctx.inputs[..., :PRIMARY], signed), jnp.inf),
+        jnp.where(aimed_found, predicted_landing_miss(desired, aimed_inputs[..., :PRIMARY],
+                                                      aimed_mean[..., 2 * ERROR_DIM:]), jnp.inf),
+    ], axis=-1)
+    best = jnp.argmin(miss, axis=-1)
+    query = jnp.where((best >= NUM_PATTERNS)[:, None], aim, desired)
+    return (best % NUM_PATTERNS).astype(jnp.int32), query
+
+
+def legs(ctx: StepContext):
+    """Ours: every pattern's nearest elite scored by its primary mismatch plus the learnt effect of
+    each leg it puts down (`secondary.leg_effects`); RTE's choice while nothing is learnt."""
+    by_legs = leg_miss(ctx.desired, ctx.inputs, jax.vmap(leg_effects)(ctx.secondary))
+    return jnp.argmin(jnp.where(ctx.found, by_legs, jnp.inf), axis=-1).astype(jnp.int32), None
+
+
+def sensed_contacts(ctx: StepContext):
+    """Ours: RTE's choice until a leg is sensed not to touch the floor when its elites should
+    (`secondary.usable_pattern`); then the pattern with every other leg down."""
+    return usable_pattern(ctx.contacts), None
+
+
+RULES: dict[str, Rule] = {
+    "any": any_pattern,
+    "gp-ucb": gp_ucb,
+    "oracle": oracle,
+    "random": random_pattern,
+    "least-miss": least_miss,
+    "drift": drift,
+    "legs": legs,
+    "contacts": sensed_contacts,
+}
+
+
+@dataclasses.dataclass(frozen=True)
+class Variant:
+    """One adaptation variant.
+
+    name: what `maze_eval --variant` calls it. rule: the key in `RULES` that picks each step's
+    pattern ("any" for flat repertoires). repertoire: "hbr", or the shipped flat repertoire it plans
+    with ("2d", "8d", "aprol": APROL's 21). summary: one line for the docs and `--help`.
+    """
+
+    name: str
+    rule: str = "any"
+    repertoire: str = "hbr"
+    summary: str = ""
+
+    @property
+    def hierarchical(self) -> bool:
+        return self.repertoire == "hbr"
+
+
+VARIANTS: dict[str, Variant] = {}
+
+
+def add_variant(variant: Variant) -> Variant:
+    """Register a variant (its rule must be registered first; names are unique)."""
+    if variant.name in VARIANTS:
+        raise ConfigError(f"variant {variant.name!r} is already defined")
+    if variant.rule not in RULES:
+        raise ConfigError(f"variant {variant.name!r}: unknown rule {variant.rule!r}; known: {', '.join(RULES)}")
+    if not variant.hierarchical and variant.rule != "any":
+        raise ConfigError(f"variant {variant.name!r}: a flat repertoire has no contact patterns to choose")
+    VARIANTS[variant.name] = variant
+    return variant
+
+
+def add_rule(name: str, rule: Rule) -> int:
+    """Register a pattern rule; returns its integer (the programs compiled after this include it)."""
+    if name in RULES:
+        raise ConfigError(f"rule {name!r} is already defined")
+    RULES[name] = rule
+    return rule_index(name)
+
+
+def rule_index(name: str) -> int:
+    """The integer jitted code sees for a rule."""
+    return list(RULES).index(name)
+
+
+for _variant in (
+    Variant("hte", "gp-ucb", summary="the paper's HTE: GP-UCB over 36 contact patterns"),
+    Variant("perfect-hte", "oracle", summary="the pattern of the true damage (an upper bound)"),
+    Variant("random-hte", "random", summary="a uniform random pattern each step (a lower bound)"),
+    Variant("rte", "any", summary="RTE on the HBR: the nearest middle elite of any pattern"),
+    Variant("hte-miss", "least-miss", summary="ours: the least predicted miss over every pattern"),
+    Variant("hte-drift", "drift", summary="ours: the least predicted landing error, aiming against the drift"),
+    Variant("hte-legs", "legs", summary="ours: primary mismatch plus a learnt per-leg penalty"),
+    Variant("hte-contacts", "contacts", summary="ours: lift the legs sensed not to touch the floor"),
+    Variant("2d-rte", repertoire="2d", summary="RTE on the flat x-y repertoire"),
+    Variant("8d-rte", repertoire="8d", summary="RTE on the flat 8-D repertoire"),
+    Variant("aprol", repertoire="aprol", summary="APROL's choice among 21 damage repertoires"),
+):
+    add_variant(_variant)
+
+
+def variant(name: str) -> Variant:
+    """The variant called `name` (clear error otherwise)."""
+    if name not in VARIANTS:
+        raise ConfigError(f"unknown variant {name!r}; choose from {', '.join(VARIANTS)}")
+    return VARIANTS[name]
+
+
+def choose(ctx: StepContext, mode: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """Every episode's pattern (B,) and lookup step (B, 3) by its own rule `mode` (B,) int32."""
+    choices = [rule(ctx) for rule in RULES.values()]
+    pattern = jnp.select([mode == i for i in range(1, len(choices))], [c[0] for c in choices[1:]], choices[0][0])
+    query = ctx.desired
+    for i, (_, aimed) in enumerate(choices):
+        if aimed is not None:
+            query = jnp.where((mode == i)[:, None], aimed, query)
+    return pattern.astype(jnp.int32), query

@@ -1,0 +1,47 @@
+"""The variant table: every variant is one entry, rules are integers in jitted code, and a new
+rule plus a new variant run through the whole adaptation loop without edits elsewhere."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from hte_jax.errors import ConfigError
+from hte_jax.hbr.store import load_hbr
+from hte_jax.online import variants
+from hte_jax.online.episode import variant_mode
+from hte_jax.online.execute import CONTACTS_MODE, SECONDARY_OUTPUTS, choose_patterns
+from hte_jax.online.gp import empty_gp
+
+
+def test_the_table_names_every_variant_once_with_a_known_rule():
+    assert {"hte", "perfect-hte", "random-hte", "rte", "2d-rte", "8d-rte", "aprol", "hte-contacts"} <= set(variants.VARIANTS)
+    for name, entry in variants.VARIANTS.items():
+        assert entry.name == name and entry.rule in variants.RULES and entry.summary
+        assert entry.hierarchical == (entry.repertoire == "hbr")
+    assert variant_mode("rte", True) == variant_mode("2d-rte", False) == 0  # flat variants run RTE's rule
+    with pytest.raises(ConfigError, match="needs an HBR"):
+        variant_mode("hte", False)
+    with pytest.raises(ConfigError, match="unknown variant"):
+        variants.variant("hte-psychic")
+    with pytest.raises(ConfigError, match="already defined"):
+        variants.add_variant(variants.Variant("hte", "gp-ucb", summary="again"))
+    with pytest.raises(ConfigError, match="unknown rule"):
+        variants.add_variant(variants.Variant("hte-x", "psychic", summary="no such rule"))
+    with pytest.raises(ConfigError, match="no contact patterns"):
+        variants.add_variant(variants.Variant("flat-x", "gp-ucb", repertoire="2d", summary="flat with a rule"))
+
+
+def test_contacts_rule_is_rte_until_a_leg_stays_off_the_floor():
+    hbr, _, _ = load_hbr()
+    desired = jnp.asarray([[0.7, 0.5, 0.5]] * 2)
+    gp = jax.tree.map(lambda x: jnp.broadcast_to(x, (2, *x.shape)), empty_gp(6, 9, SECONDARY_OUTPUTS))
+    modes = jnp.full(2, CONTACTS_MODE, jnp.int32)
+    contacts = np.zeros((2, 2, 6), np.float32)
+    contacts[:, 1] = 0.8  # every leg expected down 0.8 s
+    contacts[:, 0] = 0.9
+    contacts[1, 0, 4] = 0.0  # robot 1's leg 4 never touched the floor
+    chosen, query = choose_patterns(hbr, modes, jnp.asarray([63, 63]), gp, desired, jnp.ones(2, jnp.int32),
+                                    jax.random.split(jax.random.PRNGKey(0), 2), contacts=jnp.asarray(contacts))
+    assert np.asarray(chosen).tolist() == [-1, 63 - (1 << 1)]
+    np.testing.assert_array_equal(query, desired)
