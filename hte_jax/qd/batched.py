@@ -5,8 +5,8 @@ condition passed to the evaluation: a damage mask and the damaged robot's start 
 APROL's 21 repertoires, a task parameter, a seed... Run r behaves like `single(r)` run alone
 (the same PRNG keys; the vmapped physics may differ from an unbatched one in the last bits).
 `QDState` holds (R, ...) repertoires, (R, 2) keys and (R, ...) emitter states with one shared
-scalar generation, so the
-host-side `loop.run` (progress, CSV, atomic checkpoints, resume) drives it unchanged.
+scalar generation, so the host-side `loop.run` (progress, CSV, atomic checkpoints, resume)
+drives it unchanged.
 """
 
 from __future__ import annotations

@@ -154,7 +154,8 @@ class MapElites:
             return repertoire, None
 
         repertoire, _ = jax.lax.scan(insert, state.repertoire, jax.random.split(key_init, batches))
-        emitter_state = self.active_emitter.init(repertoire, jax.random.fold_in(key_init, 0))
+        key_emitter = jax.random.fold_in(key_init, 0)  # a key of its own: the batches' keys stay as they were
+        emitter_state = self.active_emitter.init(repertoire, key_emitter)
         return state.replace(repertoire=repertoire, emitter_state=emitter_state)
 
     def select(self, repertoire: Repertoire, key: jax.Array) -> jax.Array:
