@@ -131,7 +131,8 @@ def main(argv=None):
         for batch in batches:
             algo = MapElites(container, planar_arm_evaluate, GENOTYPE_DIM,
                              MapElitesConfig(batch_size=batch, init_size=batch))
-            ask = jax.jit(algo.ask)
+            emitter_state = algo.empty_state(jax.random.PRNGKey(0)).emitter_state
+            ask = jax.jit(lambda rep, key: algo.ask(rep, emitter_state, key)[0])
             genotypes, evaluation = random_evaluation(jax.random.PRNGKey(1), container, batch)
             row = {
                 "container": name,

@@ -29,14 +29,9 @@ from hte_jax.qd import (
 from hte_jax.qd import io as qd_io
 from hte_jax.qd.plots import grid_projection, plot_grid, plot_metrics, plot_scatter
 from hte_jax.qd.tasks import planar_arm, planar_arm_evaluate
-from hte_jax.qd.variation import (
-    density_selection,
-    frontier_elites,
-    frontier_selection,
-    polynomial_mutation,
-    sbx_crossover,
-    uniform_selection,
-)
+from hte_jax.hbr.selection import frontier_elites, frontier_selection
+from hte_jax.qd.selection import density_selection, uniform_selection
+from hte_jax.qd.variation import polynomial_mutation, sbx_crossover
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -1,17 +1,24 @@
-"""Quality-Diversity engine: fixed-size containers, variation, the MAP-Elites loop, metrics, io, plots."""
+"""Quality-Diversity engine: fixed-size containers, emitters (selection, variation), the MAP-Elites loop,
+metrics, io, plots."""
 
 from hte_jax.qd.archive import Archive
 from hte_jax.qd.batched import BatchedMapElites
+from hte_jax.qd.emitters import Emitter, EmptyState, VariationEmitter
 from hte_jax.qd.grid import Grid
 from hte_jax.qd.io import CheckpointError, load_checkpoint, save_checkpoint
 from hte_jax.qd.loop import MapElites, MapElitesConfig, QDState, resume, run
 from hte_jax.qd.metrics import RepertoireMetrics, repertoire_metrics
 from hte_jax.qd.repertoire import Evaluation, Insertion, Repertoire
+from hte_jax.qd.selection import DensitySelection, UniformSelection
+from hte_jax.qd.variation import SbxPolynomial
 
 __all__ = [
     "Archive",
     "BatchedMapElites",
     "CheckpointError",
+    "DensitySelection",
+    "Emitter",
+    "EmptyState",
     "Evaluation",
     "Grid",
     "Insertion",
@@ -20,6 +27,9 @@ __all__ = [
     "QDState",
     "Repertoire",
     "RepertoireMetrics",
+    "SbxPolynomial",
+    "UniformSelection",
+    "VariationEmitter",
     "load_checkpoint",
     "repertoire_metrics",
     "resume",

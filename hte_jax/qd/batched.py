@@ -4,8 +4,9 @@ The runs share the container, genotype size and hyper-parameters and differ only
 condition passed to the evaluation: a damage mask and the damaged robot's start state for
 APROL's 21 repertoires, a task parameter, a seed... Run r behaves like `single(r)` run alone
 (the same PRNG keys; the vmapped physics may differ from an unbatched one in the last bits).
-`QDState` holds (R, ...) repertoires and (R, 2) keys with one shared scalar generation, so the
-host-side `loop.run` (progress, CSV, atomic checkpoints, resume) drives it unchanged.
+`QDState` holds (R, ...) repertoires, (R, 2) keys and (R, ...) emitter states with one shared
+scalar generation, so the host-side `loop.run` (progress, CSV, atomic checkpoints, resume)
+drives it unchanged.
 """
 
 from __future__ import annotations
@@ -26,15 +27,15 @@ from hte_jax.qd.repertoire import Evaluation
 # evaluate(key, genotypes (B, G), condition) -> Evaluation with B rows; condition is one run's slice.
 ConditionedEvaluateFn = Callable[[jax.Array, jax.Array, Any], Evaluation]
 
-# vmap axes of a batched QDState: per-run repertoire and key, shared generation counter.
-_STATE_AXES = QDState(repertoire=0, key=0, generation=None)
+# vmap axes of a batched QDState: per-run repertoire, key and emitter state, shared generation counter.
+_STATE_AXES = QDState(repertoire=0, key=0, generation=None, emitter_state=0)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class BatchedMapElites:
     """R MAP-Elites runs, one per condition.
 
-    container, genotype_dim, config, extras: as in `MapElites`, shared by all runs.
+    container, genotype_dim, config, extras, emitter: as in `MapElites`, shared by all runs.
     evaluate: (key, genotypes, condition) -> Evaluation.
     conditions: pytree of (R, ...) arrays, row r is run r's condition.
     names: R labels of the runs (stored in checkpoints; a resume must use the same runs).
@@ -47,6 +48,7 @@ class BatchedMapElites:
     names: tuple[str, ...]
     config: MapElitesConfig = MapElitesConfig()
     extras: Any = None
+    emitter: Any = None
 
     def __post_init__(self):
         sizes = {int(x.shape[0]) for x in jax.tree.leaves(self.conditions)}
@@ -64,6 +66,7 @@ class BatchedMapElites:
             genotype_dim=self.genotype_dim,
             config=self.config,
             extras=self.extras,
+            emitter=self.emitter,
         )
 
     def single(self, run: int) -> MapElites:
@@ -80,8 +83,10 @@ class BatchedMapElites:
 
     def empty_state(self, key: jax.Array) -> QDState:
         one = self.single(0).empty_state(key)
-        batched = jax.tree.map(lambda x: jnp.broadcast_to(x, (self.num_runs, *x.shape)), one.repertoire)
-        return QDState(repertoire=batched, key=self.run_keys(key), generation=jnp.int32(0))
+        repertoire, emitter_state = jax.tree.map(
+            lambda x: jnp.broadcast_to(x, (self.num_runs, *x.shape)), (one.repertoire, one.emitter_state)
+        )
+        return QDState(repertoire=repertoire, key=self.run_keys(key), generation=jnp.int32(0), emitter_state=emitter_state)
 
     @functools.partial(jax.jit, static_argnums=0)
     def init(self, key: jax.Array) -> QDState:

@@ -1,7 +1,8 @@
 """MAP-Elites as pure `init` / `ask` / `tell` functions plus a thin host-side runner.
 
-A generation is one jitted call: select parents among the elites, vary them, evaluate
-the whole batch in one call of the user's `evaluate`, insert the batch. Blocks of generations
+A generation is one jitted call: the emitter (`qd.emitters`; by default parents selected among
+the elites, then varied) makes a batch, the user's `evaluate` evaluates the whole batch in one
+call, the container inserts it and the emitter sees the outcome. Blocks of generations
 run under `lax.scan`; between blocks the host shows progress, logs metrics to CSV and writes
 a checkpoint, so a killed run resumes where it stopped and gives bit-identical results.
 """
@@ -22,24 +23,11 @@ from tqdm.auto import tqdm
 
 from hte_jax.errors import ConfigError, require_choice, require_int, require_number
 from hte_jax.qd import io
+from hte_jax.qd.emitters import Emitter, config_emitter
 from hte_jax.qd.metrics import MetricsLog, RepertoireMetrics, repertoire_metrics
 from hte_jax.qd.repertoire import Evaluation, Repertoire
-from hte_jax.qd.variation import (
-    density_selection,
-    frontier_selection,
-    polynomial_mutation,
-    sbx_crossover,
-    uniform_selection,
-)
+from hte_jax.qd.selection import SELECTIONS
 
-SELECTIONS = ("uniform", "density", "frontier")
-# The config fields each selection reads (recorded in checkpoints; uniform records none, as
-# before selection was a setting, so old checkpoints resume).
-SELECTION_FIELDS = {
-    "uniform": (),
-    "density": ("selection", "density_bins", "density_dims"),
-    "frontier": ("selection", "frontier_fraction", "frontier_angle_bins", "frontier_level_bins"),
-}
 MAX_DENSITY_CELLS = 1 << 22
 
 # evaluate(key, genotypes (B, G)) -> Evaluation with B rows; must be jittable.
@@ -57,10 +45,12 @@ class MapElitesConfig:
     selection: "uniform" (every elite equally likely, the original's) or "density" (every occupied
       cell of a coarse `density_bins`^`density_dims` grid over the first `density_dims`
       descriptor dimensions, all of them if the container has fewer, equally likely;
-      `variation.density_selection`) or "frontier" (a share `frontier_fraction` of every batch
+      `selection.density_selection`) or "frontier" (a share `frontier_fraction` of every batch
       drawn among the elites farthest from the centre of the plane of the first two descriptors,
       one per cell of `frontier_angle_bins` sectors x `frontier_level_bins` levels of the third
-      descriptor, the rest uniformly; `variation.frontier_selection`).
+      descriptor, the rest uniformly; `hte_jax.hbr.selection`); `qd.selection.SELECTIONS`.
+    These settings make the default emitter (`emitters.config_emitter`); a `MapElites` given its
+    own emitter reads only batch_size, init_size and qd_offset.
     """
 
     batch_size: int = 200
@@ -106,11 +96,13 @@ class QDState:
     repertoire: the container's Repertoire.
     key: (2,) uint32 PRNG key for the next generation.
     generation: int32 scalar, generations done after the initial batch.
+    emitter_state: the emitter's state (`emitters.EmptyState`, no arrays, for stateless ones).
     """
 
     repertoire: Repertoire
     key: jax.Array
     generation: jax.Array
+    emitter_state: Any
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -119,6 +111,7 @@ class MapElites:
 
     genotype_dim: genes per individual, each in [0, 1].
     extras: example pytree of per-individual extras the evaluation returns (shapes without B).
+    emitter: makes the offspring (`qd.emitters`); None: the one `config` describes.
     """
 
     container: Any
@@ -126,6 +119,12 @@ class MapElites:
     genotype_dim: int
     config: MapElitesConfig = MapElitesConfig()
     extras: Any = None
+    emitter: Emitter | None = None
+
+    @functools.cached_property
+    def active_emitter(self) -> Emitter:
+        """`emitter`, or the one `config` describes."""
+        return config_emitter(self.config, self.container) if self.emitter is None else self.emitter
 
     def evaluations(self, state: QDState) -> int:
         """Evaluations done so far (host int)."""
@@ -133,10 +132,12 @@ class MapElites:
 
     def empty_state(self, key: jax.Array) -> QDState:
         """A state with an empty repertoire (also the template checkpoints are loaded into)."""
+        repertoire = self.container.empty(self.genotype_dim, self.extras)
         return QDState(
-            repertoire=self.container.empty(self.genotype_dim, self.extras),
+            repertoire=repertoire,
             key=key,
             generation=jnp.int32(0),
+            emitter_state=self.active_emitter.init(repertoire, key),
         )
 
     @functools.partial(jax.jit, static_argnums=0)
@@ -153,46 +154,37 @@ class MapElites:
             return repertoire, None
 
         repertoire, _ = jax.lax.scan(insert, state.repertoire, jax.random.split(key_init, batches))
-        return state.replace(repertoire=repertoire)
+        key_emitter = jax.random.fold_in(key_init, 0)  # a key of its own: the batches' keys stay as they were
+        emitter_state = self.active_emitter.init(repertoire, key_emitter)
+        return state.replace(repertoire=repertoire, emitter_state=emitter_state)
 
     def select(self, repertoire: Repertoire, key: jax.Array) -> jax.Array:
-        """(batch_size,) parent slots, by the configured selection."""
-        cfg = self.config
-        if cfg.selection == "density":
-            dims = min(cfg.density_dims, self.container.descriptor_dim)
-            low, high = self.container.low, self.container.high
-            return density_selection(key, repertoire, cfg.batch_size, low, high, cfg.density_bins, dims)
-        if cfg.selection == "frontier":
-            if self.container.descriptor_dim < 2:
-                raise ConfigError("selection='frontier' needs a container with at least 2 descriptor dimensions")
-            return frontier_selection(
-                key, repertoire, cfg.batch_size, self.container.low, self.container.high,
-                cfg.frontier_angle_bins, cfg.frontier_level_bins, cfg.frontier_fraction,
+        """(batch_size,) parent slots, by the emitter's selection (emitters that select parents)."""
+        return self.active_emitter.select(repertoire, key)
+
+    def ask(self, repertoire: Repertoire, emitter_state: Any, key: jax.Array) -> tuple[jax.Array, Any]:
+        """(batch_size, G) offspring and the emitter's new state."""
+        genotypes, emitter_state = self.active_emitter.emit(repertoire, emitter_state, key)
+        if genotypes.shape != (self.config.batch_size, self.genotype_dim):
+            raise ConfigError(
+                f"the emitter made genotypes of shape {genotypes.shape}, "
+                f"expected (batch_size, genotype_dim) = {(self.config.batch_size, self.genotype_dim)}"
             )
-        return uniform_selection(key, repertoire, cfg.batch_size)
+        return genotypes, emitter_state
 
-    def ask(self, repertoire: Repertoire, key: jax.Array) -> jax.Array:
-        """(batch_size, G) offspring of selected elites."""
-        cfg = self.config
-        key_sel, key_mate, key_cross, key_use, key_mut = jax.random.split(key, 5)
-        parents = repertoire.genotypes[self.select(repertoire, key_sel)]
-        if cfg.crossover_rate > 0:
-            mates = repertoire.genotypes[self.select(repertoire, key_mate)]
-            children = sbx_crossover(key_cross, parents, mates, cfg.eta_c)
-            use = jax.random.uniform(key_use, (cfg.batch_size, 1)) < cfg.crossover_rate
-            parents = jnp.where(use, children, parents)
-        return polynomial_mutation(key_mut, parents, cfg.mutation_rate, cfg.eta_m)
-
-    def tell(self, repertoire: Repertoire, genotypes: jax.Array, evaluation: Evaluation):
-        """Insert an evaluated batch: (new repertoire, Insertion)."""
-        return self.container.add(repertoire, genotypes, evaluation)
+    def tell(self, repertoire: Repertoire, emitter_state: Any, genotypes: jax.Array, evaluation: Evaluation):
+        """Insert an evaluated batch and update the emitter: (repertoire, emitter state, Insertion)."""
+        repertoire, insertion = self.container.add(repertoire, genotypes, evaluation)
+        emitter_state = self.active_emitter.update(emitter_state, repertoire, genotypes, evaluation, insertion)
+        return repertoire, emitter_state, insertion
 
     def generation_step(self, state: QDState) -> tuple[QDState, jax.Array]:
         """One generation; returns the new state and the number of accepted offspring."""
         key, key_ask, key_eval = jax.random.split(state.key, 3)
-        genotypes = self.ask(state.repertoire, key_ask)
-        repertoire, insertion = self.tell(state.repertoire, genotypes, self.evaluate(key_eval, genotypes))
-        new = QDState(repertoire=repertoire, key=key, generation=state.generation + 1)
+        genotypes, emitter_state = self.ask(state.repertoire, state.emitter_state, key_ask)
+        evaluation = self.evaluate(key_eval, genotypes)
+        repertoire, emitter_state, insertion = self.tell(state.repertoire, emitter_state, genotypes, evaluation)
+        new = QDState(repertoire=repertoire, key=key, generation=state.generation + 1, emitter_state=emitter_state)
         return new, insertion.accepted.sum(dtype=jnp.int32)
 
     @functools.partial(jax.jit, static_argnums=(0, 2))
@@ -206,14 +198,19 @@ class MapElites:
         return repertoire_metrics(state.repertoire, self.config.qd_offset)
 
     def checkpoint_metadata(self) -> dict:
-        """What must match for a checkpoint to be resumed by this algorithm."""
-        unread = {key for fields in SELECTION_FIELDS.values() for key in fields} - set(SELECTION_FIELDS[self.config.selection])
+        """What must match for a checkpoint to be resumed by this algorithm: the container, the
+        config without the fields of selections other than its own (`qd.selection.SELECTIONS`),
+        the genotype size and, for an emitter given explicitly, its repr."""
+        unread = {name for _, read in SELECTIONS.values() for name in read} - set(SELECTIONS[self.config.selection][1])
         config = {key: value for key, value in dataclasses.asdict(self.config).items() if key not in unread}
-        return {
+        metadata = {
             "container": {"kind": type(self.container).__name__, **dataclasses.asdict(self.container)},
             "config": config,
             "genotype_dim": self.genotype_dim,
         }
+        if self.emitter is not None:
+            metadata["emitter"] = repr(self.emitter)
+        return metadata
 
 
 def run(

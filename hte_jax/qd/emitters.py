@@ -1,0 +1,71 @@
+"""Emitters: what makes each generation's offspring. `MapElites` asks its emitter for a batch,
+evaluates it, inserts it and shows the emitter the outcome; swapping the emitter swaps the search
+without touching the loop.
+
+An emitter has
+- `init(repertoire, key) -> emitter_state`, after the initial random batch is inserted (also
+  called on an empty repertoire to get the template checkpoints are loaded into);
+- `emit(repertoire, emitter_state, key) -> (genotypes (B, G) in [0, 1], emitter_state)`,
+  B = `MapElitesConfig.batch_size`;
+- `update(emitter_state, repertoire, genotypes, evaluation, insertion) -> emitter_state`, after
+  the batch is inserted.
+The state is a pytree (a `flax.struct` dataclass) carried in `QDState`, so checkpoints hold it.
+"""
+
+from __future__ import annotations
+
+import abc
+import dataclasses
+from typing import Any
+
+import jax
+from flax import struct
+
+from hte_jax.qd.repertoire import Evaluation, Insertion, Repertoire
+from hte_jax.qd.selection import selection_from_config
+from hte_jax.qd.variation import SbxPolynomial
+
+
+@struct.dataclass
+class EmptyState:
+    """The state of a stateless emitter: no fields, so no checkpoint entries."""
+
+
+class Emitter(abc.ABC):
+    """Base of emitters: stateless unless `init` and `update` are overridden; `emit` is required."""
+
+    def init(self, repertoire: Repertoire, key: jax.Array) -> Any:
+        return EmptyState()
+
+    @abc.abstractmethod
+    def emit(self, repertoire: Repertoire, emitter_state: Any, key: jax.Array) -> tuple[jax.Array, Any]:
+        """(genotypes (B, G), the new emitter state)."""
+
+    def update(
+        self, emitter_state: Any, repertoire: Repertoire, genotypes: jax.Array, evaluation: Evaluation, insertion: Insertion
+    ) -> Any:
+        return emitter_state
+
+
+@dataclasses.dataclass(frozen=True)
+class VariationEmitter(Emitter):
+    """`batch_size` children of parents: `variation.vary(key, draw_parents)`, where every call of
+    `draw_parents(key)` draws `batch_size` elites by `selection.select` (see `qd.selection` and
+    `qd.variation` for what the two objects provide)."""
+
+    selection: Any
+    variation: Any
+    batch_size: int
+
+    def select(self, repertoire: Repertoire, key: jax.Array) -> jax.Array:
+        """(batch_size,) parent slots."""
+        return self.selection.select(key, repertoire, self.batch_size)
+
+    def emit(self, repertoire: Repertoire, emitter_state: Any, key: jax.Array) -> tuple[jax.Array, Any]:
+        children = self.variation.vary(key, lambda k: repertoire.genotypes[self.select(repertoire, k)])
+        return children, emitter_state
+
+
+def config_emitter(config, container) -> VariationEmitter:
+    """The emitter `MapElitesConfig` describes: its selection, SBX crossover and polynomial mutation."""
+    return VariationEmitter(selection_from_config(config, container), SbxPolynomial.from_config(config), config.batch_size)
