@@ -1,5 +1,6 @@
 """docs/extending.md: its worked examples run as written and do what they say."""
 
+import json
 import re
 import sys
 import types
@@ -8,6 +9,8 @@ from pathlib import Path
 import jax
 import numpy as np
 import pytest
+
+from hte_jax.qd.io import read_checkpoint
 
 DOC = Path(__file__).resolve().parents[1] / "docs" / "extending.md"
 
@@ -82,3 +85,26 @@ def test_iso_line_matches_the_formula_in_numpy(variation_example):
     want = np.clip(x + 0.05 * iso + 0.5 * line * (y - x), 0.0, 1.0)
     np.testing.assert_allclose(got, want, atol=1e-6)
     assert np.any((want == 0.0) | (want == 1.0)) and np.any((want > 0.0) & (want < 1.0))  # both branches of the clip
+
+
+def test_the_new_variant_example_runs_its_own_rule_through_maze_eval(tmp_path, monkeypatch):
+    from hte_jax.online import variants
+
+    monkeypatch.chdir(tmp_path)
+    module = types.ModuleType("extending_example_2")
+    try:
+        exec(compile(section_code("Example 2: a new adaptation variant"), str(DOC), "exec"), module.__dict__)
+        assert module.status == 0
+        assert variants.variant("hte-mean").rule == "gp-mean"
+        run = tmp_path / "runs" / "hte-mean"
+        summary = json.loads((run / "summary.json").read_text())
+        assert set(summary["variants"]) == {"hte-mean", "hte"}
+        labels = [record["variant"] for record in json.loads((run / "episodes.json").read_text())["episodes"]]
+        arrays, _ = read_checkpoint(run / "episodes_0.npz")
+        patterns, taken = np.asarray(arrays["patterns"]), np.asarray(arrays["taken"])
+        row = labels.index("hte-mean")
+        chosen = patterns[row, : taken[row]]
+        assert taken[row] >= 1 and set(chosen.ravel().tolist()) <= set(variants.CANDIDATE_PATTERNS.tolist())
+    finally:  # the registry is global: leave it as the other tests expect it
+        variants.VARIANTS.pop("hte-mean", None)
+        variants.RULES.pop("gp-mean", None)

@@ -48,7 +48,7 @@ from hte_jax.online.gp import GPData, empty_gp
 from hte_jax.online.maze import GridSpec, Maze, distance_field, planning_start, reached_goal
 from hte_jax.online.mcts import PlannerConfig, PlanResult, plan, world_of
 from hte_jax.online.secondary import oracle_pattern
-from hte_jax.online.variants import VARIANTS, PatternState, rule_index, variant
+from hte_jax.online.variants import VARIANTS, PatternState, rule_index, rule_names, variant
 from hte_jax.sim.robot import NUM_LEGS, Robot
 from hte_jax.sim.rollout import SimState
 
@@ -250,10 +250,13 @@ def plan_step(maze: Maze, config: AdaptationConfig, skills: Skills, field: jax.A
     return Decision(plan=result, map=chosen_map, action=action, start=start, predicted=predicted, keys=keys)
 
 
-@functools.partial(jax.jit, static_argnames=("maze", "config", "record_every"))
+@functools.partial(jax.jit, static_argnames=("maze", "config", "record_every", "rules"))
 def act_step(maze: Maze, config: AdaptationConfig, robot: Robot, skills: Skills, episodes: Episodes,
-             decision: Decision, record_every: int = 0) -> tuple[Episodes, jax.Array | None]:
-    """Execute every active episode's planned action, learn from it, and record it.
+             decision: Decision, record_every: int = 0, rules: tuple[str, ...] | None = None,
+             ) -> tuple[Episodes, jax.Array | None]:
+    """Execute every active episode's planned action, learn from it, and record it. rules: the
+    pattern rules' names in integer order (`variants.rule_names()`; static, so that a rule added
+    later compiles a program of its own).
 
     Returns the episodes and, when `record_every` = k > 0 (k divides 100), the state of every robot
     every k control steps of the action, (B, 400 / k, 25) from its start (None when k = 0: the
@@ -267,7 +270,7 @@ def act_step(maze: Maze, config: AdaptationConfig, robot: Robot, skills: Skills,
     maps = skills.map_actions
     if skills.hierarchical:
         outcome = execute_hbr(robot, skills, index, episodes.sim, episodes.damage, episodes.learnt, episodes.taken,
-                              keys[:, 2], record_every=record_every)
+                              keys[:, 2], record_every=record_every, rules=rules or rule_names())
     else:
         outcome = execute_flat(robot, skills.map_genotypes[chosen_map, index], episodes.sim, episodes.damage,
                                episodes.learnt, record_every=record_every)
@@ -365,12 +368,13 @@ def run_episodes(
         timings.plan.append(time.perf_counter() - tick)
         tick = time.perf_counter()
         if recorder is None:
-            episodes, _ = act_step(maze, config, robot, skills, episodes, decision)
+            episodes, _ = act_step(maze, config, robot, skills, episodes, decision, rules=rule_names())
             jax.block_until_ready(episodes)
             timings.act.append(time.perf_counter() - tick)
         else:
             active = np.asarray(~episodes.done)
-            episodes, states = act_step(maze, config, robot, skills, episodes, decision, record_every=recorder.every)
+            episodes, states = act_step(maze, config, robot, skills, episodes, decision, record_every=recorder.every,
+                                        rules=rule_names())
             jax.block_until_ready(episodes)
             timings.act.append(time.perf_counter() - tick)
             recorder.add(states, active)

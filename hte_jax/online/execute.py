@@ -164,6 +164,7 @@ def _neutral(robot: Robot, state: SimState, damage: jax.Array, record_every: int
 def choose_patterns(
     hbr: HBR, mode: jax.Array, oracle: jax.Array, secondary: GPData, desired: jax.Array, t: jax.Array,
     keys: jax.Array, optimism: jax.Array | None = None, contacts: jax.Array | None = None,
+    rules: tuple[str, ...] | None = None,
 ) -> tuple[jax.Array, jax.Array]:
     """Contact pattern (B,) for the next step of each robot by its rule (`variants.RULES`), and the
     primary step (B, 3) to look its elite up with (`desired`, except where a rule aims off it).
@@ -171,12 +172,13 @@ def choose_patterns(
     mode, oracle: (B,) int32. secondary: GPData (B, ...). desired: (B, 3) normalised primary
     descriptor the step aims at. t: (B,) GP-UCB step count (>= 1). keys: (B, 2) PRNG keys.
     optimism: (B,) the predicted-miss rule's confidence weight (default 0). contacts: (B, 2, 6)
-    sensed and expected contact seconds (default 0: nothing sensed yet).
+    sensed and expected contact seconds (default 0: nothing sensed yet). rules: the rule names in
+    integer order (default: every registered rule).
     """
     batch = desired.shape[0]
     optimism = jnp.zeros(batch, jnp.float32) if optimism is None else optimism
     contacts = jnp.zeros((batch, 2, NUM_LEGS), jnp.float32) if contacts is None else contacts
-    return choose(step_context(hbr, desired, t, keys, oracle, optimism, secondary, contacts), mode)
+    return choose(step_context(hbr, desired, t, keys, oracle, optimism, secondary, contacts), mode, rules)
 
 
 def execute_flat(robot: Robot, params: jax.Array, state: SimState, damage: jax.Array, learnt: PatternState | None = None,
@@ -217,12 +219,14 @@ def execute_hbr(
     action_number: jax.Array,
     keys: jax.Array,
     record_every: int = 0,
+    rules: tuple[str, ...] | None = None,
 ) -> ActionOutcome:
     """Run HBR skills `index` (B,) step by step, choosing each step's contact pattern by each
     episode's rule (`learnt`: what the rules know so far), then 1 s neutral.
 
     action_number: (B,) int32 actions already taken (the GP-UCB count is t = 1 + step + 3 action_number).
-    keys: (B, 2) PRNG keys (random patterns). record_every: k > 0 also returns the state every k control steps (`ActionOutcome.qpos`).
+    keys: (B, 2) PRNG keys (random patterns). rules: the rule names in integer order (default:
+    every registered rule). record_every: k > 0 also returns the state every k control steps (`ActionOutcome.qpos`).
     """
     hbr = skills.hbr
     task = hbr.middle_task
@@ -239,7 +243,7 @@ def execute_hbr(
         desired = task.normalise(relative_pose(here, target))
         t = 1 + step + STEPS_PER_SKILL * action_number
         pattern, query = choose_patterns(hbr, learnt.mode, learnt.oracle, gp, desired, t, step_keys, learnt.optimism,
-                                         contacts)
+                                         contacts, rules)
         elite = None
         if skills.table is not None:
             elite = plan_batch(skills.table, task, here, goal, pattern, STEPS_PER_SKILL - step)

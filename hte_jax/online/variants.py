@@ -8,15 +8,8 @@ up with. Jitted code sees a rule only as its integer, its position in `RULES`: e
 is computed for the whole batch and each episode takes its own, so all variants share one
 compiled program.
 
-Adding a variant is one entry (`add_variant`); adding a rule is one function (`add_rule`), e.g.
-
-    def mean_only(ctx):  # HTE on the GP's mean alone, no UCB bonus
-        score = acquisition(ctx.mean[:, columns, :ERROR_DIM], ctx.variance[:, columns], 0.0)
-        ...
-    add_rule("gp-mean", mean_only)
-    add_variant(Variant("hte-mean", rule="gp-mean", summary="HTE without the UCB bonus"))
-
-(`docs/extending.md` has the whole example.)
+Adding a variant is one entry (`add_variant`); adding a rule is one function (`add_rule`);
+`docs/extending.md` (example 2) adds HTE on the GP's mean alone and runs it through `maze_eval`.
 """
 
 from __future__ import annotations
@@ -274,9 +267,16 @@ def variant(name: str) -> Variant:
     return VARIANTS[name]
 
 
-def choose(ctx: StepContext, mode: jax.Array) -> tuple[jax.Array, jax.Array]:
-    """Every episode's pattern (B,) and lookup step (B, 3) by its own rule `mode` (B,) int32."""
-    choices = [rule(ctx) for rule in RULES.values()]
+def rule_names() -> tuple[str, ...]:
+    """The registered rules in integer order: jitted callers take it as a static argument, so a rule
+    registered after a program was compiled gets a program of its own."""
+    return tuple(RULES)
+
+
+def choose(ctx: StepContext, mode: jax.Array, rules: tuple[str, ...] | None = None) -> tuple[jax.Array, jax.Array]:
+    """Every episode's pattern (B,) and lookup step (B, 3) by its own rule `mode` (B,) int32, the
+    integer of a name in `rules` (default: every registered rule, `rule_names()`)."""
+    choices = [RULES[name](ctx) for name in (rule_names() if rules is None else rules)]
     pattern = jnp.select([mode == i for i in range(1, len(choices))], [c[0] for c in choices[1:]], choices[0][0])
     query = ctx.desired
     for i, (_, aimed) in enumerate(choices):
