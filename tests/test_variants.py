@@ -1,6 +1,7 @@
-"""The variant table: every variant is one entry, rules are integers in jitted code, and a new
-rule plus a new variant run through the whole adaptation loop without edits elsewhere."""
+"""The variant table: every variant is one entry, rules are integers in jitted code, and every rule
+gets a context of the documented shapes (tests/test_extending.py runs a new variant through maze_eval)."""
 
+import chex
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -45,3 +46,24 @@ def test_contacts_rule_is_rte_until_a_leg_stays_off_the_floor():
                                     jax.random.split(jax.random.PRNGKey(0), 2), contacts=jnp.asarray(contacts))
     assert np.asarray(chosen).tolist() == [-1, 63 - (1 << 1)]
     np.testing.assert_array_equal(query, desired)
+
+
+def test_every_rule_sees_a_context_of_the_documented_shapes():
+    hbr, _, _ = load_hbr()
+    batch = 3
+    gp = jax.tree.map(lambda x: jnp.broadcast_to(x, (batch, *x.shape)), empty_gp(6, 9, SECONDARY_OUTPUTS))
+    ctx = variants.step_context(hbr, jnp.full((batch, 3), 0.5), jnp.ones(batch, jnp.int32),
+                                jax.random.split(jax.random.PRNGKey(0), batch), jnp.full(batch, 63, jnp.int32),
+                                jnp.zeros(batch), gp, jnp.zeros((batch, 2, 6)))
+    chex.assert_shape([ctx.every, ctx.found, ctx.variance], (batch, 64))
+    chex.assert_shape([ctx.inputs, ctx.mean], (batch, 64, 9))
+    chex.assert_type([ctx.every, ctx.found], [jnp.int32, bool])
+    for name, rule in variants.RULES.items():
+        pattern, query = rule(ctx)
+        chex.assert_shape(pattern, (batch,))
+        chex.assert_type(pattern, jnp.int32)
+        assert query is None or query.shape == (batch, 3), name
+        assert ((np.asarray(pattern) >= -1) & (np.asarray(pattern) < 64)).all(), name
+    modes = jnp.arange(batch, dtype=jnp.int32) % len(variants.RULES)
+    pattern, query = variants.choose(ctx, modes)
+    chex.assert_shape([pattern, query], [(batch,), (batch, 3)])
