@@ -47,6 +47,17 @@ def test_target_table_matches_reference():
         np.testing.assert_allclose(got, ref.joint_targets(params.astype(np.float64)), atol=2e-6)
 
 
+def test_commanded_travel_matches_reference():
+    rng = np.random.default_rng(2)
+    params = rng.uniform(size=(4, 36)).astype(np.float32)
+    got = np.asarray(controller.commanded_travel(jnp.asarray(params)))
+    for row, p in zip(got, params):
+        table = ref.joint_targets(p.astype(np.float64))  # (100, 18)
+        per_joint = np.abs(np.diff(np.vstack([table, table[:1]]), axis=0)).sum(axis=0)
+        np.testing.assert_allclose(row, per_joint.reshape(6, 3).sum(-1), rtol=1e-5, atol=1e-5)
+    assert np.asarray(controller.commanded_travel(jnp.zeros(36))).tolist() == [0.0] * 6
+
+
 def test_zero_parameters_give_the_neutral_pose():
     assert np.all(np.asarray(controller.target_table(jnp.zeros(36))) == 0.0)
 

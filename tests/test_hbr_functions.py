@@ -222,3 +222,21 @@ def test_fitness_by_distance_hand_case():
     assert rows[0]["mean_fitness"] == pytest.approx(-0.2) and rows[1]["mean_fitness"] == pytest.approx(-0.5)
     assert rows[3]["mean_fitness"] is None and rows[4]["distance"] == [1.2, None]
     assert rows[4]["mean_fitness"] == pytest.approx(-2.0)
+
+
+def test_middle_purity_penalises_contact_on_lifted_legs():
+    """fitness(purity) = fitness(0) - purity * sum of the contact fractions of the legs whose bit is 0."""
+    import jax
+    from hte_jax.hbr.middle import MiddleTask, evaluate_controllers
+    from hte_jax.sim.robot import load_robot
+    from hte_jax.sim.rollout import standing_state
+
+    robot = load_robot()
+    start = standing_state(robot)
+    params = jax.numpy.asarray(np.random.default_rng(3).uniform(size=(3, 36)), jax.numpy.float32)
+    plain = evaluate_controllers(robot, start, MiddleTask(samples=2, steps=20), params)
+    pure = evaluate_controllers(robot, start, MiddleTask(samples=2, steps=20, purity=4.0), params)
+    fraction, bits = np.asarray(plain.extras["contact_fraction"]), np.asarray(plain.descriptors)[:, 3:]
+    expected = np.asarray(plain.fitnesses) - 4.0 * (fraction * (1.0 - bits)).sum(axis=-1)
+    np.testing.assert_allclose(np.asarray(pure.fitnesses), expected, rtol=1e-6, atol=1e-6)
+    np.testing.assert_array_equal(np.asarray(pure.descriptors), np.asarray(plain.descriptors))

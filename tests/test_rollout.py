@@ -47,7 +47,8 @@ WAVE = np.array(
     np.float32,
 ).reshape(36)
 
-SPEC = RolloutSpec(num_steps=300, pose_steps=tuple(range(0, 301, 10)), record_feet=True)
+SPEC = RolloutSpec(num_steps=300, pose_steps=tuple(range(0, 301, 10)), record_feet=True, record_joints=True,
+                   record_joint_travel=True)
 STAND, TRIPOD_IDX, DAMAGED, NAN_PARAMS, TIPPING, EXPLODED, NAN_STATE, WAVE_IDX = 0, 1, slice(2, 9), 9, 10, 11, 12, 13
 BAD = [NAN_PARAMS, TIPPING, EXPLODED, NAN_STATE]
 GOOD = [i for i in range(16) if i not in BAD]
@@ -150,6 +151,19 @@ def test_damaged_feet_never_touch_the_floor(batch):
         assert contacts[k][:, ~mask].any(axis=0).all()  # every healthy leg does touch
         pos = _np(res.base_pos[DAMAGED][k])
         assert np.linalg.norm(pos[-1, :2] - pos[0, :2]) > 0.05  # it still walks
+
+
+def test_joint_travel_sums_the_joint_angle_changes(batch, robot):
+    """The travel equals sum |q(t+1) - q(t)| of the recorded angles; damaged legs hardly move."""
+    res, masks = batch["clean"], batch["damages"]
+    joints = np.concatenate([_np(res.joint_pos), _np(res.final_state.qpos)[:, None, 7:]], axis=1)  # (B, T+1, 18)
+    expected = np.abs(np.diff(joints.astype(np.float64), axis=1)).sum(axis=1)
+    np.testing.assert_allclose(_np(res.joint_travel), expected, rtol=1e-4, atol=1e-4)
+    legs = _np(res.joint_travel)[DAMAGED].reshape(7, 6, 3).sum(-1)
+    damaged = masks[DAMAGED]
+    assert legs[damaged].max() < 0.1 * legs[~damaged].min()
+    dirty = _np(batch["dirty"].joint_travel)
+    assert np.isfinite(dirty).all()  # a blown-up individual adds nothing after it went invalid
 
 
 def test_invalid_rollouts_are_flagged_and_isolated(batch):

@@ -12,6 +12,7 @@ from hte_jax.hbr.store import load_hbr
 from hte_jax.online import variants
 from hte_jax.online.episode import variant_mode
 from hte_jax.online.execute import CONTACTS_MODE, SECONDARY_OUTPUTS, choose_patterns
+from hte_jax.online.secondary import JOINT_EVIDENCE, JOINT_RATIO, stuck_legs
 from hte_jax.online.gp import empty_gp
 
 
@@ -48,16 +49,52 @@ def test_contacts_rule_is_rte_until_a_leg_stays_off_the_floor():
     np.testing.assert_array_equal(query, desired)
 
 
+def test_sensed_rule_also_lifts_a_leg_whose_joints_do_not_follow_their_commands():
+    hbr, _, _ = load_hbr()
+    batch = 4
+    desired = jnp.asarray([[0.7, 0.5, 0.5]] * batch)
+    gp = jax.tree.map(lambda x: jnp.broadcast_to(x, (batch, *x.shape)), empty_gp(6, 9, SECONDARY_OUTPUTS))
+    contacts = np.zeros((batch, 2, 6), np.float32)
+    contacts[:, 1], contacts[:, 0] = 0.8, 0.9  # every foot touched the floor as expected
+    motion = np.zeros((batch, 2, 6), np.float32)
+    motion[:, 1] = 4.0  # 4 rad commanded to every leg
+    motion[:, 0] = 3.6
+    motion[1, 0, 1] = 0.3  # robot 1's leg 1 hardly moved (locked on the floor)
+    motion[2, 0, 4] = 0.3  # robot 2's leg 4 too, but it was asked less than the evidence needs
+    motion[2, 1, 4] = 0.5 * JOINT_EVIDENCE
+    contacts[3, 0, 2] = 0.0  # robot 3's leg 2 never touched the floor: the contacts still count
+    modes = jnp.full(batch, variants.rule_index("sensed"), jnp.int32)
+    chosen, query = choose_patterns(hbr, modes, jnp.full(batch, 63), gp, desired, jnp.ones(batch, jnp.int32),
+                                    jax.random.split(jax.random.PRNGKey(0), batch), contacts=jnp.asarray(contacts),
+                                    motion=jnp.asarray(motion))
+    assert np.asarray(chosen).tolist() == [-1, 63 - (1 << 4), -1, 63 - (1 << 3)]
+    np.testing.assert_array_equal(query, desired)
+    # the contacts rule alone does not see the locked leg
+    contacts_only = choose_patterns(hbr, jnp.full(batch, CONTACTS_MODE, jnp.int32), jnp.full(batch, 63), gp, desired,
+                                    jnp.ones(batch, jnp.int32), jax.random.split(jax.random.PRNGKey(0), batch),
+                                    contacts=jnp.asarray(contacts), motion=jnp.asarray(motion))[0]
+    assert np.asarray(contacts_only).tolist() == [-1, -1, -1, 63 - (1 << 3)]
+
+
+def test_stuck_legs_against_numpy():
+    rng = np.random.default_rng(0)
+    motion = rng.uniform(0.0, 2.0 * JOINT_EVIDENCE, (50, 2, 6)).astype(np.float32)
+    expected = (motion[:, 1] >= JOINT_EVIDENCE) & (motion[:, 0] < JOINT_RATIO * motion[:, 1])
+    assert 0 < expected.sum() < expected.size
+    np.testing.assert_array_equal(stuck_legs(jnp.asarray(motion)), expected)
+
+
 def test_every_rule_sees_a_context_of_the_documented_shapes():
     hbr, _, _ = load_hbr()
     batch = 3
     gp = jax.tree.map(lambda x: jnp.broadcast_to(x, (batch, *x.shape)), empty_gp(6, 9, SECONDARY_OUTPUTS))
     ctx = variants.step_context(hbr, jnp.full((batch, 3), 0.5), jnp.ones(batch, jnp.int32),
                                 jax.random.split(jax.random.PRNGKey(0), batch), jnp.full(batch, 63, jnp.int32),
-                                jnp.zeros(batch), gp, jnp.zeros((batch, 2, 6)))
+                                jnp.zeros(batch), gp, jnp.zeros((batch, 2, 6)), jnp.zeros((batch, 2, 6)))
     chex.assert_shape([ctx.every, ctx.found, ctx.variance], (batch, 64))
     chex.assert_shape([ctx.inputs, ctx.mean], (batch, 64, 9))
     chex.assert_type([ctx.every, ctx.found], [jnp.int32, bool])
+    chex.assert_shape([ctx.contacts, ctx.motion], (batch, 2, 6))
     for name, rule in variants.RULES.items():
         pattern, query = rule(ctx)
         chex.assert_shape(pattern, (batch,))

@@ -23,7 +23,7 @@ from hte_jax.hbr.geometry import compose_pose, planar_pose, relative_pose
 from hte_jax.hbr.middle import PRIMARY, MiddleTask, decode, leg_controllers, pattern_code
 from hte_jax.qd.archive import map_rows, squared_distance
 from hte_jax.qd.repertoire import Repertoire
-from hte_jax.sim.robot import NUM_LEGS, Robot
+from hte_jax.sim.robot import NUM_JOINTS, NUM_LEGS, Robot
 from hte_jax.sim.rollout import RolloutSpec, SimState, ValidityLimits, rollout
 
 STEPS_PER_SKILL = 3
@@ -72,6 +72,7 @@ class StepResult:
     displacement: (B, 3) (x, y, yaw) in the frame of the pose at the start of the step.
     contact_fraction: (B, 6) fraction of the step each foot was on the ground.
     qpos: (B, F, 25) qpos every `record_every` control steps of the step (replay), or None.
+    leg_travel: (B, 6) rad each leg's three joints moved during the step (sum of |angle changes|).
     """
 
     state: SimState
@@ -82,6 +83,7 @@ class StepResult:
     displacement: jax.Array
     contact_fraction: jax.Array
     qpos: jax.Array | None = None
+    leg_travel: jax.Array | None = None
 
 
 @struct.dataclass
@@ -125,7 +127,7 @@ def select_middle(hbr: HBR, desired: jax.Array, pattern: jax.Array, chunk: int =
 
 def _step_spec(steps: int, limits: ValidityLimits, record_every: int = 0) -> RolloutSpec:
     return RolloutSpec(num_steps=steps, pose_steps=(0, steps), record_contacts=True, limits=limits,
-                       record_qpos_every=record_every)
+                       record_qpos_every=record_every, record_joint_travel=True)
 
 
 def execute_step(
@@ -157,6 +159,7 @@ def execute_step(
         displacement=relative_pose(poses[:, 0], poses[:, 1]),
         contact_fraction=result.foot_contacts.mean(axis=1),
         qpos=result.qpos,
+        leg_travel=result.joint_travel.reshape(-1, NUM_LEGS, NUM_JOINTS // NUM_LEGS).sum(axis=-1),
     )
 
 

@@ -14,7 +14,10 @@ smallest summed distance to the others): a robust median.
 Descriptor (9-D, [0, 1]): primary (x + 0.5, y + 0.5, (yaw + 1) / 2) for |x|, |y| <= 0.5 m
 and |yaw| <= 1 rad, outside which the individual is invalid; secondary: six contact bits,
 1 if the foot is down more than `contact_threshold` of the second (paper: 30 %).
-Fitness: the circular-trajectory angle error of the medoid sample (its own position and yaw).
+Fitness: the circular-trajectory angle error of the medoid sample (its own position and yaw),
+minus `purity` times the contact left on the legs whose bit is 0 (ours, default 0: the paper's
+fitness; > 0 keeps, among body motions of one niche, those that really lift the legs their
+pattern lifts).
 """
 
 from __future__ import annotations
@@ -44,6 +47,7 @@ class MiddleTask:
     samples: consecutive 1 s samples (original 10). steps: control steps per sample.
     max_step: |x|, |y| range of the primary descriptor (m). max_turn: |yaw| range (rad).
     contact_threshold: a leg's contact bit is 1 above this fraction of the second.
+    purity: fitness penalty per unit of contact fraction on the legs whose bit is 0 (0: none).
     """
 
     samples: int = 10
@@ -51,6 +55,7 @@ class MiddleTask:
     max_step: float = 0.5
     max_turn: float = 1.0
     contact_threshold: float = 0.3
+    purity: float = 0.0
 
     def __post_init__(self):
         require_int("middle samples", self.samples)
@@ -58,6 +63,7 @@ class MiddleTask:
         require_number("middle max_step", self.max_step, 0.0, open_low=True)
         require_number("middle max_turn", self.max_turn, 0.0, open_low=True)
         require_number("middle contact_threshold", self.contact_threshold, 0.0, 1.0)
+        require_number("middle purity", self.purity, 0.0)
 
     @property
     def spec(self) -> RolloutSpec:
@@ -134,8 +140,11 @@ def evaluate_controllers(robot: Robot, start: SimState, task: MiddleTask, params
     chosen = primary[rows, medoid]
     bits = (fraction[rows, medoid] > task.contact_threshold).astype(jnp.float32)
     in_range = jnp.all((chosen >= 0.0) & (chosen <= 1.0), axis=-1)
+    fitness = angle_error(displacement[rows, medoid])
+    if task.purity:
+        fitness = fitness - task.purity * jnp.sum(fraction[rows, medoid] * (1.0 - bits), axis=-1)
     return Evaluation(
-        fitnesses=angle_error(displacement[rows, medoid]),
+        fitnesses=fitness,
         descriptors=jnp.concatenate([chosen, bits], axis=-1),
         valid=result.valid & in_range,
         extras={"contact_fraction": fraction[rows, medoid], "medoid": medoid.astype(jnp.int32)},

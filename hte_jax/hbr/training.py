@@ -94,6 +94,8 @@ class HBRConfig:
     bottom / middle / top: the layers' schedules. seed: PRNG seed.
     middle_samples: chained 1 s samples per middle evaluation (original 10).
     contact_threshold: fraction of a second a foot must be down for its contact bit.
+    contact_purity: middle fitness penalty per unit of contact on the legs a pattern lifts (0: the
+      paper's fitness; `MiddleTask.purity`).
     bottom_l / middle_l: archive distance thresholds. top_bins: grid cells per axis.
     bottom_fitness: "commands" (measured joint commands) or "genes" (the original's gene sum).
     solver_iterations / ls_iterations / solver_tolerance: the physics' Newton solver (`RobotConfig`);
@@ -108,6 +110,7 @@ class HBRConfig:
     seed: int = 0
     middle_samples: int = 10
     contact_threshold: float = 0.3
+    contact_purity: float = 0.0
     bottom_l: float = 0.01
     middle_l: float = 0.05
     top_bins: int = 100
@@ -122,6 +125,7 @@ class HBRConfig:
         require_int("middle_samples", self.middle_samples)
         require_int("step_starts", self.step_starts, minimum=0)
         require_number("contact_threshold", self.contact_threshold, 0.0, 1.0)
+        require_number("contact_purity", self.contact_purity, 0.0)
         require_number("bottom_l", self.bottom_l, 0.0, open_low=True)
         require_number("middle_l", self.middle_l, 0.0, open_low=True)
         require_int("top_bins", self.top_bins)
@@ -139,7 +143,8 @@ class HBRConfig:
 
     @property
     def middle_task(self) -> MiddleTask:
-        return MiddleTask(samples=self.middle_samples, contact_threshold=self.contact_threshold)
+        return MiddleTask(samples=self.middle_samples, contact_threshold=self.contact_threshold,
+                          purity=self.contact_purity)
 
     @property
     def top_task(self) -> TopTask:

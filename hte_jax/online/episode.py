@@ -188,6 +188,7 @@ def start_episodes(
             optimism=jnp.zeros(batch, jnp.float32) if optimism is None else jnp.asarray(optimism, jnp.float32),
             secondary=stacked(empty_gp(STEPS_PER_SKILL * length, SECONDARY_DIM, SECONDARY_OUTPUTS), batch),
             contacts=jnp.zeros((batch, 2, NUM_LEGS), jnp.float32),
+            motion=jnp.zeros((batch, 2, NUM_LEGS), jnp.float32),
         ),
         key=jax.random.split(key, batch),
         taken=jnp.zeros(batch, jnp.int32),

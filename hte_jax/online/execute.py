@@ -12,8 +12,8 @@ its side or back: it cannot get up), a non-finite or an exploding state ends an 
 
 After each step the relative error (and the absolute deviation) between the executed elite's
 stored primary descriptor and what the robot did is added to the secondary GP, and each leg's
-sensed floor contact is added up beside the contact the elite expected (in every variant, so that
-all of them report it).
+sensed floor contact is added up beside the contact the elite expected, and each leg's joint travel
+beside the travel its controller commanded (in every variant, so that all of them report it).
 """
 
 from __future__ import annotations
@@ -41,7 +41,7 @@ from hte_jax.online.gp import GPData, add_observation
 from hte_jax.online.secondary import relative_error, step_targets
 from hte_jax.online.variants import ERROR_DIM, PatternState, choose, rule_index, step_context
 from hte_jax.qd.repertoire import Repertoire
-from hte_jax.sim.controller import NUM_PARAMS
+from hte_jax.sim.controller import NUM_PARAMS, commanded_travel
 from hte_jax.sim.robot import NUM_LEGS, Robot
 from hte_jax.sim.rollout import RolloutSpec, SimState, ValidityLimits, rollout
 
@@ -164,7 +164,7 @@ def _neutral(robot: Robot, state: SimState, damage: jax.Array, record_every: int
 def choose_patterns(
     hbr: HBR, mode: jax.Array, oracle: jax.Array, secondary: GPData, desired: jax.Array, t: jax.Array,
     keys: jax.Array, optimism: jax.Array | None = None, contacts: jax.Array | None = None,
-    rules: tuple[str, ...] | None = None,
+    rules: tuple[str, ...] | None = None, motion: jax.Array | None = None,
 ) -> tuple[jax.Array, jax.Array]:
     """Contact pattern (B,) for the next step of each robot by its rule (`variants.RULES`), and the
     primary step (B, 3) to look its elite up with (`desired`, except where a rule aims off it).
@@ -173,12 +173,14 @@ def choose_patterns(
     descriptor the step aims at. t: (B,) GP-UCB step count (>= 1). keys: (B, 2) PRNG keys.
     optimism: (B,) the predicted-miss rule's confidence weight (default 0). contacts: (B, 2, 6)
     sensed and expected contact seconds (default 0: nothing sensed yet). rules: the rule names in
-    integer order (default: every registered rule).
+    integer order (default: every registered rule). motion: (B, 2, 6) moved and commanded joint
+    travel per leg, rad (default 0).
     """
     batch = desired.shape[0]
     optimism = jnp.zeros(batch, jnp.float32) if optimism is None else optimism
     contacts = jnp.zeros((batch, 2, NUM_LEGS), jnp.float32) if contacts is None else contacts
-    return choose(step_context(hbr, desired, t, keys, oracle, optimism, secondary, contacts), mode, rules)
+    motion = jnp.zeros((batch, 2, NUM_LEGS), jnp.float32) if motion is None else motion
+    return choose(step_context(hbr, desired, t, keys, oracle, optimism, secondary, contacts, motion), mode, rules)
 
 
 def execute_flat(robot: Robot, params: jax.Array, state: SimState, damage: jax.Array, learnt: PatternState | None = None,
@@ -237,13 +239,13 @@ def execute_hbr(
     expected_contact = hbr.middle.extras["contact_fraction"]  # (Cm, 6)
 
     def one_step(carry, xs):
-        state, gp, contacts = carry
+        state, gp, contacts, motion = carry
         target, step, step_keys = xs
         here = state_pose(state)
         desired = task.normalise(relative_pose(here, target))
         t = 1 + step + STEPS_PER_SKILL * action_number
         pattern, query = choose_patterns(hbr, learnt.mode, learnt.oracle, gp, desired, t, step_keys, learnt.optimism,
-                                         contacts, rules)
+                                         contacts, rules, motion)
         elite = None
         if skills.table is not None:
             elite = plan_batch(skills.table, task, here, goal, pattern, STEPS_PER_SKILL - step)
@@ -254,14 +256,16 @@ def execute_hbr(
         error = relative_error(executed[:, :PRIMARY], observed)
         gp = jax.vmap(add_observation)(gp, executed, step_targets(executed[:, :PRIMARY], observed))
         contacts = contacts + jnp.stack([result.contact_fraction, expected_contact[result.middle_index]], axis=1)
-        return (result.state, gp, contacts), (pattern, result.middle_index, error, result.invalid_reason, state_pose(result.state),
+        commanded = commanded_travel(hbr.middle_params[result.middle_index])
+        motion = motion + jnp.stack([result.leg_travel, commanded], axis=1)
+        return (result.state, gp, contacts, motion), (pattern, result.middle_index, error, result.invalid_reason, state_pose(result.state),
                                     result.qpos)
 
     steps = jnp.arange(STEPS_PER_SKILL, dtype=jnp.int32)
     step_keys = jnp.swapaxes(jax.vmap(lambda k: jax.random.split(k, STEPS_PER_SKILL))(keys), 0, 1)  # (3, B, 2)
     xs = (jnp.swapaxes(targets, 0, 1), steps, step_keys)
-    (state, secondary, contacts), (patterns, middle, errors, reasons, poses, qpos) = jax.lax.scan(
-        one_step, (state, learnt.secondary, learnt.contacts), xs)
+    (state, secondary, contacts, motion), (patterns, middle, errors, reasons, poses, qpos) = jax.lax.scan(
+        one_step, (state, learnt.secondary, learnt.contacts, learnt.motion), xs)
     rest = _neutral(robot, state, damage, record_every)
     end = state_pose(rest.final_state)
     if record_every:  # (3, B, F / 4, 25) steps and (B, F / 4, 25) neutral -> (B, F, 25)
@@ -276,7 +280,7 @@ def execute_hbr(
         patterns=patterns.T,
         middle_index=middle.T,
         errors=jnp.swapaxes(errors, 0, 1),
-        learnt=learnt.replace(secondary=secondary, contacts=contacts),
+        learnt=learnt.replace(secondary=secondary, contacts=contacts, motion=motion),
         qpos=qpos,
     )
 

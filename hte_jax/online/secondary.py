@@ -8,7 +8,9 @@ errors on the damaged robot; the score of a candidate is ||exp(-k max(0, mu))||_
 
 Ours (`usable_pattern`, not the paper's): the robot compares each leg's sensed floor contact with
 the contact its executed elites expected; a leg that stays off the floor (blocked in the air) is
-judged unusable and the steps take the pattern with every other leg down.
+judged unusable and the steps take the pattern with every other leg down. `stuck_legs` adds the
+joints' own sense: a leg whose joints moved much less than their controllers asked (a leg locked in
+any pose, on the floor or in the air) is judged unusable too.
 
 Ours (`predicted_miss`, not the paper's): the GP also learns each executed elite's absolute
 deviation |bd' - bd| (normalised units), and every pattern's nearest elite is scored by how far
@@ -34,6 +36,8 @@ UCB_DELTA = 0.1
 LEG_PRIOR_PRECISION = 1.0  # ridge weight of `leg_effects`: one pseudo-observation of "no effect"
 CONTACT_EVIDENCE = 0.3  # seconds of expected floor contact before a leg is judged (`unusable_legs`)
 CONTACT_RATIO = 0.1  # a leg sensed down for less than this share of its expected contact is unusable
+JOINT_EVIDENCE = 3.0  # rad of commanded joint travel before a leg's tracking is judged (`stuck_legs`)
+JOINT_RATIO = 0.55  # a leg whose joints moved less than this share of the commanded travel is stuck
 
 
 def legs_down(pattern: int) -> list[int]:
@@ -128,10 +132,21 @@ def unusable_legs(contacts: jax.Array, evidence: float = CONTACT_EVIDENCE, ratio
     return (expected >= evidence) & (sensed < ratio * expected)
 
 
-def usable_pattern(contacts: jax.Array) -> jax.Array:
-    """(..., 2, 6) sensed and expected contact -> (...,) int32: the pattern with every leg down but
-    the unusable ones (`unusable_legs`), or -1 (any pattern) while every leg seems usable."""
+def stuck_legs(motion: jax.Array, evidence: float = JOINT_EVIDENCE, ratio: float = JOINT_RATIO) -> jax.Array:
+    """(..., 2, 6) radians each leg's joints moved and were commanded to move -> (..., 6) bool, the
+    legs that moved less than `ratio` of the commanded travel once at least `evidence` rad were
+    commanded (a locked leg's joints hold their pose whatever they are asked)."""
+    moved, commanded = motion[..., 0, :], motion[..., 1, :]
+    return (commanded >= evidence) & (moved < ratio * commanded)
+
+
+def usable_pattern(contacts: jax.Array, motion: jax.Array | None = None) -> jax.Array:
+    """(..., 2, 6) sensed and expected contact, and optionally (..., 2, 6) moved and commanded joint
+    travel -> (...,) int32: the pattern with every leg down but the unusable ones (`unusable_legs`,
+    and `stuck_legs` when motion is given), or -1 (any pattern) while every leg seems usable."""
     bad = unusable_legs(contacts)
+    if motion is not None:
+        bad = bad | stuck_legs(motion)
     weights = jnp.asarray([1 << (NUM_LEGS - 1 - leg) for leg in range(NUM_LEGS)], jnp.int32)
     pattern = jnp.sum(jnp.where(bad, 0, weights), axis=-1)
     return jnp.where(bad.any(axis=-1), pattern, -1).astype(jnp.int32)

@@ -51,6 +51,8 @@ class StepContext:
     optimism: (B,) confidence weight of the predicted-miss rule. secondary: GPData (B, ...) the
     secondary GP. contacts: (B, 2, 6) seconds each leg was sensed on the floor (row 0) and expected
     on it by the executed elites' stored contact fractions (row 1), summed over the episode.
+    motion: (B, 2, 6) radians each leg's joints moved (row 0) and were commanded to move by the
+    executed elites' controllers (row 1), summed over the episode.
     every: (B, 64) int32 nearest elite of each pattern p (column p) to `desired`; found: (B, 64)
     bool, the pattern has elites. inputs: (B, 64, 9) their descriptors. mean: (B, 64, 9) and
     variance: (B, 64) the secondary GP's posterior at them.
@@ -64,6 +66,7 @@ class StepContext:
     optimism: jax.Array
     secondary: GPData
     contacts: jax.Array
+    motion: jax.Array
     every: jax.Array
     found: jax.Array
     inputs: jax.Array
@@ -83,6 +86,8 @@ class PatternState:
     (B, 3 L, 9, 9) HTE's error model (relative errors, absolute and signed deviations of each
     executed elite). contacts: (B, 2, 6) float32 seconds each leg was sensed on the floor (row 0)
     and expected on it by the executed elites' stored contact fractions (row 1), summed.
+    motion: (B, 2, 6) float32 radians each leg's joints moved (row 0) and were commanded to move
+    (row 1), summed.
     """
 
     mode: jax.Array
@@ -90,6 +95,7 @@ class PatternState:
     optimism: jax.Array
     secondary: GPData
     contacts: jax.Array
+    motion: jax.Array
 
 
 def candidate_elites(hbr: HBR, desired: jax.Array, patterns: np.ndarray = CANDIDATE_PATTERNS):
@@ -105,13 +111,13 @@ def candidate_elites(hbr: HBR, desired: jax.Array, patterns: np.ndarray = CANDID
 
 
 def step_context(hbr: HBR, desired: jax.Array, t: jax.Array, keys: jax.Array, oracle: jax.Array,
-                 optimism: jax.Array, secondary: GPData, contacts: jax.Array) -> StepContext:
+                 optimism: jax.Array, secondary: GPData, contacts: jax.Array, motion: jax.Array) -> StepContext:
     """The context every rule reads: each pattern's nearest elite and the GP's posterior there."""
     every, found = candidate_elites(hbr, desired, ALL_PATTERNS)
     inputs = hbr.middle.descriptors[every]
     mean, variance = jax.vmap(lambda gp, x: posterior(HTE_KERNEL, gp, x))(secondary, inputs)
     return StepContext(hbr=hbr, desired=desired, t=t, keys=keys, oracle=oracle, optimism=optimism,
-                       secondary=secondary, contacts=contacts, every=every, found=found, inputs=inputs,
+                       secondary=secondary, contacts=contacts, motion=motion, every=every, found=found, inputs=inputs,
                        mean=mean, variance=variance)
 
 
@@ -185,6 +191,13 @@ def sensed_contacts(ctx: StepContext):
     return usable_pattern(ctx.contacts), None
 
 
+def sensed_legs(ctx: StepContext):
+    """Ours: RTE's choice until a leg is sensed not to touch the floor when its elites should, or not
+    to move its joints as its controllers ask (`secondary.usable_pattern` with the joint motion: a
+    leg locked in any pose); then the pattern with every other leg down."""
+    return usable_pattern(ctx.contacts, ctx.motion), None
+
+
 RULES: dict[str, Rule] = {
     "any": any_pattern,
     "gp-ucb": gp_ucb,
@@ -194,6 +207,7 @@ RULES: dict[str, Rule] = {
     "drift": drift,
     "legs": legs,
     "contacts": sensed_contacts,
+    "sensed": sensed_legs,
 }
 
 
@@ -253,6 +267,7 @@ for _variant in (
     Variant("hte-drift", "drift", summary="ours: the least predicted landing error, aiming against the drift"),
     Variant("hte-legs", "legs", summary="ours: primary mismatch plus a learnt per-leg penalty"),
     Variant("hte-contacts", "contacts", summary="ours: lift the legs sensed not to touch the floor"),
+    Variant("hte-sensed", "sensed", summary="ours: lift the legs sensed off the floor or not following their joint commands"),
     Variant("2d-rte", repertoire="2d", summary="RTE on the flat x-y repertoire"),
     Variant("8d-rte", repertoire="8d", summary="RTE on the flat 8-D repertoire"),
     Variant("aprol", repertoire="aprol", summary="APROL's choice among 21 damage repertoires"),

@@ -96,3 +96,11 @@ def servo_command(target: jax.Array, joint_pos: jax.Array, max_velocity: float) 
     """
     return jnp.clip((target - joint_pos) / SERVO_TIME_CONSTANT, -max_velocity, max_velocity)
 
+
+
+def commanded_travel(params: jax.Array) -> jax.Array:
+    """How far each leg's joints are asked to move in one period: (..., 36) params -> (..., 6) rad,
+    the sum over the leg's three joints of sum_k |target(k + 1) - target(k)| around the period."""
+    table = jnp.vectorize(target_table, signature="(p)->(t,j)")(params)  # (..., 100, 18)
+    steps = jnp.abs(jnp.roll(table, -1, axis=-2) - table).sum(axis=-2)  # (..., 18)
+    return steps.reshape(*steps.shape[:-1], NUM_LEGS, NUM_JOINTS // NUM_LEGS).sum(axis=-1)

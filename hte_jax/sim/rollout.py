@@ -66,6 +66,7 @@ class RolloutSpec:
     record_contacts: return per-step foot contacts (B, T, 6).
     record_feet: return per-step foot-sphere centres (B, T, 6, 3) (memory: 72 B per step).
     record_joints: return per-step joint angles (B, T, 18) (memory: 72 B per step).
+    record_joint_travel: return each joint's travel sum |q(t+1) - q(t)| over the rollout (B, 18).
     record_qpos_every: k > 0 returns the full qpos at the start of every k-th step (B, ceil(T / k), 25),
       for replay and rendering; 0 (default) records nothing and costs nothing.
     contact_tolerance: a foot is in contact when its sphere is closer than this to the floor (m).
@@ -77,6 +78,7 @@ class RolloutSpec:
     record_contacts: bool = True
     record_feet: bool = False
     record_joints: bool = False
+    record_joint_travel: bool = False
     record_qpos_every: int = 0
     contact_tolerance: float = 1e-3
     limits: ValidityLimits = ValidityLimits()
@@ -120,6 +122,7 @@ class RolloutResult:
     foot_pos: (B, T, 6, 3) foot-sphere centres at the start of step t, or None.
     command_abs_sum: (B, 18) sum over steps of |commanded joint velocity| * control_dt (rad).
     joint_pos: (B, T, 18) joint angles at the start of step t, or None.
+    joint_travel: (B, 18) sum over the valid steps of |joint angle change| (rad), or None.
     qpos: (B, ceil(T / k), 25) full qpos at the start of steps 0, k, 2k, ... (k = record_qpos_every), or None.
     """
 
@@ -134,6 +137,7 @@ class RolloutResult:
     command_abs_sum: jax.Array
     joint_pos: jax.Array | None = None
     qpos: jax.Array | None = None
+    joint_travel: jax.Array | None = None
 
 
 def initial_state(robot: Robot, damage: jax.Array | None = None) -> SimState:
@@ -203,7 +207,7 @@ def _rollout_one(
         return jnp.where(hit[:, None], qpos[None, :7], buffer)
 
     def control_step(carry, step):
-        data, reason, invalid_step, poses, command_sum = carry
+        data, reason, invalid_step, poses, command_sum, travel = carry
         poses = record_pose(poses, data.qpos, step)
         row = (step % segment_steps) % SAMPLES_PER_PERIOD
         target = apply_damage(tables[step // segment_steps, row], damage, damaged_pose(config.damage_model))
@@ -221,6 +225,8 @@ def _rollout_one(
         )
         invalid_step = jnp.where((reason == 0) & ~ok, step, invalid_step)
         command_sum = command_sum + jnp.where(ok, jnp.abs(command), 0.0) * config.control_dt
+        if spec.record_joint_travel:
+            travel = travel + jnp.where(ok, jnp.abs(stepped.qpos[joint_qpos] - data.qpos[joint_qpos]), 0.0)
         # geom_xpos was computed by the step's forward pass, i.e. at the start of this step.
         foot_pos = jnp.where(ok, stepped.geom_xpos[feet], data.geom_xpos[feet])
         outputs = {}
@@ -232,7 +238,7 @@ def _rollout_one(
             outputs["joints"] = data.qpos[joint_qpos]
         if spec.record_qpos_every:
             outputs["qpos"] = data.qpos
-        return (stepped, new_reason, invalid_step, poses, command_sum), outputs
+        return (stepped, new_reason, invalid_step, poses, command_sum, travel), outputs
 
     data = template.replace(qpos=init.qpos, qvel=init.qvel, qacc_warmstart=init.qacc_warmstart)
     data = mjx.kinematics(robot.model, data)  # geom_xpos of the initial state
@@ -242,8 +248,9 @@ def _rollout_one(
         jnp.int32(spec.num_steps),
         jnp.zeros((num_poses, 7), jnp.float32),
         jnp.zeros(NUM_JOINTS, jnp.float32),
+        jnp.zeros(NUM_JOINTS, jnp.float32),
     )
-    (data, reason, invalid_step, poses, command_sum), outputs = jax.lax.scan(
+    (data, reason, invalid_step, poses, command_sum, travel), outputs = jax.lax.scan(
         control_step, carry, jnp.arange(spec.num_steps)
     )
     poses = record_pose(poses, data.qpos, spec.num_steps)
@@ -260,6 +267,7 @@ def _rollout_one(
         command_abs_sum=command_sum,
         joint_pos=outputs.get("joints"),
         qpos=outputs["qpos"][:: spec.record_qpos_every] if spec.record_qpos_every else None,
+        joint_travel=travel if spec.record_joint_travel else None,
     )
 
 
