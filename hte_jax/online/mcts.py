@@ -73,7 +73,8 @@ class Tree:
     state: (M, 3) x, y, yaw. parent: (M,) int32 (-1 at the root). action: (M,) int32 action that
     led to the node (-1 at the root).
     reward: (M,) reward of entering the node. terminal: (M,) bool. depth: (M,) int32.
-    visits: (M,) int32. value: (M,) float32 summed discounted returns from entering the node.
+    visits: (M,) int32. value: (M,) float32 summed discounted returns from entering the node (0 at the
+    root: `plan` reads its children).
     children: (M, K) int32 child nodes (-1 empty). num_children: (M,) int32. size: () int32 nodes used.
     """
 
