@@ -1,15 +1,21 @@
 """RTE's planner: Monte-Carlo tree search over the repertoire's actions, jitted and batched (facts 7.2).
 
-Each tree grows by progressive widening (a node gets a new action when visits^a > children),
-selects children by UCT (Q/N + 2c sqrt(ln(N_parent + 1) / N)), expands with the best of
-`candidates` random actions as ranked by the maze's distance field, estimates leaves by a random
-rollout (uniform actions, discount gamma, depth limit), and backs the discounted return up the
-path. Transitions compose the state with the action's predicted displacement (the GP mean; the
+`search` grows a tree by `simulate`, one simulation at a time, each in four steps (the structure of
+mctx's search):
+* `select`: descend from the root by UCT (Q/N + 2c sqrt(ln(N_parent + 1) / N)) and stop at a leaf or
+  at a node that should widen (progressive widening: a node gets a new action when visits^a > children);
+* `expand`: give that node a child by the best of `candidates` random actions, as ranked by the maze's
+  distance field;
+* `evaluate`: estimate the new leaf by a random rollout (uniform actions, discount gamma, depth limit);
+* `backup`: count a visit on every node of the selected path and add each one below the root its
+  discounted return.
+Transitions compose the state with the action's predicted displacement (the GP mean; the
 original's outcome noise has a standard deviation of at most 0.01 m and is left out). Leaving
 the map or colliding gives `collision_reward` and ends the branch; reaching the goal gives
-`goal_reward` and ends it. `roots` independent trees are merged by summing their root
-statistics per action (root parallelisation); the action with the best mean value is returned.
-Everything has a fixed size: one tree holds iterations + 1 nodes and at most K children per node.
+`goal_reward` and ends it. `plan` merges `roots` independent trees by summing their root
+statistics per action (root parallelisation) and returns the action with the best mean value.
+Everything has a fixed size: one tree holds iterations + 1 nodes and at most K children per node,
+a selected path depth + 1 nodes.
 """
 
 from __future__ import annotations
@@ -67,7 +73,8 @@ class Tree:
     state: (M, 3) x, y, yaw. parent: (M,) int32 (-1 at the root). action: (M,) int32 action that
     led to the node (-1 at the root).
     reward: (M,) reward of entering the node. terminal: (M,) bool. depth: (M,) int32.
-    visits: (M,) int32. value: (M,) float32 summed discounted returns from entering the node.
+    visits: (M,) int32. value: (M,) float32 summed discounted returns from entering the node (0 at the
+    root: `plan` reads its children).
     children: (M, K) int32 child nodes (-1 empty). num_children: (M,) int32. size: () int32 nodes used.
     """
 
@@ -100,7 +107,31 @@ class World:
     count: jax.Array
 
 
-def _empty_tree(config: PlannerConfig, state: jax.Array) -> Tree:
+@struct.dataclass
+class Path:
+    """The nodes one simulation went through, root first. D = config.depth, M = config.iterations + 1.
+
+    nodes: (D + 1,) int32 the node at each depth (nodes[0] = 0, the root); the entries from `length`
+      on hold M, an index past every tree array, so that scatters through them are dropped.
+    length: () int32 nodes on the path (at least 1: the root).
+    """
+
+    nodes: jax.Array
+    length: jax.Array
+
+    @property
+    def last(self) -> jax.Array:
+        """() int32 the deepest node of the path."""
+        return self.nodes[self.length - 1]
+
+    def extended(self, node: jax.Array, grow: jax.Array) -> Path:
+        """The path with `node` appended where `grow` (() bool), else unchanged (a dropped write)."""
+        index = jnp.where(grow, self.length, self.nodes.shape[0])
+        return Path(nodes=self.nodes.at[index].set(node, mode="drop"), length=self.length + grow.astype(jnp.int32))
+
+
+def empty_tree(config: PlannerConfig, state: jax.Array) -> Tree:
+    """A tree holding only its root, at `state` (3,)."""
     m, k = config.iterations + 1, config.max_children
     return Tree(
         state=jnp.zeros((m, 3), jnp.float32).at[0].set(state),
@@ -115,7 +146,6 @@ def _empty_tree(config: PlannerConfig, state: jax.Array) -> Tree:
         num_children=jnp.zeros((m,), jnp.int32),
         size=jnp.int32(1),
     )
-
 
 def transition(maze: Maze, config: PlannerConfig, world: World, state: jax.Array, action: jax.Array):
     """(..., 3) state, (...,) action -> next state, reward, terminal."""
@@ -166,100 +196,139 @@ def _rollout_return(maze: Maze, config: PlannerConfig, world: World, key: jax.Ar
     return jnp.sum(jnp.where(go, config.gamma ** k.astype(jnp.float32) * reward, 0.0))
 
 
-def _search(maze: Maze, grid: GridSpec, config: PlannerConfig, world: World, key: jax.Array, state: jax.Array) -> Tree:
-    """Grow one tree from `state` for config.iterations simulations.
+# The search, one step at a time. Every step works on one tree (the planner vmaps over trees and
+# robots), so each is written for batching: the descent only selects, the one expansion of a
+# simulation is computed whether or not it happens and written through the out-of-range index M when
+# it does not (dropped writes), the rollout is one vectorised return, and the back-up adds to the
+# recorded path in one scatter.
 
-    Written for batching (vmap over trees and robots): the descent only selects (by UCT) and stops
-    where the tree should widen; the one expansion of a simulation is then computed once and
-    written through out-of-range indices when there is none (dropped writes); the rollout is one
-    vectorised return, and the back-up adds to the recorded path in one scatter.
-    """
+
+def is_leaf(config: PlannerConfig, tree: Tree, node: jax.Array) -> jax.Array:
+    """() bool: the node ends every simulation reaching it (terminal, or at the depth limit)."""
+    return tree.terminal[node] | (tree.depth[node] >= config.depth)
+
+
+def should_widen(config: PlannerConfig, tree: Tree, node: jax.Array) -> jax.Array:
+    """() bool progressive widening: the node gets a new child when it has none or visits^a > children,
+    while it has room for one (fewer than K children)."""
+    count = tree.num_children[node]
+    return ((count == 0) | (tree.visits[node].astype(jnp.float32) ** config.widening > count)) & (
+        count < config.max_children
+    )
+
+
+def uct_child(config: PlannerConfig, tree: Tree, node: jax.Array) -> jax.Array:
+    """() int32 the child of `node` (which has one) maximising Q/N + 2c sqrt(ln(N_node + 1) / N)."""
+    kids = tree.children[node]
+    valid = kids >= 0
+    safe = jnp.where(valid, kids, 0)
+    n = jnp.maximum(tree.visits[safe], 1).astype(jnp.float32)
+    parent = tree.visits[node].astype(jnp.float32)
+    score = tree.value[safe] / n + 2.0 * config.exploration * jnp.sqrt(jnp.log(parent + 1.0) / n)
+    return safe[jnp.argmax(jnp.where(valid, score, -jnp.inf))]
+
+
+def select(config: PlannerConfig, tree: Tree) -> Path:
+    """Descend from the root by `uct_child` until a leaf (`is_leaf`) or a node that should widen
+    (`should_widen`); the path ends there (its `last`)."""
+    capacity = config.iterations + 1
     depth_limit = config.depth
-    capacity = config.iterations + 1  # an index past every array: writes to it are dropped
 
-    def expand_action(key, tree, node):
-        candidates = _sample_actions(key, world, config.candidates)
-        ends, reward, _ = transition(maze, config, world, jnp.broadcast_to(tree.state[node], (config.candidates, 3)),
-                                     candidates)
-        cost = jnp.where(reward < 0, jnp.inf, geodesic_cost(maze, grid, world.field, ends[:, :2]))
-        return candidates[jnp.argmin(cost)]
+    def descend(carry):
+        """One step down, unless the node is a leaf or should widen (then stop there). The tree does
+        not change on the way down, so it stays out of the loop's carry."""
+        node, _, nodes, length = carry
+        stop = is_leaf(config, tree, node) | should_widen(config, tree, node)
+        node_next = jnp.where(stop, node, uct_child(config, tree, node))
+        nodes = nodes.at[jnp.where(stop, depth_limit + 1, length)].set(node_next, mode="drop")
+        return node_next, stop, nodes, length + (~stop).astype(jnp.int32)
 
-    def uct_child(tree, node):
-        kids = tree.children[node]
-        valid = kids >= 0
-        safe = jnp.where(valid, kids, 0)
-        n = jnp.maximum(tree.visits[safe], 1).astype(jnp.float32)
-        parent = tree.visits[node].astype(jnp.float32)
-        score = tree.value[safe] / n + 2.0 * config.exploration * jnp.sqrt(jnp.log(parent + 1.0) / n)
-        return safe[jnp.argmax(jnp.where(valid, score, -jnp.inf))]
+    nodes = jnp.full((depth_limit + 1,), capacity, jnp.int32).at[0].set(0)
+    _, _, nodes, length = jax.lax.while_loop(lambda c: ~c[1], descend, (jnp.int32(0), False, nodes, jnp.int32(1)))
+    return Path(nodes=nodes, length=length)
 
-    def is_leaf(tree, node):
-        return tree.terminal[node] | (tree.depth[node] >= depth_limit)
 
-    def simulate(i, carry):
+def expansion_action(maze: Maze, grid: GridSpec, config: PlannerConfig, world: World, key: jax.Array,
+                     state: jax.Array) -> jax.Array:
+    """() int32 the best of `config.candidates` uniform draws among the usable actions from `state`
+    (3,): the one ending nearest the goal by `geodesic_cost`; colliding ones are never preferred."""
+    candidates = _sample_actions(key, world, config.candidates)
+    ends, reward, _ = transition(maze, config, world, jnp.broadcast_to(state, (config.candidates, 3)), candidates)
+    cost = jnp.where(reward < 0, jnp.inf, geodesic_cost(maze, grid, world.field, ends[:, :2]))
+    return candidates[jnp.argmin(cost)]
+
+
+def expand(maze: Maze, grid: GridSpec, config: PlannerConfig, world: World, key: jax.Array, tree: Tree,
+           path: Path) -> tuple[Tree, Path]:
+    """Give the path's last node a child by `expansion_action` and append it to the path, unless the
+    node is a leaf (then tree and path are returned unchanged). The child is node `tree.size`."""
+    capacity = config.iterations + 1
+    node = path.last
+    grow = ~is_leaf(config, tree, node)
+    action = expansion_action(maze, grid, config, world, key, tree.state[node])
+    nxt, reward, terminal = transition(maze, config, world, tree.state[node], action)
+    new = jnp.where(grow, tree.size, capacity)
+    tree = tree.replace(
+        state=tree.state.at[new].set(nxt, mode="drop"),
+        parent=tree.parent.at[new].set(node, mode="drop"),
+        action=tree.action.at[new].set(action, mode="drop"),
+        reward=tree.reward.at[new].set(reward, mode="drop"),
+        terminal=tree.terminal.at[new].set(terminal, mode="drop"),
+        depth=tree.depth.at[new].set(tree.depth[node] + 1, mode="drop"),
+        children=tree.children.at[jnp.where(grow, node, capacity), tree.num_children[node]].set(new, mode="drop"),
+        num_children=tree.num_children.at[node].add(grow.astype(jnp.int32)),
+        size=tree.size + grow.astype(jnp.int32),
+    )
+    return tree, path.extended(new, grow)
+
+
+def evaluate(maze: Maze, config: PlannerConfig, world: World, key: jax.Array, tree: Tree, leaf: jax.Array) -> jax.Array:
+    """() float32 the leaf's estimated return: a uniform random rollout's (`_rollout_return`) from its
+    state and depth, with the terminal rewards met on the way; 0 at a terminal leaf."""
+    return _rollout_return(maze, config, world, key, tree.state[leaf], ~tree.terminal[leaf], tree.depth[leaf])
+
+
+def backup(config: PlannerConfig, tree: Tree, path: Path, value: jax.Array) -> Tree:
+    """Count one more visit at every node of the path and add to each node below the root its discounted
+    return g_k = reward_k + gamma g_(k+1), with g after the last node = `value` (() float32)."""
+    capacity = config.iterations + 1
+    depth_limit = config.depth
+    on_path = jnp.arange(depth_limit + 1) < path.length
+    below_root = on_path & (jnp.arange(depth_limit + 1) > 0)
+    rewards = jnp.where(below_root, tree.reward[jnp.where(on_path, path.nodes, 0)], 0.0)
+
+    def back(g, k):
+        g = jnp.where(below_root[k], rewards[k] + config.gamma * g, g)
+        return g, g
+
+    _, returns = jax.lax.scan(back, value, jnp.arange(depth_limit, -1, -1), unroll=True)
+    returns = returns[::-1]
+    target = jnp.where(below_root, path.nodes, capacity)
+    return tree.replace(
+        visits=tree.visits.at[target].add(1, mode="drop").at[0].add(1),
+        value=tree.value.at[target].add(returns, mode="drop"),
+    )
+
+
+def simulate(maze: Maze, grid: GridSpec, config: PlannerConfig, world: World, key_expand: jax.Array,
+             key_rollout: jax.Array, tree: Tree) -> Tree:
+    """One simulation: `select` a path, `expand` its last node, `evaluate` the new leaf, `backup` the return."""
+    path = select(config, tree)
+    tree, path = expand(maze, grid, config, world, key_expand, tree, path)
+    value = evaluate(maze, config, world, key_rollout, tree, path.last)
+    return backup(config, tree, path, value)
+
+
+def search(maze: Maze, grid: GridSpec, config: PlannerConfig, world: World, key: jax.Array, state: jax.Array) -> Tree:
+    """Grow one tree from `state` (3,) by config.iterations simulations (`simulate`)."""
+
+    def body(_, carry):
         tree, key = carry
-        key, key_expand, key_roll = jax.random.split(key, 3)
+        key, key_expand, key_rollout = jax.random.split(key, 3)
+        return simulate(maze, grid, config, world, key_expand, key_rollout, tree), key
 
-        def descend(c):
-            """One step down by UCT, unless the node is a leaf or should widen (then stop there).
-            The tree does not change on the way down, so it stays out of the loop's carry."""
-            node, _, path, length = c
-            count = tree.num_children[node]
-            widen = ((count == 0) | (tree.visits[node].astype(jnp.float32) ** config.widening > count)) & (
-                count < config.max_children
-            )
-            stop = is_leaf(tree, node) | widen
-            node_next = jnp.where(stop, node, uct_child(tree, node))
-            path = path.at[jnp.where(stop, depth_limit + 1, length)].set(node_next, mode="drop")
-            return node_next, stop, path, length + (~stop).astype(jnp.int32)
-
-        path = jnp.full((depth_limit + 1,), capacity, jnp.int32).at[0].set(0)
-        node, _, path, length = jax.lax.while_loop(lambda c: ~c[1], descend, (jnp.int32(0), False, path, jnp.int32(1)))
-
-        # Widen the node the descent stopped at (once per simulation), unless it is a leaf.
-        expand = ~is_leaf(tree, node)
-        action = expand_action(key_expand, tree, node)
-        nxt, reward, terminal = transition(maze, config, world, tree.state[node], action)
-        new = jnp.where(expand, tree.size, capacity)
-        tree = tree.replace(
-            state=tree.state.at[new].set(nxt, mode="drop"),
-            parent=tree.parent.at[new].set(node, mode="drop"),
-            action=tree.action.at[new].set(action, mode="drop"),
-            reward=tree.reward.at[new].set(reward, mode="drop"),
-            terminal=tree.terminal.at[new].set(terminal, mode="drop"),
-            depth=tree.depth.at[new].set(tree.depth[node] + 1, mode="drop"),
-            children=tree.children.at[jnp.where(expand, node, capacity), tree.num_children[node]].set(new, mode="drop"),
-            num_children=tree.num_children.at[node].add(expand.astype(jnp.int32)),
-            size=tree.size + expand.astype(jnp.int32),
-        )
-        leaf = jnp.where(expand, new, node)
-        path = path.at[jnp.where(expand, length, depth_limit + 1)].set(new, mode="drop")
-        length = length + expand.astype(jnp.int32)
-
-        rollout = _rollout_return(maze, config, world, key_roll, tree.state[leaf], ~tree.terminal[leaf],
-                                  tree.depth[leaf])
-
-        # Back up along the path (root excluded): g_k = reward_k + gamma g_(k+1), g after the leaf = rollout.
-        on_path = jnp.arange(depth_limit + 1) < length
-        below_root = on_path & (jnp.arange(depth_limit + 1) > 0)
-        rewards = jnp.where(below_root, tree.reward[jnp.where(on_path, path, 0)], 0.0)
-
-        def back(g, k):
-            g = jnp.where(below_root[k], rewards[k] + config.gamma * g, g)
-            return g, g
-
-        _, returns = jax.lax.scan(back, rollout, jnp.arange(depth_limit, -1, -1), unroll=True)
-        returns = returns[::-1]
-        target = jnp.where(below_root, path, capacity)
-        tree = tree.replace(
-            visits=tree.visits.at[target].add(1, mode="drop").at[0].add(1),
-            value=tree.value.at[target].add(returns, mode="drop"),
-        )
-        return tree, key
-
-    tree, _ = jax.lax.fori_loop(0, config.iterations, simulate, (_empty_tree(config, state), key))
+    tree, _ = jax.lax.fori_loop(0, config.iterations, body, (empty_tree(config, state), key))
     return tree
-
 
 @struct.dataclass
 class PlanResult:
@@ -300,7 +369,7 @@ def _principal_path(tree: Tree, first: jax.Array, depth: int) -> tuple[jax.Array
 @functools.partial(jax.jit, static_argnames=("maze", "grid", "config"))
 def plan(maze: Maze, grid: GridSpec, config: PlannerConfig, world: World, key: jax.Array, state: jax.Array) -> PlanResult:
     """Plan from `state` (3,): `config.roots` trees merged at the root (see the module docstring)."""
-    trees = jax.vmap(lambda k: _search(maze, grid, config, world, k, state))(jax.random.split(key, config.roots))
+    trees = jax.vmap(lambda k: search(maze, grid, config, world, k, state))(jax.random.split(key, config.roots))
     root_children = trees.children[:, 0]  # (R, K)
     valid = root_children >= 0
     safe = jnp.where(valid, root_children, 0)
