@@ -2,8 +2,9 @@
 
     python -m experiments.inspect_checkpoint runs/top/checkpoint.npz
 
-Prints the format version, the stored metadata (container, config) and every array's shape,
-plus the number of elites and their fitness range when the file holds a repertoire. A missing,
+Prints the format version, the stored metadata (container, config; a repertoire file's task spec)
+and every array's shape, plus the number of elites and their fitness range when the file holds a
+repertoire (a checkpoint's, or each repertoire of a repertoire, HBR or flat file). A missing,
 truncated, corrupt or foreign file gives a one-line error and exit status 2.
 """
 
@@ -33,6 +34,13 @@ def describe(path: str) -> str:
         if count:
             lines.append(f"fitness: min {fitness[filled].min():.4g}, mean {fitness[filled].mean():.4g}, "
                          f"max {fitness[filled].max():.4g}")
+    for name in sorted(n for n in arrays if n.endswith("slots") and n[:-5] + "fitnesses" in arrays):
+        prefix = name[:-5]  # a repertoire file's elites (`qd.io.elite_arrays`), per layer or damage
+        fitness = arrays[prefix + "fitnesses"]
+        line = f"elites{' ' + prefix.rstrip('_') if prefix else ''}: {fitness.size}"
+        if fitness.size:
+            line += f", fitness min {fitness.min():.4g}, mean {fitness.mean():.4g}, max {fitness.max():.4g}"
+        lines.append(line)
     generation = next((a for n, a in arrays.items() if n.endswith("generation")), None)
     if generation is not None:
         lines.append(f"generation: {int(np.asarray(generation))}")

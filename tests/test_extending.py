@@ -108,3 +108,35 @@ def test_the_new_variant_example_runs_its_own_rule_through_maze_eval(tmp_path, m
     finally:  # the registry is global: leave it as the other tests expect it
         variants.VARIANTS.pop("hte-mean", None)
         variants.RULES.pop("gp-mean", None)
+
+
+def test_the_new_task_example_trains_saves_and_loads_its_repertoire(tmp_path, monkeypatch, capsys):
+    from hte_jax.qd import Grid, TaskSpec, load_repertoire
+    from hte_jax.qd.io import CheckpointError
+
+    monkeypatch.chdir(tmp_path)
+    module = types.ModuleType("extending_example_3")
+    exec(compile(section_code("Example 3: a new QD task"), str(DOC), "exec"), module.__dict__)
+    ns = module.__dict__
+    state, loaded, spec = ns["state"], ns["loaded"], ns["spec"]
+    assert int(state.generation) == 4 and ns["header"]["generations"] == 4
+    assert ns["header"]["task"]["name"] == "duty-gaits" and ns["algo"].config.qd_offset == -1.0
+    for name, saved, back in zip(("genotypes", "descriptors", "fitnesses", "filled", "extras"),
+                                 (state.repertoire.genotypes, state.repertoire.descriptors, state.repertoire.fitnesses,
+                                  state.repertoire.filled, state.repertoire.extras["leg_duty"]),
+                                 (loaded.genotypes, loaded.descriptors, loaded.fitnesses, loaded.filled,
+                                  loaded.extras["leg_duty"])):
+        np.testing.assert_array_equal(np.asarray(back), np.asarray(saved), err_msg=name)
+    filled = np.asarray(loaded.filled)
+    assert 0 < filled.sum() <= spec.capacity == 64
+    descriptors, duty = np.asarray(loaded.descriptors)[filled], np.asarray(loaded.extras["leg_duty"])[filled]
+    assert descriptors.min() >= 0.0 and descriptors.max() <= 1.0 and duty.min() >= 0.0 and duty.max() <= 1.0
+    np.testing.assert_allclose(descriptors, duty[:, [[0, 5], [1, 4], [2, 3]]].mean(axis=-1), atol=1e-6)
+    assert len(np.unique(descriptors.round(6), axis=0)) == filled.sum()  # one elite per cell, as stored
+    fitness = np.asarray(loaded.fitnesses)[filled]
+    assert np.isfinite(fitness).all() and np.abs(fitness).max() < 1.0  # metres in one second
+    printed = capsys.readouterr().out
+    assert f"{filled.sum()} of 64 cells filled" in printed and "(hind)" in printed
+    other = TaskSpec(spec.name, spec.genotype_dim, Grid((5, 5, 5), (0.0,) * 3, (1.0,) * 3), extras=spec.extras)
+    with pytest.raises(CheckpointError, match="container"):
+        load_repertoire(tmp_path / "runs" / "duty-gaits" / "repertoire.npz", other)

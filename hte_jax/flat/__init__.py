@@ -2,7 +2,7 @@
 
 from hte_jax.flat.comparison import PAPER_TABLE2, aggregate, file_statistics, markdown_table
 from hte_jax.flat.store import FlatRepertoires, load_flat, save_flat, shipped_flat_path
-from hte_jax.flat.task import FlatTask, evaluate_flat
+from hte_jax.flat.task import FlatTask, evaluate_flat, flat_spec
 from hte_jax.flat.training import PRESETS, VARIANTS, FlatConfig, flat_algorithm, flat_statistics, preset, train_flat, with_overrides
 
 __all__ = [
@@ -16,6 +16,7 @@ __all__ = [
     "evaluate_flat",
     "file_statistics",
     "flat_algorithm",
+    "flat_spec",
     "flat_statistics",
     "load_flat",
     "markdown_table",

@@ -1,7 +1,7 @@
 """Flat repertoire files: R repertoires (one per damage) in one compressed `.npz`, checked on load.
 
 Only elites are stored, each under its grid cell; the header holds the task and the damage
-names. `load_flat` rebuilds fixed-size device repertoires with a leading (R,) axis and raises
+names. Each repertoire is read by the task's spec (`task.flat_spec`, `qd.store.rebuild_elites`). `load_flat` rebuilds fixed-size device repertoires with a leading (R,) axis and raises
 `CheckpointError` naming any problem (wrong kind, missing or wrong-shaped arrays, non-finite
 values, elites outside the cells of their descriptors, unknown damages).
 """
@@ -16,15 +16,15 @@ import jax.numpy as jnp
 import numpy as np
 
 from hte_jax.errors import ConfigError
-from hte_jax.flat.task import GENES, FlatTask
-from hte_jax.qd.io import CheckpointError, elite_arrays, read_checkpoint, rebuild_repertoire, save_checkpoint
+from hte_jax.flat.task import FlatTask, flat_spec
+from hte_jax.qd.io import CheckpointError, elite_arrays, read_checkpoint, save_checkpoint
 from hte_jax.qd.repertoire import Repertoire
+from hte_jax.qd.store import rebuild_elites
 from hte_jax.sim.damage import damage_masks
-from hte_jax.sim.robot import NUM_LEGS, assets_dir
+from hte_jax.sim.robot import assets_dir
 
 KIND = "hte_jax.flat"
 KIND_VERSION = 1
-EXTRAS = {"arrival_yaw": ((), np.float32), "contact_fraction": ((NUM_LEGS,), np.float32)}
 # trained with the gpu preset by experiments.train_flat
 SHIPPED = {"2d": "flat_gpu/flat2d.npz", "8d": "flat_gpu/flat8d.npz", "aprol": "flat_gpu/aprol.npz"}
 
@@ -96,13 +96,10 @@ def load_flat(path: str | Path) -> tuple[FlatRepertoires, dict]:
         raise CheckpointError(f"{path}: bad flat repertoire header: {error}") from None
     if not damages:
         raise CheckpointError(f"{path}: holds no repertoire")
-    grid = task.grid()
-    repertoires = []
-    for index in range(len(damages)):
-        rep = rebuild_repertoire(path, arrays, _prefix(index), grid.capacity, GENES, task.descriptor_dim, EXTRAS)
-        slots = arrays[f"{_prefix(index)}slots"]
-        if not grid.cell_matches(arrays[f"{_prefix(index)}descriptors"], slots).all():
-            raise CheckpointError(f"{path}: repertoire {index} ({damages[index]}) has elites outside their descriptors' cells")
-        repertoires.append(rep)
+    spec = flat_spec(task)
+    repertoires = [
+        rebuild_elites(path, arrays, spec, _prefix(index), label=f"repertoire {index} ({damages[index]})")
+        for index in range(len(damages))
+    ]
     stacked = jax.tree.map(lambda *xs: jnp.stack(xs), *repertoires)
     return FlatRepertoires(task=task, damages=damages, repertoire=stacked), meta

@@ -10,6 +10,7 @@ The robot starts from the standing state of its own (possibly damaged) body.
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import jax
 import jax.numpy as jnp
@@ -19,12 +20,15 @@ from hte_jax.hbr.geometry import angle_error, planar_pose, relative_pose
 from hte_jax.hbr.top import TopTask
 from hte_jax.qd.grid import Grid
 from hte_jax.qd.repertoire import Evaluation
+from hte_jax.qd.task_spec import EvaluateFn, TaskSpec
 from hte_jax.sim.controller import NUM_PARAMS
 from hte_jax.sim.robot import NUM_LEGS, Robot
 from hte_jax.sim.rollout import RolloutSpec, SimState, rollout
 
 GENES = NUM_PARAMS  # 36
 DESCRIPTOR_DIMS = {"2d": 2, "8d": 2 + NUM_LEGS}
+EXTRAS = {"arrival_yaw": ((), "float32"), "contact_fraction": ((NUM_LEGS,), "float32")}
+QD_OFFSET = -math.pi  # the lowest angle error
 
 
 @dataclasses.dataclass(frozen=True)
@@ -66,6 +70,14 @@ class FlatTask:
 
     def spec(self) -> RolloutSpec:
         return RolloutSpec(num_steps=self.steps, pose_steps=(0, self.steps), record_contacts=True)
+
+
+def flat_spec(task: FlatTask, evaluate: EvaluateFn | None = None) -> TaskSpec:
+    """A flat repertoire as a QD task: 36 genes, the task's grid, the extras `evaluate_flat` returns.
+
+    For `BatchedMapElites.from_spec` the evaluation takes the run's condition as a third argument.
+    """
+    return TaskSpec(f"flat-{task.descriptor}", GENES, task.grid(), evaluate, EXTRAS, QD_OFFSET)
 
 
 def evaluate_flat(

@@ -14,7 +14,6 @@ A killed run continues with `resume_run=True` and gives bit-identical repertoire
 from __future__ import annotations
 
 import dataclasses
-import math
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -27,13 +26,13 @@ from hte_jax.errors import ConfigError, require_int, require_number
 from hte_jax.errors import with_overrides as with_overrides  # the configuration's override rule, re-exported
 from hte_jax.flat.plots import plot_flat
 from hte_jax.flat.store import FlatRepertoires, save_flat
-from hte_jax.flat.task import GENES, FlatTask, evaluate_flat
+from hte_jax.flat.task import QD_OFFSET, FlatTask, evaluate_flat, flat_spec
 from hte_jax.qd import io
 from hte_jax.qd.batched import BatchedMapElites
 from hte_jax.qd.loop import MapElitesConfig, QDState, resume, run
 from hte_jax.qd.metrics import projected_statistics
 from hte_jax.sim.damage import APROL_DAMAGES, damage_masks
-from hte_jax.sim.robot import NUM_LEGS, RobotConfig, SOLVER_FIELDS, load_robot, stored_solver
+from hte_jax.sim.robot import RobotConfig, SOLVER_FIELDS, load_robot, stored_solver
 from hte_jax.sim.rollout import standing_state
 
 # variant -> (descriptor, damages the repertoires are trained on)
@@ -105,7 +104,7 @@ class FlatConfig:
             init_size=self.init_size,
             mutation_rate=self.mutation_rate,
             eta_m=self.eta_m,
-            qd_offset=-math.pi,
+            qd_offset=QD_OFFSET,
         )
 
     def to_dict(self) -> dict:
@@ -154,15 +153,8 @@ def flat_algorithm(config: FlatConfig) -> BatchedMapElites:
     task = config.task
     masks = jnp.asarray(damage_masks(config.damages))
     conditions = {"damage": masks, "start": standing_state(robot, masks)}
-    return BatchedMapElites(
-        container=task.grid(),
-        evaluate=lambda key, genes, c: evaluate_flat(robot, task, c["start"], c["damage"], key, genes),
-        genotype_dim=GENES,
-        conditions=conditions,
-        names=config.damages,
-        config=config.map_elites_config(),
-        extras={"arrival_yaw": jnp.float32(0), "contact_fraction": jnp.zeros(NUM_LEGS, jnp.float32)},
-    )
+    spec = flat_spec(task, evaluate=lambda key, genes, c: evaluate_flat(robot, task, c["start"], c["damage"], key, genes))
+    return BatchedMapElites.from_spec(spec, conditions, config.damages, config.map_elites_config())
 
 
 @dataclasses.dataclass

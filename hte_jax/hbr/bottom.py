@@ -27,7 +27,9 @@ import jax
 import jax.numpy as jnp
 
 from hte_jax.errors import require_choice, require_int, require_number
+from hte_jax.qd.archive import Archive
 from hte_jax.qd.repertoire import Evaluation
+from hte_jax.qd.task_spec import EvaluateFn, TaskSpec
 from hte_jax.sim.controller import NUM_PARAMS
 from hte_jax.sim.robot import NUM_LEGS, Robot
 from hte_jax.sim.rollout import RolloutSpec, SimState, rollout
@@ -36,6 +38,9 @@ GENES = 6  # (a, p, d) hip signal, (a, p, d) vertical signal
 DESCRIPTORS = 3  # swing, height, duty
 FOOT_REACH = 0.176  # horizontal hip-to-foot distance at the standing pose (m)
 BOTTOM_FITNESSES = ("commands", "genes")
+EXTRAS = {"leg": ((), "int32")}  # the leg each primitive was evaluated on
+ARCHIVE_L = 0.01  # default distance threshold of the layer's archive (`HBRConfig.bottom_l`)
+QD_OFFSET = -1.0  # the lowest "commands" fitness
 
 
 @dataclasses.dataclass(frozen=True)
@@ -69,6 +74,13 @@ class BottomTask:
             record_feet=True,
             record_joints=True,
         )
+
+
+def bottom_spec(capacity: int, l: float = ARCHIVE_L, evaluate: EvaluateFn | None = None) -> TaskSpec:
+    """The bottom layer as a QD task: 6 genes, an archive of `capacity` slots over [0, 1]^3 with
+    distance threshold `l`, the extras `evaluate_bottom` returns."""
+    return TaskSpec("hbr-bottom", GENES, Archive(capacity, (0.0,) * DESCRIPTORS, (1.0,) * DESCRIPTORS, l), evaluate,
+                    EXTRAS, QD_OFFSET)
 
 
 def swing_distance(hip_angle: jax.Array, contact: jax.Array) -> jax.Array:

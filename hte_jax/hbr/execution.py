@@ -21,6 +21,7 @@ from flax import struct
 from hte_jax.hbr.composition import PatternTable, StepModel, plan_batch
 from hte_jax.hbr.geometry import compose_pose, planar_pose, relative_pose
 from hte_jax.hbr.middle import PRIMARY, MiddleTask, decode, leg_controllers, pattern_code
+from hte_jax.hbr.skill_grid import TopTask
 from hte_jax.qd.archive import map_rows, squared_distance
 from hte_jax.qd.repertoire import Repertoire
 from hte_jax.sim.robot import NUM_JOINTS, NUM_LEGS, Robot
@@ -42,6 +43,7 @@ class HBR:
     middle_task: how the middle layer was evaluated (static).
     step_model: the middle elites' steps measured from several start states (`composition.StepModel`,
       (Cm, 3) and (Cm,)), or None when not measured.
+    top_task: the grid the top layer was trained on (static; Ct = bins^2).
     """
 
     bottom: Repertoire
@@ -51,14 +53,15 @@ class HBR:
     middle_patterns: jax.Array
     middle_task: MiddleTask = struct.field(pytree_node=False, default=MiddleTask())
     step_model: StepModel | None = None
+    top_task: TopTask = struct.field(pytree_node=False, default=TopTask())
 
     @classmethod
     def build(cls, bottom: Repertoire, middle: Repertoire, top: Repertoire, middle_task: MiddleTask,
-              step_model: StepModel | None = None) -> HBR:
+              step_model: StepModel | None = None, top_task: TopTask = TopTask()) -> HBR:
         """Assemble the layers and precompute the middle elites' controllers and patterns."""
         params = jnp.where(middle.filled[:, None], leg_controllers(bottom, decode(middle.genotypes)), 0.0)
         patterns = jnp.where(middle.filled, pattern_code(middle.descriptors[:, PRIMARY:]), ANY_PATTERN)
-        return cls(bottom, middle, top, params, patterns.astype(jnp.int32), middle_task, step_model)
+        return cls(bottom, middle, top, params, patterns.astype(jnp.int32), middle_task, step_model, top_task)
 
 
 @struct.dataclass

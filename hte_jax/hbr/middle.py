@@ -23,14 +23,16 @@ pattern lifts).
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import jax
 import jax.numpy as jnp
 
 from hte_jax.errors import require_int, require_number
 from hte_jax.hbr.geometry import angle_error, medoid_index, planar_pose, relative_pose
-from hte_jax.qd.archive import map_rows, squared_distance
+from hte_jax.qd.archive import Archive, map_rows, squared_distance
 from hte_jax.qd.repertoire import Evaluation, Repertoire
+from hte_jax.qd.task_spec import EvaluateFn, TaskSpec
 from hte_jax.sim.robot import NUM_LEGS, Robot
 from hte_jax.sim.rollout import RolloutSpec, SimState, rollout
 
@@ -38,6 +40,10 @@ GENES = 18
 PRIMARY = 3  # x, y, yaw
 DESCRIPTORS = PRIMARY + NUM_LEGS
 NUM_PATTERNS = 2**NUM_LEGS
+# the medoid sample's contact fractions and its index among the samples
+EXTRAS = {"contact_fraction": ((NUM_LEGS,), "float32"), "medoid": ((), "int32")}
+ARCHIVE_L = 0.05  # default distance threshold of the layer's archive (`HBRConfig.middle_l`)
+QD_OFFSET = -math.pi  # the lowest angle error
 
 
 @dataclasses.dataclass(frozen=True)
@@ -79,6 +85,13 @@ class MiddleTask:
         """Inverse of `normalise`."""
         scale = jnp.asarray([2 * self.max_step, 2 * self.max_step, 2 * self.max_turn], jnp.float32)
         return (primary - 0.5) * scale
+
+
+def middle_spec(capacity: int, l: float = ARCHIVE_L, evaluate: EvaluateFn | None = None) -> TaskSpec:
+    """The middle layer as a QD task: 18 genes, an archive of `capacity` slots over [0, 1]^9 with
+    distance threshold `l`, the extras `evaluate_middle` returns."""
+    return TaskSpec("hbr-middle", GENES, Archive(capacity, (0.0,) * DESCRIPTORS, (1.0,) * DESCRIPTORS, l), evaluate,
+                    EXTRAS, QD_OFFSET)
 
 
 def nearest_index(points: jax.Array, mask: jax.Array, queries: jax.Array, chunk: int = 4096) -> jax.Array:

@@ -1,9 +1,11 @@
 """HBR files: the three layers' elites in one compressed `.npz`, checked on load.
 
 Only elites are stored (archive slots are a prefix, so middle indices stay valid; top elites keep
-their grid cell), with the layers' tasks and capacities in the JSON header. `load_hbr` rebuilds
-fixed-size device repertoires and raises `CheckpointError` naming any problem: wrong format,
-missing or wrong-shaped arrays, non-finite values, descriptors out of range, dangling indices.
+their grid cell), with the layers' tasks and capacities in the JSON header. Each layer is read by
+its task spec (`bottom.bottom_spec`, `middle.middle_spec`, `top.top_spec`; `qd.store.rebuild_elites`).
+`load_hbr` rebuilds fixed-size device repertoires and raises `CheckpointError` naming any problem:
+wrong format, missing or wrong-shaped arrays, non-finite values, descriptors out of range,
+elites outside their places in the containers, dangling indices.
 """
 
 from __future__ import annotations
@@ -14,17 +16,18 @@ from pathlib import Path
 import jax.numpy as jnp
 import numpy as np
 
-from hte_jax.hbr import bottom as bottom_layer
-from hte_jax.hbr import middle as middle_layer
-from hte_jax.hbr import top as top_layer
+from hte_jax.errors import ConfigError
+from hte_jax.hbr.bottom import bottom_spec
 from hte_jax.hbr.composition import StepModel
-from hte_jax.hbr.execution import HBR, STEPS_PER_SKILL
-from hte_jax.hbr.middle import MiddleTask
-from hte_jax.hbr.top import TopTask
-from hte_jax.qd.io import CheckpointError, elite_arrays, read_checkpoint, rebuild_repertoire, save_checkpoint
-from hte_jax.qd.repertoire import Repertoire
+from hte_jax.hbr.execution import HBR
+from hte_jax.hbr.middle import MiddleTask, middle_spec
+from hte_jax.hbr.top import TopTask, top_spec
+from hte_jax.qd.io import CheckpointError, elite_arrays, read_checkpoint, save_checkpoint
+from hte_jax.qd.store import rebuild_elites
+from hte_jax.qd.task_spec import TaskSpec
 from hte_jax.sim.robot import assets_dir
 
+LAYERS = ("bottom", "middle", "top")
 KIND = "hte_jax.hbr"
 KIND_VERSION = 1
 SHIPPED = "hbr_gpu/hbr.npz"  # trained with the gpu preset by experiments.train_hbr
@@ -35,10 +38,24 @@ def shipped_hbr_path() -> Path:
     return assets_dir() / SHIPPED
 
 
-def save_hbr(path: str | Path, hbr: HBR, top_task: TopTask, metadata: dict | None = None) -> None:
-    """Atomically write `hbr` (compressed) with its tasks and any extra JSON-able `metadata`."""
+def layer_specs(capacity: dict[str, int], top_task: TopTask) -> dict[str, TaskSpec]:
+    """The layers' task specs at the given archive capacities ({"bottom": Cb, "middle": Cm}).
+
+    HBR files do not store the archives' distance thresholds: these specs carry the defaults,
+    which reading a file does not use.
+    """
+    return {"bottom": bottom_spec(capacity["bottom"]), "middle": middle_spec(capacity["middle"]), "top": top_spec(top_task)}
+
+
+def save_hbr(path: str | Path, hbr: HBR, top_task: TopTask | None = None, metadata: dict | None = None) -> None:
+    """Atomically write `hbr` (compressed) with its tasks and any extra JSON-able `metadata`.
+
+    top_task: None writes `hbr.top_task`; a given one must equal it.
+    """
+    if top_task is not None and top_task != hbr.top_task:
+        raise ConfigError(f"save_hbr: top_task {top_task} is not the HBR's {hbr.top_task}")
     arrays = {}
-    for layer in ("bottom", "middle", "top"):
+    for layer in LAYERS:
         arrays.update(elite_arrays(getattr(hbr, layer), f"{layer}_"))
     if hbr.step_model is not None:
         count = int(np.asarray(hbr.middle.filled).sum())
@@ -47,33 +64,17 @@ def save_hbr(path: str | Path, hbr: HBR, top_task: TopTask, metadata: dict | Non
     header = {
         "kind": KIND,
         "kind_version": KIND_VERSION,
-        "capacity": {layer: getattr(hbr, layer).capacity for layer in ("bottom", "middle", "top")},
+        "capacity": {layer: getattr(hbr, layer).capacity for layer in LAYERS},
         "middle_task": dataclasses.asdict(hbr.middle_task),
-        "top_task": dataclasses.asdict(top_task),
+        "top_task": dataclasses.asdict(hbr.top_task),
         **(metadata or {}),
     }
     save_checkpoint(path, arrays, header, compress=True)
 
 
-# layer -> (genes, descriptors, {extra: (shape without rows, dtype)})
-_LAYOUT = {
-    "bottom": (bottom_layer.GENES, bottom_layer.DESCRIPTORS, {"leg": ((), np.int32)}),
-    "middle": (
-        middle_layer.GENES,
-        middle_layer.DESCRIPTORS,
-        {"contact_fraction": ((6,), np.float32), "medoid": ((), np.int32)},
-    ),
-    "top": (top_layer.GENES, 2, {"middle_indices": ((STEPS_PER_SKILL,), np.int32), "arrival_yaw": ((), np.float32)}),
-}
-
-
-def _rebuild(path, arrays, layer: str, capacity: int) -> Repertoire:
-    genes, dims, extras = _LAYOUT[layer]
-    return rebuild_repertoire(path, arrays, f"{layer}_", capacity, genes, dims, extras)
-
-
 def load_hbr(path: str | Path | None = None) -> tuple[HBR, TopTask, dict]:
-    """Read an HBR file (default: the shipped one): (HBR on device, its TopTask, the header metadata)."""
+    """Read an HBR file (default: the shipped one): (HBR on device, its TopTask (also `hbr.top_task`),
+    the header metadata)."""
     path = shipped_hbr_path() if path is None else path
     arrays, header = read_checkpoint(path)
     meta = header.get("metadata", {})
@@ -84,22 +85,19 @@ def load_hbr(path: str | Path | None = None) -> tuple[HBR, TopTask, dict]:
     try:
         middle_task = MiddleTask(**meta["middle_task"])
         top_task = TopTask(**meta["top_task"])
-        capacity = {layer: int(meta["capacity"][layer]) for layer in ("bottom", "middle", "top")}
+        capacity = {layer: int(meta["capacity"][layer]) for layer in LAYERS}
+        specs = layer_specs(capacity, top_task)
     except (KeyError, TypeError, ValueError) as error:
         raise CheckpointError(f"{path}: bad HBR header: {error}") from None
-    if capacity["top"] != top_task.bins**2:
+    if capacity["top"] != specs["top"].capacity:
         raise CheckpointError(f"{path}: top capacity {capacity['top']} does not match a {top_task.bins}^2 grid")
-    layers = {layer: _rebuild(path, arrays, layer, capacity[layer]) for layer in ("bottom", "middle", "top")}
+    layers = {layer: rebuild_elites(path, arrays, specs[layer], f"{layer}_") for layer in LAYERS}
     middle_count = int(layers["middle"].filled.sum())
-    if not bool(np.asarray(layers["middle"].filled)[:middle_count].all()):
-        raise CheckpointError(f"{path}: middle elites are not a prefix of the archive")
     used = np.asarray(arrays["top_extra_middle_indices"])
     if used.size and (used.min() < 0 or used.max() >= middle_count):
         raise CheckpointError(f"{path}: top elites refer to middle elites that are not in the file")
-    if not top_task.grid().cell_matches(arrays["top_descriptors"], arrays["top_slots"]).all():
-        raise CheckpointError(f"{path}: top elites are not stored in the grid cells of their descriptors")
     hbr = HBR.build(layers["bottom"], layers["middle"], layers["top"], middle_task,
-                    _step_model(path, arrays, middle_count, capacity["middle"]))
+                    _step_model(path, arrays, middle_count, capacity["middle"]), top_task)
     return hbr, top_task, meta
 
 

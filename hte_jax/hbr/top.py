@@ -9,41 +9,27 @@ invalid outside [0, 1]. Fitness: the circular-trajectory angle error of the whol
 
 from __future__ import annotations
 
-import dataclasses
+import math
 
 import jax
 import jax.numpy as jnp
 
-from hte_jax.errors import require_int, require_number
 from hte_jax.hbr.execution import HBR, STEPS_PER_SKILL, execute_skill
 from hte_jax.hbr.geometry import angle_error
-from hte_jax.qd.grid import Grid
+from hte_jax.hbr.skill_grid import TopTask as TopTask  # the top layer's grid, re-exported
 from hte_jax.qd.repertoire import Evaluation
+from hte_jax.qd.task_spec import EvaluateFn, TaskSpec
 from hte_jax.sim.robot import Robot
 from hte_jax.sim.rollout import SimState
 
-GENES = 9
+GENES = 9  # three middle-layer primary descriptors (x, y, yaw steps)
+EXTRAS = {"middle_indices": ((STEPS_PER_SKILL,), "int32"), "arrival_yaw": ((), "float32")}
+QD_OFFSET = -math.pi  # the lowest angle error
 
 
-@dataclasses.dataclass(frozen=True)
-class TopTask:
-    """The top layer's grid: `bins` x `bins` cells over [-extent, extent]^2 metres."""
-
-    bins: int = 100
-    extent: float = 1.5
-
-    def __post_init__(self):
-        require_int("top bins", self.bins)
-        require_number("top extent", self.extent, 0.0, open_low=True)
-
-    def grid(self) -> Grid:
-        return Grid(bins=(self.bins, self.bins), low=(0.0, 0.0), high=(1.0, 1.0))
-
-    def normalise(self, xy: jax.Array) -> jax.Array:
-        return (xy + self.extent) / (2 * self.extent)
-
-    def denormalise(self, descriptor: jax.Array) -> jax.Array:
-        return descriptor * (2 * self.extent) - self.extent
+def top_spec(task: TopTask, evaluate: EvaluateFn | None = None) -> TaskSpec:
+    """The top layer as a QD task: 9 genes, the task's x-y grid, the extras `evaluate_top` returns."""
+    return TaskSpec("hbr-top", GENES, task.grid(), evaluate, EXTRAS, QD_OFFSET)
 
 
 def evaluate_top(robot: Robot, start: SimState, task: TopTask, hbr: HBR, key: jax.Array, genotypes: jax.Array) -> Evaluation:

@@ -13,29 +13,25 @@ bit-identical repertoires for the same seed.
 from __future__ import annotations
 
 import dataclasses
-import math
 import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import jax
-import jax.numpy as jnp
 
 from hte_jax.errors import ConfigError, convert_setting, require_choice, require_int, require_number
 from hte_jax.hbr import bottom as bottom_layer
 from hte_jax.hbr import middle as middle_layer
-from hte_jax.hbr import top as top_layer
 from hte_jax.hbr.analysis import hbr_statistics
-from hte_jax.hbr.bottom import BOTTOM_FITNESSES, BottomTask, evaluate_bottom
+from hte_jax.hbr.bottom import BOTTOM_FITNESSES, BottomTask, bottom_spec, evaluate_bottom
 from hte_jax.hbr.composition import measure_steps
-from hte_jax.hbr.execution import HBR, STEPS_PER_SKILL
-from hte_jax.hbr.middle import MiddleTask, evaluate_middle
+from hte_jax.hbr.execution import HBR
+from hte_jax.hbr.middle import MiddleTask, evaluate_middle, middle_spec
 from hte_jax.hbr.plots import plot_hbr
 from hte_jax.hbr.store import save_hbr
-from hte_jax.hbr.top import TopTask, evaluate_top
+from hte_jax.hbr.top import TopTask, evaluate_top, top_spec
 from hte_jax.qd import io
-from hte_jax.qd.archive import Archive
 from hte_jax.qd.loop import MapElites, MapElitesConfig, QDState, resume, run
 from hte_jax.sim.robot import Robot, RobotConfig, SOLVER_FIELDS, load_robot, stored_solver
 from hte_jax.sim.rollout import standing_state
@@ -111,8 +107,8 @@ class HBRConfig:
     middle_samples: int = 10
     contact_threshold: float = 0.3
     contact_purity: float = 0.0
-    bottom_l: float = 0.01
-    middle_l: float = 0.05
+    bottom_l: float = bottom_layer.ARCHIVE_L
+    middle_l: float = middle_layer.ARCHIVE_L
     top_bins: int = 100
     bottom_fitness: str = "commands"
     solver_iterations: int = RobotConfig.solver_iterations
@@ -237,35 +233,22 @@ def layer_algorithms(config: HBRConfig, robot: Robot, start, lower: dict) -> dic
 
     def bottom() -> MapElites:
         task = config.bottom_task
-        return MapElites(
-            container=Archive(config.bottom.capacity, (0.0,) * 3, (1.0,) * 3, config.bottom_l),
-            evaluate=lambda key, genes: evaluate_bottom(robot, start, task, key, genes),
-            genotype_dim=bottom_layer.GENES,
-            config=config.bottom.map_elites_config(qd_offset=-1.0),
-            extras={"leg": jnp.int32(0)},
-        )
+        spec = bottom_spec(config.bottom.capacity, config.bottom_l,
+                           evaluate=lambda key, genes: evaluate_bottom(robot, start, task, key, genes))
+        return MapElites.from_spec(spec, config.bottom.map_elites_config(qd_offset=spec.qd_offset))
 
     def middle() -> MapElites:
         task, repertoire = config.middle_task, lower["bottom"]
-        return MapElites(
-            container=Archive(config.middle.capacity, (0.0,) * 9, (1.0,) * 9, config.middle_l),
-            evaluate=lambda key, genes: evaluate_middle(robot, start, task, repertoire, key, genes),
-            genotype_dim=middle_layer.GENES,
-            config=config.middle.map_elites_config(qd_offset=-math.pi),
-            extras={"contact_fraction": jnp.zeros(6, jnp.float32), "medoid": jnp.int32(0)},
-        )
+        spec = middle_spec(config.middle.capacity, config.middle_l,
+                           evaluate=lambda key, genes: evaluate_middle(robot, start, task, repertoire, key, genes))
+        return MapElites.from_spec(spec, config.middle.map_elites_config(qd_offset=spec.qd_offset))
 
     def top() -> MapElites:
         task = config.top_task
-        empty_top = task.grid().empty(top_layer.GENES)
-        hbr = HBR.build(lower["bottom"], lower["middle"], empty_top, config.middle_task)
-        return MapElites(
-            container=task.grid(),
-            evaluate=lambda key, genes: evaluate_top(robot, start, task, hbr, key, genes),
-            genotype_dim=top_layer.GENES,
-            config=config.top.map_elites_config(qd_offset=-math.pi),
-            extras={"middle_indices": jnp.zeros(STEPS_PER_SKILL, jnp.int32), "arrival_yaw": jnp.float32(0)},
-        )
+        empty_top = top_spec(task).empty()
+        hbr = HBR.build(lower["bottom"], lower["middle"], empty_top, config.middle_task, top_task=task)
+        spec = top_spec(task, evaluate=lambda key, genes: evaluate_top(robot, start, task, hbr, key, genes))
+        return MapElites.from_spec(spec, config.top.map_elites_config(qd_offset=spec.qd_offset))
 
     return {"bottom": bottom, "middle": middle, "top": top}
 
@@ -324,7 +307,7 @@ def train_hbr(
             "qd_score": float(metrics.qd_score),
             "wall_time_s": time.perf_counter() - began,
         }
-    hbr = HBR.build(lower["bottom"], lower["middle"], lower["top"], config.middle_task)
+    hbr = HBR.build(lower["bottom"], lower["middle"], lower["top"], config.middle_task, top_task=config.top_task)
     if config.step_starts:
         began = time.perf_counter()
         key = jax.random.fold_in(jax.random.PRNGKey(config.seed), len(LAYERS))
@@ -334,7 +317,7 @@ def train_hbr(
         summary["step_model"] = {"starts": config.step_starts, "wall_time_s": time.perf_counter() - began}
     summary["statistics"] = hbr_statistics(hbr, config.top_task)
     summary["devices"] = [str(d) for d in jax.devices()]
-    save_hbr(out / "hbr.npz", hbr, config.top_task, {"training": summary})
+    save_hbr(out / "hbr.npz", hbr, metadata={"training": summary})
     io.write_json(out / "summary.json", summary)
     if plots:
         plot_hbr(hbr, config.top_task, out, out / "plots")

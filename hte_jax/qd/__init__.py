@@ -1,5 +1,5 @@
 """Quality-Diversity engine: fixed-size containers, emitters (selection, variation), the MAP-Elites loop,
-metrics, io, plots."""
+task specs, metrics, io and repertoire files, plots."""
 
 from hte_jax.qd.archive import Archive
 from hte_jax.qd.batched import BatchedMapElites
@@ -10,6 +10,8 @@ from hte_jax.qd.loop import MapElites, MapElitesConfig, QDState, resume, run
 from hte_jax.qd.metrics import RepertoireMetrics, repertoire_metrics
 from hte_jax.qd.repertoire import Evaluation, Insertion, Repertoire
 from hte_jax.qd.selection import DensitySelection, UniformSelection
+from hte_jax.qd.store import load_repertoire, save_repertoire
+from hte_jax.qd.task_spec import TaskSpec
 from hte_jax.qd.variation import SbxPolynomial
 
 __all__ = [
@@ -28,11 +30,14 @@ __all__ = [
     "Repertoire",
     "RepertoireMetrics",
     "SbxPolynomial",
+    "TaskSpec",
     "UniformSelection",
     "VariationEmitter",
     "load_checkpoint",
+    "load_repertoire",
     "repertoire_metrics",
     "resume",
     "run",
     "save_checkpoint",
+    "save_repertoire",
 ]

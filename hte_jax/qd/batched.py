@@ -23,6 +23,7 @@ from hte_jax.errors import ConfigError
 from hte_jax.qd.loop import MapElites, MapElitesConfig, QDState
 from hte_jax.qd.metrics import RepertoireMetrics, repertoire_metrics
 from hte_jax.qd.repertoire import Evaluation
+from hte_jax.qd.task_spec import TaskSpec
 
 # evaluate(key, genotypes (B, G), condition) -> Evaluation with B rows; condition is one run's slice.
 ConditionedEvaluateFn = Callable[[jax.Array, jax.Array, Any], Evaluation]
@@ -54,6 +55,20 @@ class BatchedMapElites:
         sizes = {int(x.shape[0]) for x in jax.tree.leaves(self.conditions)}
         if sizes != {len(self.names)}:
             raise ConfigError(f"conditions must all have {len(self.names)} rows (one per name), got {sorted(sizes)}")
+
+    @classmethod
+    def from_spec(
+        cls, spec: TaskSpec, conditions: Any, names: tuple[str, ...], config: MapElitesConfig = MapElitesConfig(),
+        emitter: Any = None,
+    ) -> BatchedMapElites:
+        """R runs of a task spec whose evaluation takes the run's condition, `evaluate(key, genotypes,
+        condition)`; `config` gets the spec's qd_offset (when the spec has one), as in `MapElites.from_spec`."""
+        if spec.evaluate is None:
+            raise ConfigError(f"task {spec.name!r} has no evaluation; give it one with spec.with_evaluate(...)")
+        if spec.qd_offset is not None:
+            config = dataclasses.replace(config, qd_offset=spec.qd_offset)
+        return cls(spec.container, spec.evaluate, spec.genotype_dim, conditions, tuple(names), config,
+                   spec.extras_example(), emitter)
 
     @property
     def num_runs(self) -> int:

@@ -105,10 +105,10 @@ def load_checkpoint(path: str | Path, template: Any, expected_metadata: dict | N
     arrays, header = read_checkpoint(path)
     stored = header.get("metadata", {})
     for key, value in (expected_metadata or {}).items():
-        if _jsonable(value) != stored.get(key):
+        if jsonable(value) != stored.get(key):
             raise CheckpointError(
                 f"{path}: checkpoint was written with {key} = {stored.get(key)!r}, "
-                f"this run has {key} = {_jsonable(value)!r}"
+                f"this run has {key} = {jsonable(value)!r}"
             )
     leaves, treedef = jax.tree_util.tree_flatten_with_path(template)
     restored = []
@@ -127,7 +127,7 @@ def load_checkpoint(path: str | Path, template: Any, expected_metadata: dict | N
     return jax.tree_util.tree_unflatten(treedef, [jnp.asarray(v) for v in restored])
 
 
-def _jsonable(value):
+def jsonable(value):
     """The value as it reads back from JSON (tuples become lists)."""
     return json.loads(json.dumps(value))
 
@@ -156,13 +156,13 @@ def prepare_run_dir(out: str | Path, config: dict, resume_run: bool, normalise: 
     """
     out = Path(out)
     config_path = out / "config.json"
-    wanted = _jsonable(config)
+    wanted = jsonable(config)
     if config_path.exists():
         if not resume_run:
             raise ConfigError(f"{out} already holds a run; pass --resume to continue it or choose another --out")
         stored = json.loads(config_path.read_text())
         if normalise is not None:
-            stored = _jsonable(normalise(stored))
+            stored = jsonable(normalise(stored))
         changed = sorted(key for key in set(stored) | set(wanted) if stored.get(key) != wanted.get(key))
         if changed:
             raise ConfigError(f"{out} was started with a different configuration (differs in: {', '.join(changed)})")
@@ -187,12 +187,16 @@ def elite_arrays(repertoire: Repertoire, prefix: str = "") -> dict[str, np.ndarr
     return {f"{prefix}{name}": value for name, value in out.items()}
 
 
-def rebuild_repertoire(path, arrays: dict, prefix: str, capacity: int, genes: int, dims: int, extras: dict) -> Repertoire:
+def rebuild_repertoire(
+    path, arrays: dict, prefix: str, capacity: int, genes: int, dims: int, extras: dict,
+    low: tuple[float, ...] | None = None, high: tuple[float, ...] | None = None,
+) -> Repertoire:
     """Inverse of `elite_arrays`: a fixed-size Repertoire, every array checked.
 
-    extras: {name: (shape without rows, numpy dtype)}. Raises CheckpointError naming the
-    missing or wrong-shaped array, non-finite values, genotypes or descriptors outside [0, 1],
-    or slots that are not unique indices below `capacity`.
+    extras: {name: (shape without rows, numpy dtype)}. low / high: the descriptors' bounds per
+    dimension (None: [0, 1]). Raises CheckpointError naming the missing or wrong-shaped array,
+    non-finite values, genotypes outside [0, 1], descriptors outside their bounds, or slots that
+    are not unique indices below `capacity`.
     """
     want = {"slots": ((), np.int32), "genotypes": ((genes,), np.float32), "descriptors": ((dims,), np.float32),
             "fitnesses": ((), np.float32)}
@@ -219,8 +223,11 @@ def rebuild_repertoire(path, arrays: dict, prefix: str, capacity: int, genes: in
         raise CheckpointError(f"{path}: {label} slots are not unique indices below the capacity {capacity}")
     if ((columns["genotypes"] < 0) | (columns["genotypes"] > 1)).any():
         raise CheckpointError(f"{path}: {label} genotypes outside [0, 1]")
-    if ((columns["descriptors"] < 0) | (columns["descriptors"] > 1)).any():
-        raise CheckpointError(f"{path}: {label} descriptors outside [0, 1]")
+    low = np.zeros(dims, np.float32) if low is None else np.asarray(low, np.float32)
+    high = np.ones(dims, np.float32) if high is None else np.asarray(high, np.float32)
+    if ((columns["descriptors"] < low) | (columns["descriptors"] > high)).any():
+        bounds = "[0, 1]" if (low == 0).all() and (high == 1).all() else f"[{low.tolist()}, {high.tolist()}]"
+        raise CheckpointError(f"{path}: {label} descriptors outside {bounds}")
 
     def scatter(values, fill):
         store = np.full((capacity, *values.shape[1:]), fill, values.dtype)

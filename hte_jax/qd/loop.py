@@ -27,6 +27,7 @@ from hte_jax.qd.emitters import Emitter, config_emitter
 from hte_jax.qd.metrics import MetricsLog, RepertoireMetrics, repertoire_metrics
 from hte_jax.qd.repertoire import Evaluation, Repertoire
 from hte_jax.qd.selection import SELECTIONS
+from hte_jax.qd.task_spec import TaskSpec, container_metadata
 
 MAX_DENSITY_CELLS = 1 << 22
 
@@ -121,6 +122,16 @@ class MapElites:
     extras: Any = None
     emitter: Emitter | None = None
 
+    @classmethod
+    def from_spec(cls, spec: TaskSpec, config: MapElitesConfig = MapElitesConfig(), emitter: Emitter | None = None) -> MapElites:
+        """The MAP-Elites of a task spec: its container, evaluation, genotype size and extras, and
+        `config` with the spec's qd_offset (when the spec has one)."""
+        if spec.evaluate is None:
+            raise ConfigError(f"task {spec.name!r} has no evaluation; give it one with spec.with_evaluate(...)")
+        if spec.qd_offset is not None:
+            config = dataclasses.replace(config, qd_offset=spec.qd_offset)
+        return cls(spec.container, spec.evaluate, spec.genotype_dim, config, spec.extras_example(), emitter)
+
     @functools.cached_property
     def active_emitter(self) -> Emitter:
         """`emitter`, or the one `config` describes."""
@@ -204,7 +215,7 @@ class MapElites:
         unread = {name for _, read in SELECTIONS.values() for name in read} - set(SELECTIONS[self.config.selection][1])
         config = {key: value for key, value in dataclasses.asdict(self.config).items() if key not in unread}
         metadata = {
-            "container": {"kind": type(self.container).__name__, **dataclasses.asdict(self.container)},
+            "container": container_metadata(self.container),
             "config": config,
             "genotype_dim": self.genotype_dim,
         }

@@ -1,0 +1,35 @@
+"""The top layer's grid of 3 s skills: `bins` x `bins` cells over the final (x, y) in [-extent, extent]^2 m.
+
+Kept apart from the top layer's evaluation (`hbr.top`) so that the HBR (`execution.HBR.top_task`)
+and the flat repertoires (`flat.task`) can hold it without importing the skill execution.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+
+from hte_jax.errors import require_int, require_number
+from hte_jax.qd.grid import Grid
+
+
+@dataclasses.dataclass(frozen=True)
+class TopTask:
+    """The top layer's grid: `bins` x `bins` cells over [-extent, extent]^2 metres."""
+
+    bins: int = 100
+    extent: float = 1.5
+
+    def __post_init__(self):
+        require_int("top bins", self.bins)
+        require_number("top extent", self.extent, 0.0, open_low=True)
+
+    def grid(self) -> Grid:
+        return Grid(bins=(self.bins, self.bins), low=(0.0, 0.0), high=(1.0, 1.0))
+
+    def normalise(self, xy: jax.Array) -> jax.Array:
+        return (xy + self.extent) / (2 * self.extent)
+
+    def denormalise(self, descriptor: jax.Array) -> jax.Array:
+        return descriptor * (2 * self.extent) - self.extent

@@ -1,0 +1,90 @@
+"""Repertoire files of any task spec: one Repertoire's elites in a compressed `.npz`, checked on load.
+
+Layout: the elites as `io.elite_arrays` writes them (slots, genotypes, descriptors, fitnesses,
+extra_<name>) and a header with kind "hte_jax.repertoire", the spec's `metadata()` (name,
+genotype size, container, extras) and the caller's metadata. `load_repertoire(path, spec)` reads
+a file back only for a spec with the same metadata and raises `CheckpointError` naming any
+problem. `rebuild_elites`, the spec-driven check of one repertoire's arrays, also reads the HBR
+and flat files (`hbr.store`, `flat.store`), whose layouts predate this one.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import jax
+import numpy as np
+
+from hte_jax.errors import ConfigError
+from hte_jax.qd.archive import Archive
+from hte_jax.qd.grid import Grid
+from hte_jax.qd.io import CheckpointError, jsonable, elite_arrays, read_checkpoint, rebuild_repertoire, save_checkpoint
+from hte_jax.qd.repertoire import Repertoire
+from hte_jax.qd.task_spec import TaskSpec
+
+KIND = "hte_jax.repertoire"
+KIND_VERSION = 1
+_RESERVED = ("kind", "kind_version", "task")
+
+
+def check_repertoire(spec: TaskSpec, repertoire: Repertoire) -> None:
+    """Raise ConfigError unless `repertoire` has the spec's capacity, genotype and descriptor sizes and extras."""
+    want = jax.eval_shape(spec.empty)
+    want_leaves, want_tree = jax.tree_util.tree_flatten_with_path(want)
+    got_leaves, got_tree = jax.tree_util.tree_flatten_with_path(repertoire)
+    if want_tree != got_tree:
+        raise ConfigError(f"task {spec.name!r}: the repertoire's fields {got_tree} are not the spec's {want_tree}")
+    for (path, expected), (_, leaf) in zip(want_leaves, got_leaves):
+        if tuple(np.shape(leaf)) != expected.shape or np.asarray(leaf).dtype != expected.dtype:
+            name = jax.tree_util.keystr(path)
+            raise ConfigError(
+                f"task {spec.name!r}: repertoire{name} is {np.shape(leaf)} {np.asarray(leaf).dtype}, "
+                f"the spec's is {expected.shape} {expected.dtype}"
+            )
+
+
+def save_repertoire(path: str | Path, spec: TaskSpec, repertoire: Repertoire, metadata: dict | None = None) -> None:
+    """Atomically write the elites of `repertoire` (compressed) with the spec and JSON-able `metadata`
+    (whose keys must not be "kind", "kind_version" or "task")."""
+    check_repertoire(spec, repertoire)
+    clash = sorted(set(metadata or {}) & set(_RESERVED))
+    if clash:
+        raise ConfigError(f"metadata keys {clash} are reserved for the file's header")
+    header = {"kind": KIND, "kind_version": KIND_VERSION, "task": spec.metadata(), **(metadata or {})}
+    save_checkpoint(path, elite_arrays(repertoire), header, compress=True)
+
+
+def load_repertoire(path: str | Path, spec: TaskSpec) -> tuple[Repertoire, dict]:
+    """Read a file of `save_repertoire` written for this spec: (Repertoire on device, the header metadata)."""
+    arrays, header = read_checkpoint(path)
+    meta = header.get("metadata", {})
+    if meta.get("kind") != KIND:
+        raise CheckpointError(f"{path}: not a repertoire file (kind {meta.get('kind')!r})")
+    if meta.get("kind_version") != KIND_VERSION:
+        raise CheckpointError(f"{path}: repertoire file version {meta.get('kind_version')!r} is not supported")
+    stored, wanted = meta.get("task"), jsonable(spec.metadata())
+    if not isinstance(stored, dict):
+        raise CheckpointError(f"{path}: bad repertoire header: no task")
+    for key, value in wanted.items():
+        if stored.get(key) != value:
+            raise CheckpointError(f"{path}: repertoire was written with task {key} = {stored.get(key)!r}, this spec has {value!r}")
+    return rebuild_elites(path, arrays, spec), meta
+
+
+def rebuild_elites(path, arrays: dict, spec: TaskSpec, prefix: str = "", label: str | None = None) -> Repertoire:
+    """One repertoire of the spec from its `elite_arrays` (under `prefix`), every array checked
+    (`io.rebuild_repertoire`), and each elite where its container keeps it: a grid's elite in the
+    cell of its descriptor, an archive's elites a prefix of its slots. label: names the repertoire
+    in errors (default: the prefix, or "repertoire")."""
+    container = spec.container
+    repertoire = rebuild_repertoire(
+        path, arrays, prefix, spec.capacity, spec.genotype_dim, spec.descriptor_dim, spec.extras,
+        low=container.low, high=container.high,
+    )
+    label = label or prefix.rstrip("_") or "repertoire"
+    slots = arrays[f"{prefix}slots"]
+    if isinstance(container, Grid) and not container.cell_matches(arrays[f"{prefix}descriptors"], slots).all():
+        raise CheckpointError(f"{path}: {label} has elites outside their descriptors' cells")
+    if isinstance(container, Archive) and not np.array_equal(slots, np.arange(slots.shape[0])):
+        raise CheckpointError(f"{path}: {label} elites are not a prefix of the archive")
+    return repertoire
