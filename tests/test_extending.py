@@ -108,3 +108,26 @@ def test_the_new_variant_example_runs_its_own_rule_through_maze_eval(tmp_path, m
     finally:  # the registry is global: leave it as the other tests expect it
         variants.VARIANTS.pop("hte-mean", None)
         variants.RULES.pop("gp-mean", None)
+
+
+def test_the_executor_example_drives_native_mujoco_to_the_goal(capsys):
+    from hte_jax.online.episode import SECONDS_PER_ACTION
+    from hte_jax.online.maze import PAPER_MAZE
+    from hte_jax.online.variants import CANDIDATE_PATTERNS
+
+    module = types.ModuleType("extending_example_4")
+    exec(compile(section_code("Example 4: a new executor"), str(DOC), "exec"), module.__dict__)
+    episode, robot = module.episode, module.robot
+    taken = int(episode.taken[0])
+    assert "reached the goal: True, after" in capsys.readouterr().out
+    assert episode.sim is None and bool(episode.reached[0]) and not bool(episode.broken[0])
+    assert 1 <= taken <= module.config.max_actions
+    # The episode's record is the native robot's: it ends where the robot stands, at the goal.
+    track = np.asarray(episode.trajectory[0])
+    np.testing.assert_array_equal(track[SECONDS_PER_ACTION * taken], robot.pose())
+    assert np.linalg.norm(robot.pose()[:2] - np.asarray(PAPER_MAZE.goal)) < PAPER_MAZE.goal_radius
+    np.testing.assert_allclose(track[0, :2], PAPER_MAZE.start[:2], atol=1e-6)  # it started at the maze's start
+    np.testing.assert_allclose(np.cos(track[0, 2] - PAPER_MAZE.start[2]), 1.0, atol=1e-6)
+    # Every step took the damage's pattern or, before a leg was sensed off the floor, RTE's any pattern.
+    patterns = np.asarray(episode.history.patterns[0, :taken])
+    assert set(patterns.ravel().tolist()) <= {-1, *CANDIDATE_PATTERNS.tolist()} and (patterns[-1] >= 0).all()
