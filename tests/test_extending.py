@@ -140,3 +140,26 @@ def test_the_new_task_example_trains_saves_and_loads_its_repertoire(tmp_path, mo
     other = TaskSpec(spec.name, spec.genotype_dim, Grid((5, 5, 5), (0.0,) * 3, (1.0,) * 3), extras=spec.extras)
     with pytest.raises(CheckpointError, match="container"):
         load_repertoire(tmp_path / "runs" / "duty-gaits" / "repertoire.npz", other)
+
+
+def test_the_executor_example_drives_native_mujoco_to_the_goal(capsys):
+    from hte_jax.online.episode import SECONDS_PER_ACTION
+    from hte_jax.online.maze import PAPER_MAZE
+    from hte_jax.online.variants import CANDIDATE_PATTERNS
+
+    module = types.ModuleType("extending_example_4")
+    exec(compile(section_code("Example 4: a new executor"), str(DOC), "exec"), module.__dict__)
+    episode, robot = module.episode, module.robot
+    taken = int(episode.taken[0])
+    assert "reached the goal: True, after" in capsys.readouterr().out
+    assert episode.sim is None and bool(episode.reached[0]) and not bool(episode.broken[0])
+    assert 1 <= taken <= module.config.max_actions
+    # The episode's record is the native robot's: it ends where the robot stands, at the goal.
+    track = np.asarray(episode.trajectory[0])
+    np.testing.assert_array_equal(track[SECONDS_PER_ACTION * taken], robot.pose())
+    assert np.linalg.norm(robot.pose()[:2] - np.asarray(PAPER_MAZE.goal)) < PAPER_MAZE.goal_radius
+    np.testing.assert_allclose(track[0, :2], PAPER_MAZE.start[:2], atol=1e-6)  # it started at the maze's start
+    np.testing.assert_allclose(np.cos(track[0, 2] - PAPER_MAZE.start[2]), 1.0, atol=1e-6)
+    # Every step took the damage's pattern or, before a leg was sensed off the floor, RTE's any pattern.
+    patterns = np.asarray(episode.history.patterns[0, :taken])
+    assert set(patterns.ravel().tolist()) <= {-1, *CANDIDATE_PATTERNS.tolist()} and (patterns[-1] >= 0).all()

@@ -3,8 +3,9 @@
 top genotype (9) -> three waypoints -> for each 1 s step, the middle elite whose primary
 descriptor is nearest to the waypoint seen from the robot's current pose (optionally only among
 elites with a chosen contact pattern) -> its six leg primitives -> one 36-parameter controller,
-simulated for 1 s. Training of the top layer, the modulation analysis and the online phase all
-call `execute_skill` / `execute_step`, so a skill is decoded the same way everywhere.
+simulated for 1 s. Training of the top layer and the modulation analysis call `execute_skill` /
+`execute_step`, the online phase `step_elite` and `run_elite` (the two halves of `execute_step`:
+which elite, then its simulated second), so a skill is decoded the same way everywhere.
 
 Waypoints: the genotype holds three middle-layer primary descriptors (normalised x, y, yaw
 steps); waypoint k is the pose reached by composing the first k + 1 steps from the start pose.
@@ -133,25 +134,35 @@ def _step_spec(steps: int, limits: ValidityLimits, record_every: int = 0) -> Rol
                        record_qpos_every=record_every, record_joint_travel=True)
 
 
-def execute_step(
-    robot: Robot, hbr: HBR, state: SimState, damage: jax.Array, target: jax.Array, pattern: jax.Array,
-    limits: ValidityLimits = ValidityLimits(), query: jax.Array | None = None, record_every: int = 0,
+def step_elite(
+    hbr: HBR, here: jax.Array, target: jax.Array, pattern: jax.Array, query: jax.Array | None = None,
     elite: jax.Array | None = None,
-) -> StepResult:
-    """Walk one second towards the world pose `target` (B, 3) with contact `pattern` (B,) (-1: any).
+) -> tuple[jax.Array, jax.Array]:
+    """The middle elite a step from world pose `here` (B, 3) towards world pose `target` (B, 3) runs,
+    among elites with contact `pattern` (B,) (-1: any): (index (B,) int32, found (B,) bool, False
+    where no elite has the pattern). Its controller is `hbr.middle_params[index]` (B, 36).
 
     query: (B, 3) normalised primary step to look the elite up with instead of the step to `target`
     (an adaptation rule that aims off the target to cancel a predicted drift). elite: (B,) int32
-    middle elite to run where >= 0 (chosen by a planner), instead of the looked-up one. record_every:
-    k > 0 also returns the qpos every k control steps (`StepResult.qpos`).
+    middle elite to run where >= 0 (chosen by a planner), instead of the looked-up one.
     """
-    task = hbr.middle_task
-    here = state_pose(state)
-    desired = task.normalise(relative_pose(here, target)) if query is None else query
+    desired = hbr.middle_task.normalise(relative_pose(here, target)) if query is None else query
     index, found = select_middle(hbr, desired, pattern)
     if elite is not None:
         index, found = jnp.where(elite >= 0, elite, index), found | (elite >= 0)
-    result = rollout(robot, hbr.middle_params[index], damage, state, _step_spec(task.steps, limits, record_every))
+    return index, found
+
+
+def run_elite(
+    robot: Robot, hbr: HBR, state: SimState, damage: jax.Array, index: jax.Array, found: jax.Array,
+    limits: ValidityLimits = ValidityLimits(), record_every: int = 0,
+) -> StepResult:
+    """Simulate middle elites `index` (B,) (found (B,): `step_elite`'s) for one step from `state`.
+
+    record_every: k > 0 also returns the qpos every k control steps (`StepResult.qpos`).
+    """
+    result = rollout(robot, hbr.middle_params[index], damage, state,
+                     _step_spec(hbr.middle_task.steps, limits, record_every))
     poses = planar_pose(result.base_pos, result.base_quat)
     return StepResult(
         state=result.final_state,
@@ -164,6 +175,20 @@ def execute_step(
         qpos=result.qpos,
         leg_travel=result.joint_travel.reshape(-1, NUM_LEGS, NUM_JOINTS // NUM_LEGS).sum(axis=-1),
     )
+
+
+def execute_step(
+    robot: Robot, hbr: HBR, state: SimState, damage: jax.Array, target: jax.Array, pattern: jax.Array,
+    limits: ValidityLimits = ValidityLimits(), query: jax.Array | None = None, record_every: int = 0,
+    elite: jax.Array | None = None,
+) -> StepResult:
+    """Walk one second towards the world pose `target` (B, 3) with contact `pattern` (B,) (-1: any).
+
+    query, elite: see `step_elite`. record_every: k > 0 also returns the qpos every k control steps
+    (`StepResult.qpos`).
+    """
+    index, found = step_elite(hbr, state_pose(state), target, pattern, query, elite)
+    return run_elite(robot, hbr, state, damage, index, found, limits, record_every)
 
 
 def skill_waypoints(task: MiddleTask, genotypes: jax.Array) -> jax.Array:

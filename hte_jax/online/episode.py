@@ -14,7 +14,9 @@ planner plans with the repertoire chosen last, and the executed skill is then ch
 repertoires' skills by `aprol.select_entry`.
 
 `plan_step` and `act_step` are jitted over the whole batch; `run_episodes` calls them once per
-action until every episode has ended, so planning latency can be measured on its own.
+action until every episode has ended, so planning latency can be measured on its own. `act_step`
+simulates the action (`execute`) and then calls `record_action`, the bookkeeping that an episode
+driven through an executor (`executor.py`, a robot simulated elsewhere) shares with it.
 """
 
 from __future__ import annotations
@@ -36,6 +38,7 @@ from hte_jax.online.actions import OUTCOME_DIM, displacement_of, observe, predic
 from hte_jax.online.aprol import MapBelief, closeness, initial_belief, select_entry, update_belief
 from hte_jax.online.execute import (
     ERROR_DIM,
+    ActionOutcome,
     SECONDARY_DIM,
     SECONDARY_OUTPUTS,
     SECONDS_PER_ACTION,
@@ -103,7 +106,8 @@ class History:
 class Episodes:
     """B adaptation episodes.
 
-    sim: SimState (B, ...) the robots. damage: (B, 6) bool. rte: GPData (B, K, L, D, 4), the action
+    sim: SimState (B, ...) the simulated robots, or None when an executor drives them (`executor.py`).
+    damage: (B, 6) bool. rte: GPData (B, K, L, D, 4), the action
     model of each of the K repertoires. belief: MapBelief (B, K), APROL's belief about them.
     learnt: PatternState (B, ...), each episode's pattern rule and what it has learnt (HTE's
     secondary GP, the sensed contacts). key: (B, 2) PRNG keys.
@@ -131,6 +135,9 @@ class Episodes:
 
     @property
     def pose(self) -> jax.Array:
+        """(B, 3) each robot's world planar pose now (the trajectory's latest without a `sim`)."""
+        if self.sim is None:
+            return self.trajectory[jnp.arange(self.taken.shape[0]), SECONDS_PER_ACTION * self.taken]
         return state_pose(self.sim)
 
 
@@ -145,18 +152,20 @@ def variant_mode(name: str, hierarchical: bool) -> int:
 
 
 def start_episodes(
-    config: AdaptationConfig, skills: Skills, start: SimState, damages: np.ndarray, modes: np.ndarray, key: jax.Array,
-    optimism: np.ndarray | None = None,
+    config: AdaptationConfig, skills: Skills, start: SimState | jax.Array, damages: np.ndarray, modes: np.ndarray,
+    key: jax.Array, optimism: np.ndarray | None = None,
 ) -> Episodes:
-    """B fresh episodes: robots `start` (B, ...) with `damages` (B, 6), secondary `modes` (B,) and
-    `optimism` (B,) (default 0).
+    """B fresh episodes: robots `start` with `damages` (B, 6), secondary `modes` (B,) and `optimism`
+    (B,) (default 0). start: SimState (B, ...) of simulated robots, or the world planar poses (B, 3)
+    of robots an executor drives (`executor.py`; `Episodes.sim` is then None).
 
     With K > 1 repertoires each episode starts planning with a uniformly drawn one.
     """
     damages = np.asarray(damages, bool)
     batch, length = damages.shape[0], config.max_actions
     depth = config.planner.depth
-    pose = state_pose(start)
+    simulated = isinstance(start, SimState)
+    pose = state_pose(start) if simulated else jnp.asarray(start, jnp.float32)
     maps = skills.num_maps
 
     def stacked(gp, *lead):
@@ -178,7 +187,7 @@ def start_episodes(
         errors=jnp.zeros((batch, length, STEPS_PER_SKILL, ERROR_DIM), jnp.float32),
     )
     return Episodes(
-        sim=start,
+        sim=start if simulated else None,
         damage=jnp.asarray(damages),
         rte=stacked(empty_gp(length, skills.actions.inputs.shape[-1], OUTCOME_DIM), batch, maps),
         belief=jax.vmap(lambda k: initial_belief(maps, k))(first_map),
@@ -265,16 +274,29 @@ def act_step(maze: Maze, config: AdaptationConfig, robot: Robot, skills: Skills,
     """
     if record_every and (not isinstance(record_every, int) or STEP_CONTROL_STEPS % record_every):
         raise ConfigError(f"record_every must divide {STEP_CONTROL_STEPS}, got {record_every!r}")
-    active = ~episodes.done
-    index, chosen_map = decision.action, decision.map
+    index = decision.action
     keys = decision.keys
-    maps = skills.map_actions
     if skills.hierarchical:
         outcome = execute_hbr(robot, skills, index, episodes.sim, episodes.damage, episodes.learnt, episodes.taken,
                               keys[:, 2], record_every=record_every, rules=rules or rule_names())
     else:
-        outcome = execute_flat(robot, skills.map_genotypes[chosen_map, index], episodes.sim, episodes.damage,
+        outcome = execute_flat(robot, skills.map_genotypes[decision.map, index], episodes.sim, episodes.damage,
                                episodes.learnt, record_every=record_every)
+    return record_action(maze, config, skills, episodes, decision, outcome), outcome.qpos
+
+
+@functools.partial(jax.jit, static_argnames=("maze", "config"))
+def record_action(maze: Maze, config: AdaptationConfig, skills: Skills, episodes: Episodes, decision: Decision,
+                  outcome: ActionOutcome) -> Episodes:
+    """Every active episode after its executed action `outcome` (B, ...): the chosen repertoire's RTE
+    GP and APROL belief learn the displacement, the history and trajectory record it, and an episode
+    ends at the goal, when its robot went invalid or at `max_actions`. Ended episodes are unchanged.
+    `act_step` calls it after simulating; an executor's episode (`executor.py`) after driving its robot.
+    """
+    active = ~episodes.done
+    index, chosen_map = decision.action, decision.map
+    keys = decision.keys
+    maps = skills.map_actions
 
     def learn(gps, belief, k, i, displacement):
         """The chosen repertoire's GP and APROL belief learn what its skill did."""
@@ -326,7 +348,7 @@ def act_step(maze: Maze, config: AdaptationConfig, robot: Robot, skills: Skills,
         trajectory=trajectory,
         history=recorded,
     )
-    return keep(updated, episodes), outcome.qpos
+    return keep(updated, episodes)
 
 
 @dataclasses.dataclass

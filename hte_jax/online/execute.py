@@ -2,9 +2,11 @@
 
 An action is a 3 s skill followed by 1 s of the neutral pose (all controller parameters 0).
 A flat repertoire's skill is its 36-parameter controller run for 3 s. An HBR's skill is a
-top-layer genotype executed step by step (`hbr.execution.execute_step`); before each 1 s step
-the contact pattern of the middle elite is chosen by the episode's rule (`variants`: the paper's
-GP-UCB, the oracle, a random pattern, RTE's any pattern, and ours).
+top-layer genotype executed step by step; before each 1 s step the contact pattern of the middle
+elite is chosen by the episode's rule (`variants`: the paper's GP-UCB, the oracle, a random
+pattern, RTE's any pattern, and ours). A step is three parts, so that a robot simulated elsewhere
+(`executor.py`) runs the same ones: `choose_step` (the pattern and the elite), the elite's second
+(`hbr.execution.run_elite` here), `learn_step` (what the rules learn from it).
 
 Rollouts here use `ONLINE_LIMITS`: the robot of the online phase has its body collide with the
 floor, so a body on the floor is no longer an error, and only a robot tilted past 90 degrees (on
@@ -29,9 +31,10 @@ from hte_jax.hbr.execution import (
     ANY_PATTERN,
     HBR,
     STEPS_PER_SKILL,
-    execute_step,
+    run_elite,
     skill_waypoints,
     state_pose,
+    step_elite,
 )
 from hte_jax.hbr.geometry import compose_pose, planar_pose, relative_pose
 from hte_jax.hbr.middle import PRIMARY
@@ -131,7 +134,7 @@ def flat_skill_maps(repertoires: Repertoire, extent: float) -> Skills:
 class ActionOutcome:
     """B robots after one action (3 s skill + 1 s neutral).
 
-    state: SimState (B, ...) at the end. valid: (B,) bool, no rollout of the action went invalid.
+    state: SimState (B, ...) at the end (None when an executor drove the robot, `executor.py`). valid: (B,) bool, no rollout of the action went invalid.
     invalid_reason: (B,) int32 `InvalidReason` bits of the action's rollouts (0 if valid).
     poses: (B, 4, 3) world planar pose after each second. displacement: (B, 3) (dx, dy, dyaw) in the
     pre-action frame. patterns: (B, 3) int32 contact pattern asked for at each step (-1: any, and
@@ -211,6 +214,58 @@ def execute_flat(robot: Robot, params: jax.Array, state: SimState, damage: jax.A
     )
 
 
+def skill_targets(skills: Skills, index: jax.Array, origin: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """HBR skills `index` (B,) started at world poses `origin` (B, 3): their world waypoints (B, 3, 3),
+    one per step, and their stored end poses (B, 3) (what a planned step plans towards)."""
+    targets = compose_pose(origin[:, None, :], skill_waypoints(skills.hbr.middle_task, skills.genotypes[index]))
+    goal = compose_pose(origin, displacement_of(skills.actions.prior[index]))
+    return targets, goal
+
+
+def choose_step(
+    skills: Skills, learnt: PatternState, here: jax.Array, target: jax.Array, goal: jax.Array, step: jax.Array | int,
+    action_number: jax.Array, keys: jax.Array, rules: tuple[str, ...] | None = None,
+) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """Before step `step` (0-2) of B HBR skills, robots at world poses `here` (B, 3) heading for the
+    step's waypoint `target` (B, 3) and the skill's end `goal` (B, 3) (`skill_targets`): the contact
+    pattern (B,) int32 each episode's rule picks (`learnt`: what the rules know), the middle elite
+    (B,) int32 to run and whether it has that pattern (B,) bool.
+
+    action_number: (B,) int32 actions already taken (GP-UCB's t = 1 + step + 3 action_number).
+    keys: (B, 2) PRNG keys (random patterns). rules: the rule names in integer order.
+    """
+    hbr = skills.hbr
+    task = hbr.middle_task
+    desired = task.normalise(relative_pose(here, target))
+    t = 1 + step + STEPS_PER_SKILL * action_number
+    pattern, query = choose_patterns(hbr, learnt.mode, learnt.oracle, learnt.secondary, desired, t, keys,
+                                     learnt.optimism, learnt.contacts, rules, learnt.motion)
+    elite = None
+    if skills.table is not None:
+        elite = plan_batch(skills.table, task, here, goal, pattern, STEPS_PER_SKILL - step)
+    index, found = step_elite(hbr, here, target, pattern, query, elite)
+    return pattern, index, found
+
+
+def learn_step(hbr: HBR, learnt: PatternState, index: jax.Array, displacement: jax.Array,
+               contact_fraction: jax.Array, leg_travel: jax.Array) -> tuple[PatternState, jax.Array]:
+    """What the rules learn from one executed step of B robots: middle elites `index` (B,) moved the
+    robots by `displacement` (B, 3) (x, y, yaw in the step's start frame) with each foot on the floor
+    `contact_fraction` (B, 6) of the second, each leg's joints moving `leg_travel` (B, 6) rad. The
+    secondary GP observes the elites' errors; each leg's sensed contact is added beside the contact
+    the elite expected, and its joint travel beside the travel the elite's controller commanded. Returns the updated rules' state
+    and the step's relative errors (B, 3)."""
+    task = hbr.middle_task
+    executed = hbr.middle.descriptors[index]  # (B, 9)
+    observed = task.normalise(displacement)
+    error = relative_error(executed[:, :PRIMARY], observed)
+    secondary = jax.vmap(add_observation)(learnt.secondary, executed, step_targets(executed[:, :PRIMARY], observed))
+    expected = hbr.middle.extras["contact_fraction"][index]  # (B, 6)
+    contacts = learnt.contacts + jnp.stack([contact_fraction, expected], axis=1)
+    motion = learnt.motion + jnp.stack([leg_travel, commanded_travel(hbr.middle_params[index])], axis=1)
+    return learnt.replace(secondary=secondary, contacts=contacts, motion=motion), error
+
+
 def execute_hbr(
     robot: Robot,
     skills: Skills,
@@ -231,35 +286,19 @@ def execute_hbr(
     every registered rule). record_every: k > 0 also returns the state every k control steps (`ActionOutcome.qpos`).
     """
     hbr = skills.hbr
-    task = hbr.middle_task
     origin = state_pose(state)
-    targets = compose_pose(origin[:, None, :], skill_waypoints(task, skills.genotypes[index]))  # (B, 3, 3)
-    goal = compose_pose(origin, displacement_of(skills.actions.prior[index]))  # (B, 3) the skills' stored ends
-
-    expected_contact = hbr.middle.extras["contact_fraction"]  # (Cm, 6)
+    targets, goal = skill_targets(skills, index, origin)  # (B, 3, 3), (B, 3)
 
     def one_step(carry, xs):
-        state, gp, contacts, motion = carry
+        state, secondary, contacts, motion = carry
         target, step, step_keys = xs
-        here = state_pose(state)
-        desired = task.normalise(relative_pose(here, target))
-        t = 1 + step + STEPS_PER_SKILL * action_number
-        pattern, query = choose_patterns(hbr, learnt.mode, learnt.oracle, gp, desired, t, step_keys, learnt.optimism,
-                                         contacts, rules, motion)
-        elite = None
-        if skills.table is not None:
-            elite = plan_batch(skills.table, task, here, goal, pattern, STEPS_PER_SKILL - step)
-        result = execute_step(robot, hbr, state, damage, target, pattern, ONLINE_LIMITS, query=query, elite=elite,
-                              record_every=record_every)
-        executed = hbr.middle.descriptors[result.middle_index]  # (B, 9)
-        observed = task.normalise(result.displacement)
-        error = relative_error(executed[:, :PRIMARY], observed)
-        gp = jax.vmap(add_observation)(gp, executed, step_targets(executed[:, :PRIMARY], observed))
-        contacts = contacts + jnp.stack([result.contact_fraction, expected_contact[result.middle_index]], axis=1)
-        commanded = commanded_travel(hbr.middle_params[result.middle_index])
-        motion = motion + jnp.stack([result.leg_travel, commanded], axis=1)
-        return (result.state, gp, contacts, motion), (pattern, result.middle_index, error, result.invalid_reason, state_pose(result.state),
-                                    result.qpos)
+        known = learnt.replace(secondary=secondary, contacts=contacts, motion=motion)
+        pattern, elite, found = choose_step(skills, known, state_pose(state), target, goal, step, action_number,
+                                            step_keys, rules)
+        result = run_elite(robot, hbr, state, damage, elite, found, ONLINE_LIMITS, record_every)
+        known, error = learn_step(hbr, known, elite, result.displacement, result.contact_fraction, result.leg_travel)
+        return (result.state, known.secondary, known.contacts, known.motion), (pattern, elite, error, result.invalid_reason,
+                                                                 state_pose(result.state), result.qpos)
 
     steps = jnp.arange(STEPS_PER_SKILL, dtype=jnp.int32)
     step_keys = jnp.swapaxes(jax.vmap(lambda k: jax.random.split(k, STEPS_PER_SKILL))(keys), 0, 1)  # (3, B, 2)
@@ -283,4 +322,3 @@ def execute_hbr(
         learnt=learnt.replace(secondary=secondary, contacts=contacts, motion=motion),
         qpos=qpos,
     )
-

@@ -170,8 +170,8 @@ def _world_z_of(qpos: jax.Array, points: np.ndarray) -> jax.Array:
     return qpos[2] + points @ row_z
 
 
-def _check(qpos: jax.Array, qvel: jax.Array, limits: ValidityLimits) -> jax.Array:
-    """InvalidReason bits of one state (0 = valid)."""
+def check_state(qpos: jax.Array, qvel: jax.Array, limits: ValidityLimits) -> jax.Array:
+    """InvalidReason bits (int32 scalar, 0 = valid) of one state: qpos (25,), qvel (24,)."""
     finite = jnp.isfinite(qpos).all() & jnp.isfinite(qvel).all()
     exploded = jnp.abs(qvel).max() > limits.max_speed
     up_z = 1.0 - 2.0 * (qpos[4] ** 2 + qpos[5] ** 2)  # world z of the body's z axis
@@ -215,7 +215,7 @@ def _rollout_one(
         stepped = data.replace(ctrl=command)
         for _ in range(config.substeps):
             stepped = mjx.step(robot.model, stepped)
-        new_reason = jnp.where(reason == 0, _check(stepped.qpos, stepped.qvel, spec.limits), reason)
+        new_reason = jnp.where(reason == 0, check_state(stepped.qpos, stepped.qvel, spec.limits), reason)
         ok = new_reason == 0
         # Freeze an invalid individual at its last valid state (no NaN leaks out).
         stepped = stepped.replace(
@@ -244,7 +244,7 @@ def _rollout_one(
     data = mjx.kinematics(robot.model, data)  # geom_xpos of the initial state
     carry = (
         data,
-        _check(init.qpos, init.qvel, spec.limits),
+        check_state(init.qpos, init.qvel, spec.limits),
         jnp.int32(spec.num_steps),
         jnp.zeros((num_poses, 7), jnp.float32),
         jnp.zeros(NUM_JOINTS, jnp.float32),

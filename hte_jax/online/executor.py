@@ -1,0 +1,293 @@
+"""Adaptation episodes on a robot this library does not simulate: the executor interface.
+
+An `Executor` is all the online loop needs from a robot, real or simulated elsewhere: its world
+planar pose, and running 36-parameter controllers for one second each from wherever it stands,
+reporting its pose after each second, the fraction of each second every foot touched the floor,
+and whether it went invalid (flipped, non-finite). `run_episode` runs ONE episode (B = 1) of any
+variant with the jitted pieces of the batched MJX episodes: the planner (`episode.plan_step`), the
+pattern rules and elite choice (`execute.choose_step`), what the rules learn from a step
+(`execute.learn_step`) and the bookkeeping after an action (`episode.record_action`); the robot is
+driven only through the executor, one Python call per second of an HBR skill.
+
+`MujocoExecutor` is native MuJoCo (C, `mujoco.mj_step`) as the stand-in for hardware: the same
+model, damage, controller tables, servo law, contact test and validity limits as the MJX rollout,
+stepped on the CPU in float64.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from typing import Protocol
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+from flax import struct
+
+from hte_jax.hbr.execution import STEPS_PER_SKILL
+from hte_jax.hbr.geometry import planar_pose, relative_pose
+from hte_jax.online.arena import maze_config, place
+from hte_jax.online.episode import AdaptationConfig, Decision, Episodes, plan_step, record_action, start_episodes, variant_mode
+from hte_jax.online.execute import (
+    ERROR_DIM,
+    ONLINE_LIMITS,
+    SECONDS_PER_ACTION,
+    STEP_CONTROL_STEPS,
+    ActionOutcome,
+    Skills,
+    choose_step,
+    learn_step,
+    skill_targets,
+)
+from hte_jax.online.maze import Maze, distance_field
+from hte_jax.online.variants import rule_names
+from hte_jax.sim.controller import NUM_PARAMS, SAMPLES_PER_PERIOD, SERVO_TIME_CONSTANT, target_table
+from hte_jax.sim.damage import damaged_pose
+from hte_jax.sim.robot import FOOT_RADIUS, JOINTS_PER_LEG, NUM_LEGS, RobotConfig, mj_model, robot_info
+from hte_jax.sim.rollout import RolloutSpec, SimState, ValidityLimits, check_state
+
+
+@struct.dataclass
+class Seconds:
+    """What a robot reports after running S one-second controllers.
+
+    poses: (S, 3) float32 world planar pose (x, y, heading) after each second.
+    contacts: (S, 6) float32 fraction of each second each foot was on the floor.
+    invalid_reason: int `sim.rollout.InvalidReason` bits (0: fine). An invalid robot stops where it
+      was last valid: the seconds after it repeat that pose, with no contact.
+    leg_travel: (S, 6) float32 radians each leg's three joints moved in each second (sum of |angle
+      changes|), or None for a robot that does not sense its joints (then no leg is judged stuck).
+    """
+
+    poses: np.ndarray
+    contacts: np.ndarray
+    invalid_reason: int = 0
+    leg_travel: np.ndarray | None = None
+
+
+class Executor(Protocol):
+    """A robot the online loop drives (one robot, unbatched)."""
+
+    def pose(self) -> np.ndarray:
+        """(3,) its world planar pose (x, y, heading) now."""
+
+    def run(self, params: np.ndarray) -> Seconds:
+        """Run controllers `params` (S, 36) back to back from the current state, each for 1 s with
+        its clock restarted (`sim.controller`: joint targets, the velocity servo), and report."""
+
+
+@functools.partial(jax.jit, static_argnames=("rules",))
+def _choose(skills: Skills, learnt, here, target, goal, step, taken, keys, rules):
+    """`choose_step` for one robot, and the chosen elite's controller (1, 36)."""
+    pattern, index, found = choose_step(skills, learnt, here, target, goal, step, taken, keys, rules)
+    return pattern, index, skills.hbr.middle_params[index]
+
+
+@jax.jit
+def _learn(skills: Skills, learnt, index, here, after, contacts, travel):
+    """`learn_step` for one robot that went from pose `here` (1, 3) to `after` (1, 3)."""
+    return learn_step(skills.hbr, learnt, index, relative_pose(here, after), contacts, travel)
+
+
+@jax.jit
+def _skill_start(skills: Skills, action: jax.Array, origin: jax.Array, keys: jax.Array):
+    """`skill_targets` of one robot's skill `action` (1,) from `origin` (1, 3), and its step keys
+    (3, 1, 2) split from the action's keys (1, 2) as `execute.execute_hbr` splits them."""
+    targets, goal = skill_targets(skills, action, origin)
+    return targets, goal, jnp.swapaxes(jax.vmap(lambda k: jax.random.split(k, STEPS_PER_SKILL))(keys), 0, 1)
+
+
+def _seconds_of(poses: list[np.ndarray], reason: int) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """(1, 4, 3) poses after each second of an action (the last repeated after a stop), valid (1,)
+    and invalid_reason (1,)."""
+    poses = poses + [poses[-1]] * (SECONDS_PER_ACTION - len(poses))
+    return jnp.asarray(np.stack(poses)[None], jnp.float32), jnp.asarray([reason == 0]), jnp.asarray([reason], jnp.int32)
+
+
+def _hbr_action(skills: Skills, executor: Executor, episodes: Episodes, decision: Decision,
+                rules: tuple[str, ...]) -> ActionOutcome:
+    """The chosen HBR skill, one step at a time on the executor, then the neutral second."""
+    learnt = episodes.learnt
+    origin = jnp.asarray(executor.pose(), jnp.float32)[None]
+    targets, goal, keys = _skill_start(skills, decision.action, origin, decision.keys[:, 2])
+    patterns = np.full(STEPS_PER_SKILL, -1, np.int32)
+    middle = np.full(STEPS_PER_SKILL, -1, np.int32)
+    errors = np.zeros((STEPS_PER_SKILL, ERROR_DIM), np.float32)
+    poses, reason = [], 0
+    for step in range(STEPS_PER_SKILL):
+        here = jnp.asarray(executor.pose(), jnp.float32)[None]
+        pattern, index, params = _choose(skills, learnt, here, targets[:, step], goal, step, episodes.taken, keys[step],
+                                         rules)
+        second = executor.run(np.asarray(params))
+        travel = np.zeros_like(second.contacts) if second.leg_travel is None else second.leg_travel
+        learnt, error = _learn(skills, learnt, index, here, jnp.asarray(second.poses, jnp.float32), second.contacts,
+                               travel)
+        patterns[step], middle[step], errors[step] = int(pattern[0]), int(index[0]), np.asarray(error[0])
+        poses.append(np.asarray(second.poses[0]))
+        reason = int(second.invalid_reason)
+        if reason:
+            break
+    if not reason:
+        neutral = executor.run(np.zeros((1, NUM_PARAMS), np.float32))
+        poses.append(np.asarray(neutral.poses[0]))
+        reason = int(neutral.invalid_reason)
+    poses, valid, reasons = _seconds_of(poses, reason)
+    return ActionOutcome(state=None, valid=valid, invalid_reason=reasons, poses=poses,
+                         displacement=relative_pose(origin, poses[:, -1]), patterns=jnp.asarray(patterns[None]),
+                         middle_index=jnp.asarray(middle[None]), errors=jnp.asarray(errors[None]), learnt=learnt)
+
+
+def _flat_action(skills: Skills, executor: Executor, episodes: Episodes, decision: Decision,
+                 rules: tuple[str, ...]) -> ActionOutcome:
+    """The chosen flat controller for 3 s, then the neutral second, in one call of the executor."""
+    origin = jnp.asarray(executor.pose(), jnp.float32)[None]
+    controller = np.asarray(skills.map_genotypes[decision.map[0], decision.action[0]], np.float32)
+    seconds = executor.run(np.stack([controller] * STEPS_PER_SKILL + [np.zeros(NUM_PARAMS, np.float32)]))
+    poses, valid, reasons = _seconds_of(list(np.asarray(seconds.poses)), int(seconds.invalid_reason))
+    return ActionOutcome(state=None, valid=valid, invalid_reason=reasons, poses=poses,
+                         displacement=relative_pose(origin, poses[:, -1]),
+                         patterns=jnp.full((1, STEPS_PER_SKILL), -1, jnp.int32),
+                         middle_index=jnp.full((1, STEPS_PER_SKILL), -1, jnp.int32),
+                         errors=jnp.zeros((1, STEPS_PER_SKILL, ERROR_DIM), jnp.float32), learnt=episodes.learnt)
+
+
+def run_episode(maze: Maze, config: AdaptationConfig, skills: Skills, executor: Executor, variant: str = "hte",
+                key: jax.Array | None = None, damage: np.ndarray | None = None, optimism: float = 0.0) -> Episodes:
+    """One adaptation episode of `variant` on the robot `executor` drives, from where it stands, until
+    it reaches the goal, goes invalid or has taken `config.max_actions` actions.
+
+    Returns the episode as `Episodes` with B = 1 (no `sim`; its trajectory holds the poses the
+    executor reported). key: PRNG key (default PRNGKey(0)). damage: (6,) bool, the robot's true
+    damage, which only Perfect HTE's oracle reads (default: intact). optimism: see `start_episodes`.
+    """
+    mode = variant_mode(variant, skills.hierarchical)
+    damage = np.zeros(NUM_LEGS, bool) if damage is None else np.asarray(damage, bool)
+    key = jax.random.PRNGKey(0) if key is None else key
+    start = jnp.asarray(executor.pose(), jnp.float32)[None]
+    episodes = start_episodes(config, skills, start, damage[None], np.array([mode]), key,
+                              np.array([optimism], np.float32))
+    # Committed inputs, as in `episode.run_episodes` (jit keys its cache on committed-ness).
+    device = jax.devices()[0]
+    field = jax.device_put(distance_field(maze, config.grid), device)
+    skills, episodes = jax.device_put((skills, episodes), device)
+    rules = rule_names()
+    act = _hbr_action if skills.hierarchical else _flat_action
+    while not bool(episodes.done[0]):
+        decision = plan_step(maze, config, skills, field, episodes)
+        episodes = record_action(maze, config, skills, episodes, decision, act(skills, executor, episodes, decision, rules))
+    return episodes
+
+
+_target_tables = jax.jit(jax.vmap(target_table))  # (S, 36) -> (S, 100, 18)
+
+
+@functools.partial(jax.jit, static_argnames=("limits",))
+def _reasons(qpos: jax.Array, qvel: jax.Array, limits: ValidityLimits) -> jax.Array:
+    """(T,) `check_state` bits of T states (T, 25), (T, 24)."""
+    return jax.vmap(lambda q, v: check_state(q, v, limits))(qpos, qvel)
+
+
+class MujocoExecutor:
+    """One hexapod in native MuJoCo (C): the stand-in for a real robot.
+
+    config: the robot (`mj_model(config)`, e.g. `arena.maze_config(maze)` for the maze's walls).
+    damage: (6,) bool legs held in the damaged pose. start: unbatched SimState to start from.
+    limits: when the robot is invalid (default: the online phase's, `execute.ONLINE_LIMITS`).
+
+    Each second is 100 control steps of the MJX rollout's loop: the controller's joint targets
+    (damaged legs in their pose), the velocity servo command, `mj_step`; a foot touches the floor
+    when its sphere is within `RolloutSpec.contact_tolerance` of it. Every state is checked as the
+    rollout checks it (`rollout.check_state`); at the first invalid one the robot is put back to the
+    state before it and stops.
+    """
+
+    def __init__(self, config: RobotConfig, damage: np.ndarray, start: SimState,
+                 limits: ValidityLimits = ONLINE_LIMITS):
+        self.config, self.limits = config, limits
+        self.model = mj_model(config)
+        self.data = mujoco.MjData(self.model)
+        info = robot_info(self.model, config)
+        self.joints, self.feet = np.asarray(info.joint_qpos), np.asarray(info.foot_geoms)
+        self.damaged = np.repeat(np.asarray(damage, bool), JOINTS_PER_LEG)
+        self.damaged_pose = np.tile(np.asarray(damaged_pose(config.damage_model)), NUM_LEGS)
+        self._set(np.asarray(start.qpos), np.asarray(start.qvel), np.asarray(start.qacc_warmstart))
+
+    @classmethod
+    def in_maze(cls, maze: Maze, damage: np.ndarray, base: RobotConfig = RobotConfig()) -> MujocoExecutor:
+        """A robot with `damage` settled standing (1 s of the neutral controller, away from walls, as
+        `arena.start_states` settles the MJX robots) and turned to the maze's start pose."""
+        plain = dataclasses.replace(base, walls=())
+        model = mj_model(plain)
+        qpos = model.qpos0.copy()
+        joints = np.asarray(robot_info(model, plain).joint_qpos)
+        legs = np.repeat(np.asarray(damage, bool), JOINTS_PER_LEG)
+        qpos[joints] = np.where(legs, np.tile(np.asarray(damaged_pose(plain.damage_model)), NUM_LEGS), qpos[joints])
+        zeros = np.zeros(model.nv)
+        settling = cls(plain, damage, SimState(qpos=qpos, qvel=zeros, qacc_warmstart=zeros), ValidityLimits())
+        settling.run(np.zeros((1, NUM_PARAMS), np.float32))
+        settled = jax.tree.map(lambda x: jnp.asarray(x, jnp.float32)[None], settling.state())
+        settled = settled.replace(qpos=settled.qpos.at[:, :2].set(0.0))
+        placed = place(settled, jnp.asarray(maze.start, jnp.float32)[None])
+        return cls(maze_config(maze, base), damage, jax.tree.map(lambda x: x[0], placed))
+
+    def _set(self, qpos: np.ndarray, qvel: np.ndarray, warmstart: np.ndarray) -> None:
+        self.data.qpos[:], self.data.qvel[:], self.data.qacc_warmstart[:] = qpos, qvel, warmstart
+
+    def state(self) -> SimState:
+        """The robot's state now (unbatched, float64 NumPy)."""
+        return SimState(qpos=self.data.qpos.copy(), qvel=self.data.qvel.copy(),
+                        qacc_warmstart=self.data.qacc_warmstart.copy())
+
+    def pose(self) -> np.ndarray:
+        qpos = jnp.asarray(self.data.qpos[:7], jnp.float32)
+        return np.asarray(planar_pose(qpos[:3], qpos[3:7]))
+
+    def run(self, params: np.ndarray) -> Seconds:
+        params = np.asarray(params, np.float32).reshape(-1, NUM_PARAMS)
+        tables = np.asarray(_target_tables(jnp.asarray(params)), np.float64)  # (S, 100, 18)
+        count = tables.shape[0]
+        poses = np.zeros((count, 3), np.float32)
+        contacts = np.zeros((count, NUM_LEGS), np.float32)
+        travel = np.zeros((count, NUM_LEGS), np.float32)
+        reason = 0
+        for second, table in enumerate(tables):
+            if not reason:
+                reason, contacts[second], travel[second] = self._second(table)
+            poses[second] = self.pose()
+        return Seconds(poses=poses, contacts=contacts, invalid_reason=reason, leg_travel=travel)
+
+    def _second(self, table: np.ndarray) -> tuple[int, np.ndarray]:
+        """One second of joint-target `table` (100, 18): (invalid reason, each foot's contact fraction,
+        each leg's joint travel)."""
+        model, data = self.model, self.data
+        steps, substeps = STEP_CONTROL_STEPS, self.config.substeps
+        before = self.state()
+        qpos, qvel = np.zeros((steps, model.nq)), np.zeros((steps, model.nv))
+        warm = np.zeros((steps, model.nv))
+        touching = np.zeros((steps, NUM_LEGS), bool)
+        tolerance = RolloutSpec.contact_tolerance
+        for k in range(steps):
+            target = np.where(self.damaged, self.damaged_pose, table[k % SAMPLES_PER_PERIOD])
+            error = target - data.qpos[self.joints]
+            data.ctrl[:] = np.clip(error / SERVO_TIME_CONSTANT, -self.config.max_joint_velocity,
+                                   self.config.max_joint_velocity)
+            for _ in range(substeps):
+                mujoco.mj_step(model, data)
+            # geom_xpos comes from the step's forward pass: the feet at the start of the step, as in MJX.
+            touching[k] = data.geom_xpos[self.feet, 2] - FOOT_RADIUS < tolerance
+            qpos[k], qvel[k], warm[k] = data.qpos, data.qvel, data.qacc_warmstart
+        reasons = np.asarray(_reasons(jnp.asarray(qpos, jnp.float32), jnp.asarray(qvel, jnp.float32), self.limits))
+        bad = np.flatnonzero(reasons)
+        angles = np.concatenate([before.qpos[None, self.joints], qpos[:, self.joints]])  # (101, 18)
+        moved = np.abs(np.diff(angles, axis=0))  # (100, 18) per control step
+        if not bad.size:
+            return 0, touching.mean(axis=0), moved.sum(axis=0).reshape(NUM_LEGS, -1).sum(axis=-1)
+        first = int(bad[0])
+        if first:
+            self._set(qpos[first - 1], qvel[first - 1], warm[first - 1])
+        else:
+            self._set(before.qpos, before.qvel, before.qacc_warmstart)
+        return (int(reasons[first]), touching[:first].sum(axis=0) / steps,
+                moved[:first].sum(axis=0).reshape(NUM_LEGS, -1).sum(axis=-1))
