@@ -45,6 +45,9 @@ class HBR:
     step_model: the middle elites' steps measured from several start states (`composition.StepModel`,
       (Cm, 3) and (Cm,)), or None when not measured.
     top_task: the grid the top layer was trained on (static; Ct = bins^2).
+    spare_count: how many of the middle slots, at the end, are a second archive's elites appended
+      for sparing sets (`sparing.with_spare`; static, 0 for an HBR as trained). They are never
+      `filled`, so no lookup of the HBR's own sees them.
     """
 
     bottom: Repertoire
@@ -55,6 +58,7 @@ class HBR:
     middle_task: MiddleTask = struct.field(pytree_node=False, default=MiddleTask())
     step_model: StepModel | None = None
     top_task: TopTask = struct.field(pytree_node=False, default=TopTask())
+    spare_count: int = struct.field(pytree_node=False, default=0)
 
     @classmethod
     def build(cls, bottom: Repertoire, middle: Repertoire, top: Repertoire, middle_task: MiddleTask,

@@ -20,9 +20,10 @@ from hte_jax.errors import ConfigError
 from hte_jax.hbr.bottom import bottom_spec
 from hte_jax.hbr.composition import StepModel
 from hte_jax.hbr.execution import HBR
-from hte_jax.hbr.middle import MiddleTask, middle_spec
+from hte_jax.hbr.middle import MiddleTask, decode, leg_controllers, middle_spec
 from hte_jax.hbr.top import TopTask, top_spec
 from hte_jax.qd.io import CheckpointError, elite_arrays, read_checkpoint, save_checkpoint
+from hte_jax.qd.repertoire import Repertoire
 from hte_jax.qd.store import rebuild_elites
 from hte_jax.qd.task_spec import TaskSpec
 from hte_jax.sim.robot import assets_dir
@@ -101,17 +102,18 @@ def load_hbr(path: str | Path | None = None) -> tuple[HBR, TopTask, dict]:
     return hbr, top_task, meta
 
 
-def _step_model(path, arrays, count: int, capacity: int) -> StepModel | None:
+def _step_model(path, arrays, count: int, capacity: int, prefix: str = "middle_") -> StepModel | None:
     """The measured step model (`composition.measure_steps`) if the file has one, padded to capacity."""
-    if "middle_step_mean" not in arrays and "middle_step_spread" not in arrays:
+    mean_key, spread_key = f"{prefix}step_mean", f"{prefix}step_spread"
+    if mean_key not in arrays and spread_key not in arrays:
         return None
-    want = {"middle_step_mean": (count, 3), "middle_step_spread": (count,)}
+    want = {mean_key: (count, 3), spread_key: (count,)}
     for key, shape in want.items():
         value = arrays.get(key)
         if value is None or value.shape != shape or value.dtype != np.float32:
             got = "missing" if value is None else f"shape {value.shape} {value.dtype}"
             raise CheckpointError(f"{path}: {key} is {got}, expected {shape} float32")
-    steps, spread = arrays["middle_step_mean"], arrays["middle_step_spread"]
+    steps, spread = arrays[mean_key], arrays[spread_key]
     if not np.isfinite(steps).all() or np.isnan(spread).any() or (spread < 0).any():
         raise CheckpointError(f"{path}: the measured step model has non-finite steps or negative spreads")
     padded_steps = np.zeros((capacity, 3), np.float32)
@@ -119,3 +121,60 @@ def _step_model(path, arrays, count: int, capacity: int) -> StepModel | None:
     padded_spread = np.full(capacity, np.inf, np.float32)
     padded_spread[:count] = spread
     return StepModel(steps=jnp.asarray(padded_steps), spread=jnp.asarray(padded_spread))
+
+
+SPARE_KIND = "hte_jax.hbr.spare"
+SPARE_FILE = "spare.npz"  # beside an hbr.npz: its sparing archive (`sparing.with_spare`), used when present
+
+
+def bottom_fingerprint(hbr: HBR) -> str:
+    """A short digest of the HBR's bottom layer: a spare archive's genotypes index it."""
+    import hashlib
+
+    return hashlib.sha256(np.asarray(hbr.bottom.genotypes).tobytes()).hexdigest()[:16]
+
+
+def save_spare(path: str | Path, hbr: HBR, spare: Repertoire, steps: StepModel | None, l: float,
+               metadata: dict | None = None) -> None:
+    """Atomically write a second middle archive `spare` trained on `hbr`'s bottom layer (distance
+    threshold `l`), with its measured steps, tied to that bottom layer by its fingerprint."""
+    arrays = elite_arrays(spare, "spare_")
+    if steps is not None:
+        count = int(np.asarray(spare.filled).sum())
+        arrays["spare_step_mean"] = np.asarray(steps.steps, np.float32)[:count]
+        arrays["spare_step_spread"] = np.asarray(steps.spread, np.float32)[:count]
+    header = {"kind": SPARE_KIND, "kind_version": KIND_VERSION, "capacity": spare.capacity, "l": l,
+              "bottom": bottom_fingerprint(hbr), **(metadata or {})}
+    save_checkpoint(path, arrays, header, compress=True)
+
+
+def load_spare(path: str | Path, hbr: HBR) -> HBR:
+    """`hbr` with the sparing archive of `path` appended (`sparing.with_spare`). The file is a spare
+    file of `save_spare` trained on this HBR's bottom layer, or another HBR file (its middle layer
+    joins with its own controllers)."""
+    from hte_jax.hbr.sparing import with_spare
+
+    arrays, header = read_checkpoint(path)
+    meta = header.get("metadata", {})
+    if meta.get("kind") == KIND:
+        other, _, _ = load_hbr(path)
+        return with_spare(hbr, other.middle, other.middle_params, other.step_model)
+    if meta.get("kind") != SPARE_KIND:
+        raise CheckpointError(f"{path}: neither a spare archive nor an HBR file (kind {meta.get('kind')!r})")
+    if meta.get("bottom") != bottom_fingerprint(hbr):
+        raise CheckpointError(f"{path}: the spare archive was trained on another HBR's bottom layer")
+    try:
+        capacity, l = int(meta["capacity"]), float(meta["l"])
+    except (KeyError, TypeError, ValueError) as error:
+        raise CheckpointError(f"{path}: bad spare header: {error}") from None
+    spare = rebuild_elites(path, arrays, middle_spec(capacity, l), "spare_")
+    count = int(spare.filled.sum())
+    steps = _step_model(path, arrays, count, capacity, "spare_")
+    params = jnp.where(spare.filled[:, None], leg_controllers(hbr.bottom, decode(spare.genotypes)), 0.0)
+    return with_spare(hbr, spare, params, steps)
+
+
+def spare_beside(hbr_path: str | Path | None) -> Path | None:
+    """The spare archive file beside an HBR file (default: the shipped one), or None."""
+    path = (shipped_hbr_path() if hbr_path is None else Path(hbr_path)).parent / SPARE_FILE
+    return path if path.is_file() else None

@@ -153,10 +153,10 @@ def variant_mode(name: str, hierarchical: bool) -> int:
 
 def start_episodes(
     config: AdaptationConfig, skills: Skills, start: SimState | jax.Array, damages: np.ndarray, modes: np.ndarray,
-    key: jax.Array, optimism: np.ndarray | None = None,
+    key: jax.Array, optimism: np.ndarray | None = None, sparing: np.ndarray | None = None,
 ) -> Episodes:
     """B fresh episodes: robots `start` with `damages` (B, 6), secondary `modes` (B,) and `optimism`
-    (B,) (default 0). start: SimState (B, ...) of simulated robots, or the world planar poses (B, 3)
+    (B,) (default 0), `sparing` (B,) bool (default False: `PatternState.sparing`). start: SimState (B, ...) of simulated robots, or the world planar poses (B, 3)
     of robots an executor drives (`executor.py`; `Episodes.sim` is then None).
 
     With K > 1 repertoires each episode starts planning with a uniformly drawn one.
@@ -198,6 +198,7 @@ def start_episodes(
             secondary=stacked(empty_gp(STEPS_PER_SKILL * length, SECONDARY_DIM, SECONDARY_OUTPUTS), batch),
             contacts=jnp.zeros((batch, 2, NUM_LEGS), jnp.float32),
             motion=jnp.zeros((batch, 2, NUM_LEGS), jnp.float32),
+            sparing=jnp.zeros(batch, bool) if sparing is None else jnp.asarray(sparing, bool),
         ),
         key=jax.random.split(key, batch),
         taken=jnp.zeros(batch, jnp.int32),

@@ -23,7 +23,7 @@ import numpy as np
 from hte_jax.errors import ConfigError, require_choice, require_int, require_number
 from hte_jax.errors import with_overrides as with_overrides  # the configuration's override rule, re-exported
 from hte_jax.flat.store import load_flat, shipped_flat_path
-from hte_jax.hbr.store import load_hbr
+from hte_jax.hbr.store import load_hbr, load_spare, spare_beside
 from hte_jax.online.arena import maze_robot, start_states
 from hte_jax.online.episode import AdaptationConfig, Episodes, RunTimings, run_episodes, start_episodes, variant_mode
 from hte_jax.online.variants import variant as variant_named
@@ -56,8 +56,10 @@ class EvalConfig:
     standard deviations "hte-miss" takes off each elite's predicted deviation (0: greedy).
     composition: how an HBR step with a chosen contact pattern picks its elite: "planned" (ours,
     `hbr.composition`: a plan among the pattern's elites to the skill's end) or "waypoints" (the
-    paper's nearest elite to the next waypoint); RTE's steps are the same in both. seed:
-    PRNG seed. solver_iterations, ls_iterations, solver_tolerance: the physics' Newton solver.
+    paper's nearest elite to the next waypoint); RTE's steps are the same in both. spare: the
+    sparing archive whose elites join the HBR's own in the sparing sets of the variants that
+    execute from them (`hbr.sparing`; a spare file of `experiments.train_spare` or another HBR
+    file; "" = the spare.npz beside the HBR file, if any). seed: PRNG seed. solver_iterations, ls_iterations, solver_tolerance: the physics' Newton solver.
     """
 
     variants: str = "hte"
@@ -76,6 +78,7 @@ class EvalConfig:
     depth: int = 20
     optimism: float = 0.0
     composition: str = "planned"
+    spare: str = ""
     seed: int = 0
     solver_iterations: int = RobotConfig.solver_iterations
     ls_iterations: int = RobotConfig.ls_iterations
@@ -161,20 +164,24 @@ def preset(name: str) -> EvalConfig:
     return PRESETS[name]
 
 
-def load_skills(path: str | Path | None, maps: bool = False, composition: str = "planned") -> tuple[Skills, dict]:
+def load_skills(path: str | Path | None, maps: bool = False, composition: str = "planned", sparing: bool = False,
+                spare: str | Path | None = None) -> tuple[Skills, dict]:
     """Actions of an HBR file (its top layer) or of a file holding one flat repertoire; None: the
     shipped HBR. maps: accept a flat file of several repertoires (APROL's set): actions (K, A).
-    composition: see `execute.hbr_skills`."""
-    if path is None or str(path) == "":
-        hbr, task, _ = load_hbr()
-        skills = hbr_skills(hbr, task, composition=composition)
-        return skills, {"kind": "hbr", "path": "shipped", "actions": int(skills.actions.mask.sum())}
-    _, header = read_checkpoint(path)
-    kind = header.get("metadata", {}).get("kind")
+    composition, sparing: see `execute.hbr_skills`. spare: the sparing archive joined to the
+    HBR's own elites in the sparing sets (`store.load_spare`: a spare file or another HBR file;
+    default: the spare.npz beside the HBR file, if any)."""
+    shipped = path is None or str(path) == ""
+    header = {} if shipped else read_checkpoint(path)[1]
+    kind = "hte_jax.hbr" if shipped else header.get("metadata", {}).get("kind")
     if kind == "hte_jax.hbr":
-        hbr, task, _ = load_hbr(path)
-        skills = hbr_skills(hbr, task, composition=composition)
-        return skills, {"kind": "hbr", "path": str(path), "actions": int(skills.actions.mask.sum())}
+        hbr, task, _ = load_hbr(None if shipped else path)
+        spare = (spare or spare_beside(None if shipped else path)) if sparing else None
+        if spare:
+            hbr = load_spare(spare, hbr)
+        skills = hbr_skills(hbr, task, composition=composition, sparing=sparing)
+        return skills, {"kind": "hbr", "path": "shipped" if shipped else str(path),
+                        "actions": int(skills.actions.mask.sum()), **({"spare": str(spare)} if spare else {})}
     if kind == "hte_jax.flat":
         count = len(header["metadata"].get("damages", ()))
         if count != 1 and not maps:
@@ -244,7 +251,9 @@ def run_batch(config: EvalConfig, path: str | None, variants: list[str], maze: M
     batch of episodes. record: batch rows whose states are recorded every `record_every` control
     steps (`BatchResult.replays`); none by default, and then nothing is recorded."""
     maps = len(variants) == 1 and variant_named(variants[0]).repertoire == "aprol"
-    skills, info = load_skills(path, maps=maps, composition=config.composition)
+    sparing = np.array([variant_named(v).sparing for v, _, _ in batch_labels(config, variants)])
+    skills, info = load_skills(path, maps=maps, composition=config.composition, sparing=bool(sparing.any()),
+                               spare=config.spare or None)
     labels = batch_labels(config, variants)
     modes = np.array([variant_mode(v, skills.hierarchical) for v, _, _ in labels])
     damages = np.stack([parse_damage(d) for _, d, _ in labels])
@@ -254,7 +263,7 @@ def run_batch(config: EvalConfig, path: str | None, variants: list[str], maze: M
         key = jax.random.PRNGKey(config.seed)
         key = key if seed == 0 else jax.random.fold_in(key, seed)
     optimism = np.full(len(labels), config.optimism, np.float32)
-    episodes = start_episodes(adaptation, skills, start, damages, modes, key, optimism)
+    episodes = start_episodes(adaptation, skills, start, damages, modes, key, optimism, sparing)
     robot = maze_robot(maze, config.robot)
     recorder = Recorder(tuple(record), record_every) if record else None
     episodes, timings = run_episodes(maze, adaptation, robot, skills, episodes, progress=progress,

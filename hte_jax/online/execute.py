@@ -26,6 +26,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
+from hte_jax.errors import ConfigError
 from hte_jax.hbr.composition import COMPOSITIONS, PatternTable, plan_batch, planning_table
 from hte_jax.hbr.execution import (
     ANY_PATTERN,
@@ -38,6 +39,7 @@ from hte_jax.hbr.execution import (
 )
 from hte_jax.hbr.geometry import compose_pose, planar_pose, relative_pose
 from hte_jax.hbr.middle import PRIMARY
+from hte_jax.hbr.sparing import sparing_table
 from hte_jax.hbr.top import TopTask
 from hte_jax.online.actions import ActionSet, action_set, displacement_of
 from hte_jax.online.gp import GPData, add_observation
@@ -70,12 +72,15 @@ class Skills:
     table: the HBR's elites grouped by pattern when a step with a chosen pattern plans its way to
       the skill's end (`composition="planned"`), or None for the paper's nearest elite to the
       next waypoint.
+    sparing: the HBR's sparing sets (`hbr.sparing.sparing_table`) that episodes with
+      `PatternState.sparing` plan their patterns' steps among, or None (no such episode).
     """
 
     actions: ActionSet
     genotypes: jax.Array
     hbr: HBR | None = None
     table: PatternTable | None = None
+    sparing: PatternTable | None = None
 
     @property
     def hierarchical(self) -> bool:
@@ -97,19 +102,25 @@ class Skills:
         return self.genotypes if self.actions.mask.ndim == 2 else self.genotypes[None]
 
 
-def hbr_skills(hbr: HBR, top_task: TopTask, pad_to: int | None = None, composition: str = "planned") -> Skills:
+def hbr_skills(hbr: HBR, top_task: TopTask, pad_to: int | None = None, composition: str = "planned",
+               sparing: bool = False) -> Skills:
     """The filled top-layer cells of an HBR as actions.
 
     composition: how a step with a chosen contact pattern picks its elite: "waypoints" (the
     paper's nearest elite to the next waypoint) or "planned" (`hbr.composition`: a plan among the
     pattern's elites to the skill's end, with the HBR's measured step model when it has one).
+    sparing: also build the sparing sets (`hbr.sparing`) for variants that execute from them
+    (planned composition only).
     """
     if composition not in COMPOSITIONS:
         raise ValueError(f"unknown composition {composition!r}; choose from {', '.join(COMPOSITIONS)}")
+    if sparing and composition != "planned":
+        raise ConfigError("variants that execute from sparing sets need --composition planned")
     actions = action_set(hbr.top, top_task.extent, pad_to)
     genotypes = hbr.top.genotypes[jnp.maximum(actions.slots, 0)]
     table = planning_table(hbr) if composition == "planned" else None
-    return Skills(actions=actions, genotypes=genotypes, hbr=hbr, table=table)
+    return Skills(actions=actions, genotypes=genotypes, hbr=hbr, table=table,
+                  sparing=sparing_table(hbr) if sparing else None)
 
 
 def flat_skills(repertoire: Repertoire, extent: float, pad_to: int | None = None) -> Skills:
@@ -243,6 +254,9 @@ def choose_step(
     elite = None
     if skills.table is not None:
         elite = plan_batch(skills.table, task, here, goal, pattern, STEPS_PER_SKILL - step)
+    if skills.sparing is not None:
+        spared = plan_batch(skills.sparing, task, here, goal, pattern, STEPS_PER_SKILL - step)
+        elite = jnp.where(learnt.sparing, spared, elite)
     index, found = step_elite(hbr, here, target, pattern, query, elite)
     return pattern, index, found
 

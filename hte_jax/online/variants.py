@@ -87,7 +87,8 @@ class PatternState:
     executed elite). contacts: (B, 2, 6) float32 seconds each leg was sensed on the floor (row 0)
     and expected on it by the executed elites' stored contact fractions (row 1), summed.
     motion: (B, 2, 6) float32 radians each leg's joints moved (row 0) and were commanded to move
-    (row 1), summed.
+    (row 1), summed. sparing: (B,) bool, a chosen pattern is executed from its sparing set
+    (`hbr.sparing`: the elites that keep its lifted legs off the floor) rather than from its elites.
     """
 
     mode: jax.Array
@@ -96,6 +97,7 @@ class PatternState:
     secondary: GPData
     contacts: jax.Array
     motion: jax.Array
+    sparing: jax.Array
 
 
 def candidate_elites(hbr: HBR, desired: jax.Array, patterns: np.ndarray = CANDIDATE_PATTERNS):
@@ -218,12 +220,16 @@ class Variant:
     name: what `maze_eval --variant` calls it. rule: the key in `RULES` that picks each step's
     pattern ("any" for flat repertoires). repertoire: "hbr", or the shipped flat repertoire it plans
     with ("2d", "8d", "aprol": APROL's 21). summary: one line for the docs and `--help`.
+    sparing: a chosen pattern's steps are planned among its sparing set (`hbr.sparing`: the middle
+    elites with under 5 % contact on each leg the pattern lifts, any contact on the others) instead
+    of among the elites of that pattern at the HBR's contact threshold (needs planned composition).
     """
 
     name: str
     rule: str = "any"
     repertoire: str = "hbr"
     summary: str = ""
+    sparing: bool = False
 
     @property
     def hierarchical(self) -> bool:
@@ -239,7 +245,7 @@ def add_variant(variant: Variant) -> Variant:
         raise ConfigError(f"variant {variant.name!r} is already defined")
     if variant.rule not in RULES:
         raise ConfigError(f"variant {variant.name!r}: unknown rule {variant.rule!r}; known: {', '.join(RULES)}")
-    if not variant.hierarchical and variant.rule != "any":
+    if not variant.hierarchical and (variant.rule != "any" or variant.sparing):
         raise ConfigError(f"variant {variant.name!r}: a flat repertoire has no contact patterns to choose")
     VARIANTS[variant.name] = variant
     return variant
@@ -268,6 +274,10 @@ for _variant in (
     Variant("hte-legs", "legs", summary="ours: primary mismatch plus a learnt per-leg penalty"),
     Variant("hte-contacts", "contacts", summary="ours: lift the legs sensed not to touch the floor"),
     Variant("hte-sensed", "sensed", summary="ours: lift the legs sensed off the floor or not following their joint commands"),
+    Variant("hte-spare", "sensed", sparing=True,
+            summary="ours: as hte-sensed, with steps that keep the lifted legs really off the floor"),
+    Variant("perfect-spare", "oracle", sparing=True,
+            summary="the true damage's legs kept really off the floor (an upper bound for hte-spare)"),
     Variant("2d-rte", repertoire="2d", summary="RTE on the flat x-y repertoire"),
     Variant("8d-rte", repertoire="8d", summary="RTE on the flat 8-D repertoire"),
     Variant("aprol", repertoire="aprol", summary="APROL's choice among 21 damage repertoires"),
