@@ -55,11 +55,15 @@ def sparing_members(contact_fraction: np.ndarray, present: np.ndarray, strict: f
 
 def sparing_table(hbr: HBR, strict: float = STRICT_CONTACT) -> PatternTable:
     """The sparing sets of every pattern as a planning table (host-side: widths are static): rows
-    are patterns, members every usable middle elite (the HBR's own and any appended by `with_spare`)."""
+    are patterns, members every usable middle elite (the HBR's own and any appended by `with_spare`);
+    the row of the pattern that lifts no leg holds that pattern's own elites."""
     present = np.asarray(hbr.middle_patterns) >= 0
     if hbr.spare_count:
         present = present | (np.arange(present.size) >= present.size - hbr.spare_count)
     members = sparing_members(np.asarray(hbr.middle.extras["contact_fraction"]), present, strict)
+    # a pattern that lifts no leg spares nothing: its set is its own elites, not the whole layer
+    # (which would also make every row of the table as wide as the layer)
+    members[NUM_PATTERNS - 1] = np.asarray(hbr.middle_patterns) == NUM_PATTERNS - 1
     width = max(int(members.sum(axis=1).max()), 1)
     index = np.full((NUM_PATTERNS, width), -1, np.int32)
     for p in range(NUM_PATTERNS):

@@ -34,7 +34,8 @@ from tqdm.auto import tqdm
 
 from hte_jax.errors import ConfigError, require_int
 from hte_jax.hbr.execution import STEPS_PER_SKILL, state_pose
-from hte_jax.online.actions import OUTCOME_DIM, displacement_of, observe, predict
+from hte_jax.online.actions import OUTCOME_DIM, displacement_of, predict
+from hte_jax.online.actions import outcome as outcome_of
 from hte_jax.online.aprol import MapBelief, closeness, initial_belief, select_entry, update_belief
 from hte_jax.online.execute import (
     ERROR_DIM,
@@ -47,7 +48,7 @@ from hte_jax.online.execute import (
     execute_flat,
     execute_hbr,
 )
-from hte_jax.online.gp import GPData, empty_gp
+from hte_jax.online.gp import GPData, add_observation, empty_gp
 from hte_jax.online.maze import GridSpec, Maze, distance_field, planning_start, reached_goal
 from hte_jax.online.mcts import PlannerConfig, PlanResult, plan, world_of
 from hte_jax.online.secondary import oracle_pattern
@@ -154,9 +155,11 @@ def variant_mode(name: str, hierarchical: bool) -> int:
 def start_episodes(
     config: AdaptationConfig, skills: Skills, start: SimState | jax.Array, damages: np.ndarray, modes: np.ndarray,
     key: jax.Array, optimism: np.ndarray | None = None, sparing: np.ndarray | None = None,
+    measured: np.ndarray | None = None,
 ) -> Episodes:
     """B fresh episodes: robots `start` with `damages` (B, 6), secondary `modes` (B,) and `optimism`
-    (B,) (default 0), `sparing` (B,) bool (default False: `PatternState.sparing`). start: SimState (B, ...) of simulated robots, or the world planar poses (B, 3)
+    (B,) (default 0), `sparing` and `measured` (B,) bool (default False: `PatternState`). start:
+    SimState (B, ...) of simulated robots, or the world planar poses (B, 3)
     of robots an executor drives (`executor.py`; `Episodes.sim` is then None).
 
     With K > 1 repertoires each episode starts planning with a uniformly drawn one.
@@ -199,6 +202,8 @@ def start_episodes(
             contacts=jnp.zeros((batch, 2, NUM_LEGS), jnp.float32),
             motion=jnp.zeros((batch, 2, NUM_LEGS), jnp.float32),
             sparing=jnp.zeros(batch, bool) if sparing is None else jnp.asarray(sparing, bool),
+            measured=jnp.zeros(batch, bool) if measured is None else jnp.asarray(measured, bool),
+            last=jnp.full(batch, -1, jnp.int32),
         ),
         key=jax.random.split(key, batch),
         taken=jnp.zeros(batch, jnp.int32),
@@ -218,6 +223,8 @@ class Decision:
     int32 the repertoire and skill to execute (APROL may pick another than the plan's; otherwise
     map 0 and the plan's action). start: (B, 3) pose the planner started from. predicted: (B, 3)
     the GP's predicted displacement of the executed skill. keys: (B, 2) keys for executing it.
+    prior: (B, 4) the GP's prior outcome of the executed skill (what its observation is learnt
+    against: the stored outcome, or the measured one, `Skills.planning_prior`).
     """
 
     plan: PlanResult
@@ -226,6 +233,7 @@ class Decision:
     start: jax.Array
     predicted: jax.Array
     keys: jax.Array
+    prior: jax.Array
 
 
 @functools.partial(jax.jit, static_argnames=("maze", "config"))
@@ -234,10 +242,13 @@ def plan_step(maze: Maze, config: AdaptationConfig, skills: Skills, field: jax.A
     with the current one, then let APROL choose the skill to execute among all of them)."""
     maps = skills.map_actions
 
-    def predict_maps(gps):
-        return jax.vmap(predict)(gps, maps)  # (K, A, 4), (K, A)
+    def predict_maps(gps, prior):
+        return jax.vmap(predict)(gps, maps.replace(prior=prior))  # (K, A, 4), (K, A)
 
-    mean, variance = jax.vmap(predict_maps)(episodes.rte)  # (B, K, A, 4), (B, K, A)
+    measured = skills.planning_prior(episodes.learnt)  # (B, A, 4) or None
+    priors = (jnp.broadcast_to(maps.prior, (episodes.taken.shape[0], *maps.prior.shape)) if measured is None
+              else measured[:, None])  # (B, K, A, 4)
+    mean, variance = jax.vmap(predict_maps)(episodes.rte, priors)  # (B, K, A, 4), (B, K, A)
     rows = jnp.arange(mean.shape[0])
     current = episodes.belief.current
     displacement = displacement_of(mean[rows, current])  # (B, A, 3)
@@ -258,7 +269,8 @@ def plan_step(maze: Maze, config: AdaptationConfig, skills: Skills, field: jax.A
     else:
         chosen_map, action = jnp.zeros_like(result.action), result.action
     predicted = displacement_of(mean[rows, chosen_map, action])
-    return Decision(plan=result, map=chosen_map, action=action, start=start, predicted=predicted, keys=keys)
+    return Decision(plan=result, map=chosen_map, action=action, start=start, predicted=predicted, keys=keys,
+                    prior=priors[rows, chosen_map, action])
 
 
 @functools.partial(jax.jit, static_argnames=("maze", "config", "record_every", "rules"))
@@ -299,14 +311,18 @@ def record_action(maze: Maze, config: AdaptationConfig, skills: Skills, episodes
     keys = decision.keys
     maps = skills.map_actions
 
-    def learn(gps, belief, k, i, displacement):
-        """The chosen repertoire's GP and APROL belief learn what its skill did."""
+    def learn(gps, belief, k, i, displacement, prior):
+        """The chosen repertoire's GP (against the prior it planned with) and APROL belief learn
+        what its skill did."""
         chosen = jax.tree.map(lambda x: x[k], maps)
-        gp = observe(jax.tree.map(lambda x: x[k], gps), chosen, i, displacement)
+        gp = add_observation(jax.tree.map(lambda x: x[k], gps), chosen.inputs[i], outcome_of(displacement), prior)
         gps = jax.tree.map(lambda all_, one: all_.at[k].set(one), gps, gp)
         return gps, update_belief(belief, k, closeness(chosen.prior[i], displacement))
 
-    rte, belief = jax.vmap(learn)(episodes.rte, episodes.belief, chosen_map, index, outcome.displacement)
+    rte, belief = jax.vmap(learn)(episodes.rte, episodes.belief, chosen_map, index, outcome.displacement, decision.prior)
+    learnt = outcome.learnt
+    if learnt is not None:
+        learnt = learnt.replace(last=outcome.patterns[:, -1])
 
     def keep(new, old):
         """New values for active episodes, old ones for ended episodes."""
@@ -340,7 +356,7 @@ def record_action(maze: Maze, config: AdaptationConfig, skills: Skills, episodes
         sim=outcome.state,
         rte=rte,
         belief=belief,
-        learnt=outcome.learnt,
+        learnt=learnt,
         key=keys[:, 0],
         taken=episodes.taken + 1,
         reached=reached_goal(maze, end[:, :2]) & outcome.valid,

@@ -23,7 +23,8 @@ import numpy as np
 from hte_jax.errors import ConfigError, require_choice, require_int, require_number
 from hte_jax.errors import with_overrides as with_overrides  # the configuration's override rule, re-exported
 from hte_jax.flat.store import load_flat, shipped_flat_path
-from hte_jax.hbr.store import load_hbr, load_spare, spare_beside
+from hte_jax.hbr.pattern_ends import ends_file, load_pattern_ends
+from hte_jax.hbr.store import load_hbr, load_spare, shipped_hbr_path, spare_beside
 from hte_jax.online.arena import maze_robot, start_states
 from hte_jax.online.episode import AdaptationConfig, Episodes, RunTimings, run_episodes, start_episodes, variant_mode
 from hte_jax.online.variants import variant as variant_named
@@ -59,7 +60,9 @@ class EvalConfig:
     paper's nearest elite to the next waypoint); RTE's steps are the same in both. spare: the
     sparing archive whose elites join the HBR's own in the sparing sets of the variants that
     execute from them (`hbr.sparing`; a spare file of `experiments.train_spare` or another HBR
-    file; "" = the spare.npz beside the HBR file, if any). seed: PRNG seed. solver_iterations, ls_iterations, solver_tolerance: the physics' Newton solver.
+    file; "" = the spare.npz beside the HBR file, if any). pattern_ends: the skills' ends measured
+    under each pattern (`hbr.pattern_ends`, `experiments.pattern_ends`) that the variants planning
+    with measured ends use ("" = the pattern_ends_<table>.npz beside the HBR file). seed: PRNG seed. solver_iterations, ls_iterations, solver_tolerance: the physics' Newton solver.
     """
 
     variants: str = "hte"
@@ -79,6 +82,7 @@ class EvalConfig:
     optimism: float = 0.0
     composition: str = "planned"
     spare: str = ""
+    pattern_ends: str = ""
     seed: int = 0
     solver_iterations: int = RobotConfig.solver_iterations
     ls_iterations: int = RobotConfig.ls_iterations
@@ -165,12 +169,15 @@ def preset(name: str) -> EvalConfig:
 
 
 def load_skills(path: str | Path | None, maps: bool = False, composition: str = "planned", sparing: bool = False,
-                spare: str | Path | None = None) -> tuple[Skills, dict]:
+                spare: str | Path | None = None, ends_table: str | None = None,
+                ends: str | Path | None = None) -> tuple[Skills, dict]:
     """Actions of an HBR file (its top layer) or of a file holding one flat repertoire; None: the
     shipped HBR. maps: accept a flat file of several repertoires (APROL's set): actions (K, A).
     composition, sparing: see `execute.hbr_skills`. spare: the sparing archive joined to the
     HBR's own elites in the sparing sets (`store.load_spare`: a spare file or another HBR file;
-    default: the spare.npz beside the HBR file, if any)."""
+    default: the spare.npz beside the HBR file, if any). ends_table: load the skills' ends measured
+    with this planning table ("sparing" or "planned", `hbr.pattern_ends`) from `ends` (default:
+    the pattern_ends_<table>.npz beside the HBR file; an error if there is none); None: none."""
     shipped = path is None or str(path) == ""
     header = {} if shipped else read_checkpoint(path)[1]
     kind = "hte_jax.hbr" if shipped else header.get("metadata", {}).get("kind")
@@ -179,9 +186,19 @@ def load_skills(path: str | Path | None, maps: bool = False, composition: str = 
         spare = (spare or spare_beside(None if shipped else path)) if sparing else None
         if spare:
             hbr = load_spare(spare, hbr)
-        skills = hbr_skills(hbr, task, composition=composition, sparing=sparing)
+        measured = None
+        if ends_table is not None:
+            ends = Path(ends) if ends else (shipped_hbr_path() if shipped else Path(path)).parent / ends_file(ends_table)
+            if not ends.is_file():
+                raise ConfigError(f"variants planning with measured ends need {ends}; measure them: "
+                                  f"python -m experiments.pattern_ends --table {ends_table}")
+            measured = load_pattern_ends(ends, hbr)
+            if measured.table != ends_table:
+                raise ConfigError(f"{ends}: ends measured with the {measured.table!r} table, not {ends_table!r}")
+        skills = hbr_skills(hbr, task, composition=composition, sparing=sparing, ends=measured)
         return skills, {"kind": "hbr", "path": "shipped" if shipped else str(path),
-                        "actions": int(skills.actions.mask.sum()), **({"spare": str(spare)} if spare else {})}
+                        "actions": int(skills.actions.mask.sum()), **({"spare": str(spare)} if spare else {}),
+                        **({"pattern_ends": str(ends)} if measured is not None else {})}
     if kind == "hte_jax.flat":
         count = len(header["metadata"].get("damages", ()))
         if count != 1 and not maps:
@@ -252,8 +269,15 @@ def run_batch(config: EvalConfig, path: str | None, variants: list[str], maze: M
     steps (`BatchResult.replays`); none by default, and then nothing is recorded."""
     maps = len(variants) == 1 and variant_named(variants[0]).repertoire == "aprol"
     sparing = np.array([variant_named(v).sparing for v, _, _ in batch_labels(config, variants)])
+    measured = np.array([variant_named(v).measured_ends for v, _, _ in batch_labels(config, variants)])
+    tables = sorted({"sparing" if variant_named(v).sparing else "planned" for v in variants
+                     if variant_named(v).measured_ends})
+    if len(tables) > 1:
+        raise ConfigError("variants planning with ends measured on different tables (sparing and planned) "
+                          "cannot share a batch; run them separately")
     skills, info = load_skills(path, maps=maps, composition=config.composition, sparing=bool(sparing.any()),
-                               spare=config.spare or None)
+                               spare=config.spare or None, ends_table=tables[0] if tables else None,
+                               ends=config.pattern_ends or None)
     labels = batch_labels(config, variants)
     modes = np.array([variant_mode(v, skills.hierarchical) for v, _, _ in labels])
     damages = np.stack([parse_damage(d) for _, d, _ in labels])
@@ -263,7 +287,7 @@ def run_batch(config: EvalConfig, path: str | None, variants: list[str], maze: M
         key = jax.random.PRNGKey(config.seed)
         key = key if seed == 0 else jax.random.fold_in(key, seed)
     optimism = np.full(len(labels), config.optimism, np.float32)
-    episodes = start_episodes(adaptation, skills, start, damages, modes, key, optimism, sparing)
+    episodes = start_episodes(adaptation, skills, start, damages, modes, key, optimism, sparing, measured)
     robot = maze_robot(maze, config.robot)
     recorder = Recorder(tuple(record), record_every) if record else None
     episodes, timings = run_episodes(maze, adaptation, robot, skills, episodes, progress=progress,

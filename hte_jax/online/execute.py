@@ -24,6 +24,7 @@ import math
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from flax import struct
 
 from hte_jax.errors import ConfigError
@@ -39,6 +40,7 @@ from hte_jax.hbr.execution import (
 )
 from hte_jax.hbr.geometry import compose_pose, planar_pose, relative_pose
 from hte_jax.hbr.middle import PRIMARY
+from hte_jax.hbr.pattern_ends import PatternEnds, planning_priors
 from hte_jax.hbr.sparing import sparing_table
 from hte_jax.hbr.top import TopTask
 from hte_jax.online.actions import ActionSet, action_set, displacement_of
@@ -74,6 +76,8 @@ class Skills:
       next waypoint.
     sparing: the HBR's sparing sets (`hbr.sparing.sparing_table`) that episodes with
       `PatternState.sparing` plan their patterns' steps among, or None (no such episode).
+    priors: (64, A, 4) each action's outcome prior when executed with each pattern (`hbr.pattern_ends
+      .planning_priors`), what episodes with `PatternState.measured` plan with, or None.
     """
 
     actions: ActionSet
@@ -81,6 +85,17 @@ class Skills:
     hbr: HBR | None = None
     table: PatternTable | None = None
     sparing: PatternTable | None = None
+    priors: jax.Array | None = None
+
+    def planning_prior(self, learnt: PatternState) -> jax.Array | None:
+        """(B, A, 4) the RTE GP's prior of every action for B episodes: the outcome measured under
+        the pattern of each episode's last step where it plans with measured ends (and a pattern
+        was chosen), the stored outcome elsewhere; None when no pattern ends were loaded."""
+        if self.priors is None:
+            return None
+        use = learnt.measured & (learnt.last >= 0)
+        measured = self.priors[jnp.maximum(learnt.last, 0)]  # (B, A, 4)
+        return jnp.where(use[:, None, None], measured, self.actions.prior[None])
 
     @property
     def hierarchical(self) -> bool:
@@ -103,14 +118,15 @@ class Skills:
 
 
 def hbr_skills(hbr: HBR, top_task: TopTask, pad_to: int | None = None, composition: str = "planned",
-               sparing: bool = False) -> Skills:
+               sparing: bool = False, ends: PatternEnds | None = None) -> Skills:
     """The filled top-layer cells of an HBR as actions.
 
     composition: how a step with a chosen contact pattern picks its elite: "waypoints" (the
     paper's nearest elite to the next waypoint) or "planned" (`hbr.composition`: a plan among the
     pattern's elites to the skill's end, with the HBR's measured step model when it has one).
     sparing: also build the sparing sets (`hbr.sparing`) for variants that execute from them
-    (planned composition only).
+    (planned composition only). ends: the skills' measured ends under each pattern
+    (`hbr.pattern_ends`) for variants that plan with them (`Skills.priors`), or None.
     """
     if composition not in COMPOSITIONS:
         raise ValueError(f"unknown composition {composition!r}; choose from {', '.join(COMPOSITIONS)}")
@@ -119,8 +135,11 @@ def hbr_skills(hbr: HBR, top_task: TopTask, pad_to: int | None = None, compositi
     actions = action_set(hbr.top, top_task.extent, pad_to)
     genotypes = hbr.top.genotypes[jnp.maximum(actions.slots, 0)]
     table = planning_table(hbr) if composition == "planned" else None
+    priors = None
+    if ends is not None:
+        priors = jnp.asarray(planning_priors(ends, np.asarray(actions.slots), np.asarray(actions.prior)))
     return Skills(actions=actions, genotypes=genotypes, hbr=hbr, table=table,
-                  sparing=sparing_table(hbr) if sparing else None)
+                  sparing=sparing_table(hbr) if sparing else None, priors=priors)
 
 
 def flat_skills(repertoire: Repertoire, extent: float, pad_to: int | None = None) -> Skills:

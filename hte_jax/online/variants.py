@@ -89,6 +89,9 @@ class PatternState:
     motion: (B, 2, 6) float32 radians each leg's joints moved (row 0) and were commanded to move
     (row 1), summed. sparing: (B,) bool, a chosen pattern is executed from its sparing set
     (`hbr.sparing`: the elites that keep its lifted legs off the floor) rather than from its elites.
+    measured: (B,) bool, the planner's prior of each skill is its end measured under the pattern of
+    the last executed step (`hbr.pattern_ends`), not its stored end. last: (B,) int32 the pattern of
+    the last executed step (-1: any, or no step yet).
     """
 
     mode: jax.Array
@@ -98,6 +101,8 @@ class PatternState:
     contacts: jax.Array
     motion: jax.Array
     sparing: jax.Array
+    measured: jax.Array
+    last: jax.Array
 
 
 def candidate_elites(hbr: HBR, desired: jax.Array, patterns: np.ndarray = CANDIDATE_PATTERNS):
@@ -223,6 +228,8 @@ class Variant:
     sparing: a chosen pattern's steps are planned among its sparing set (`hbr.sparing`: the middle
     elites with under 5 % contact on each leg the pattern lifts, any contact on the others) instead
     of among the elites of that pattern at the HBR's contact threshold (needs planned composition).
+    measured_ends: the planner predicts each skill from its end measured under the pattern the
+    last step was executed with (`hbr.pattern_ends`, a file beside the HBR), not its stored end.
     """
 
     name: str
@@ -230,6 +237,7 @@ class Variant:
     repertoire: str = "hbr"
     summary: str = ""
     sparing: bool = False
+    measured_ends: bool = False
 
     @property
     def hierarchical(self) -> bool:
@@ -245,7 +253,7 @@ def add_variant(variant: Variant) -> Variant:
         raise ConfigError(f"variant {variant.name!r} is already defined")
     if variant.rule not in RULES:
         raise ConfigError(f"variant {variant.name!r}: unknown rule {variant.rule!r}; known: {', '.join(RULES)}")
-    if not variant.hierarchical and (variant.rule != "any" or variant.sparing):
+    if not variant.hierarchical and (variant.rule != "any" or variant.sparing or variant.measured_ends):
         raise ConfigError(f"variant {variant.name!r}: a flat repertoire has no contact patterns to choose")
     VARIANTS[variant.name] = variant
     return variant
@@ -278,6 +286,10 @@ for _variant in (
             summary="ours: as hte-sensed, with steps that keep the lifted legs really off the floor"),
     Variant("perfect-spare", "oracle", sparing=True,
             summary="the true damage's legs kept really off the floor (an upper bound for hte-spare)"),
+    Variant("hte-measured", "sensed", sparing=True, measured_ends=True,
+            summary="ours: as hte-spare, planning with each skill's end measured under the chosen pattern"),
+    Variant("perfect-measured", "oracle", sparing=True, measured_ends=True,
+            summary="as perfect-spare, planning with each skill's end measured under the true damage's pattern"),
     Variant("2d-rte", repertoire="2d", summary="RTE on the flat x-y repertoire"),
     Variant("8d-rte", repertoire="8d", summary="RTE on the flat 8-D repertoire"),
     Variant("aprol", repertoire="aprol", summary="APROL's choice among 21 damage repertoires"),
