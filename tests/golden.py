@@ -9,9 +9,11 @@ The runs (the same commands the test fixtures use):
 
 Arrays are compared bit for bit, so they are only comparable on the toolchain they were recorded
 with (jax, jaxlib, mujoco, numpy, CPU architecture and vector extensions: XLA's CPU code differs
-between AVX2 and AVX-512 machines). Each toolchain gets its own folder, `tests/golden/<machine>-
-<vector>/` with a `toolchain.json`; on a machine with no matching folder, or other versions, the
-check skips and says so. Record on a new kind of machine, or re-record every folder after a change
+between AVX2 and AVX-512 machines, and between CPU models of the same extensions). Each toolchain
+gets its own folder, `tests/golden/<machine>-<vector>-<cpu model>/` with a `toolchain.json` (the
+two folders without a CPU model were recorded before models were told apart and serve machines of
+their vector extensions that have no folder of their own); on a machine with no matching folder,
+or other versions, the check skips and says so. Record on a new kind of machine, or re-record every folder after a change
 that is meant to alter results (a new shipped HBR, a new default), with
 
     python -m tests.golden
@@ -45,21 +47,30 @@ _VECTOR_FLAGS = ("avx512f", "avx2", "avx", "sse4_2", "neon", "asimd")
 def toolchain() -> dict:
     """What bit-identical CPU results depend on besides our code."""
     versions = {name: metadata.version(name) for name in ("jax", "jaxlib", "mujoco", "mujoco-mjx", "numpy")}
-    flags = set()
+    flags, cpu = set(), {}
     try:
         for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith(("flags", "Features")):
-                flags = set(line.split(":", 1)[1].split())
-                break
+            key, _, value = line.partition(":")
+            key = key.strip()
+            if key in ("flags", "Features") and not flags:
+                flags = set(value.split())
+            elif key in ("vendor_id", "cpu family", "model") and key not in cpu:
+                cpu[key] = value.strip()
     except OSError:
         pass
     vector = next((flag for flag in _VECTOR_FLAGS if flag in flags), "unknown")
-    return {**versions, "machine": platform.machine(), "vector": vector}
+    model = "-".join(cpu.get(k, "?") for k in ("vendor_id", "cpu family", "model"))
+    return {**versions, "machine": platform.machine(), "vector": vector, "cpu": model}
 
 
 def golden_dir(chain: dict) -> Path:
-    """The folder holding the golden outputs of one toolchain."""
-    return GOLDEN_DIR / f"{chain['machine']}-{chain['vector']}"
+    """The folder holding the golden outputs of one toolchain: the one recorded on this CPU model
+    if there is one (XLA's code also differs between CPUs of the same vector extensions: an AVX2
+    AMD EPYC and the AVX2 machine of the first recording disagree), else the folder of its vector
+    extensions recorded before CPU models were told apart."""
+    exact = GOLDEN_DIR / f"{chain['machine']}-{chain['vector']}-{chain['cpu']}"
+    legacy = GOLDEN_DIR / f"{chain['machine']}-{chain['vector']}"
+    return legacy if not (exact / "toolchain.json").exists() and (legacy / "toolchain.json").exists() else exact
 
 
 def arrays_of(path: Path) -> dict[str, np.ndarray]:
@@ -76,8 +87,9 @@ def check(name: str, run_dir: Path) -> None:
         recorded_on = ", ".join(sorted(p.name for p in GOLDEN_DIR.iterdir() if p.is_dir())) or "nothing"
         pytest.skip(f"no golden outputs for {folder.name} (recorded: {recorded_on}); record them: python -m tests.golden")
     recorded = json.loads((folder / "toolchain.json").read_text())
-    if recorded != here:
-        differ = ", ".join(f"{k} {recorded.get(k)} -> {here.get(k)}" for k in here if recorded.get(k) != here.get(k))
+    compared = {k: v for k, v in here.items() if k in recorded}  # a folder recorded before "cpu" existed
+    if recorded != compared:
+        differ = ", ".join(f"{k} {recorded.get(k)} -> {here.get(k)}" for k in compared if recorded.get(k) != here.get(k))
         pytest.skip(f"golden outputs were recorded on another toolchain ({differ}); re-record: python -m tests.golden")
     golden = arrays_of(folder / f"{name}.npz")
     produced = arrays_of(run_dir / OUTPUTS[name])
@@ -93,7 +105,8 @@ def record() -> None:
     from experiments.train_flat import main as flat_main
     from experiments.train_hbr import main as hbr_main
 
-    folder = golden_dir(toolchain())
+    chain = toolchain()
+    folder = GOLDEN_DIR / f"{chain['machine']}-{chain['vector']}-{chain['cpu']}"  # always this CPU model's own
     folder.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory() as tmp:
         runs = {"hbr_tiny": (hbr_main, HBR_ARGS), "flat8d_tiny": (flat_main, FLAT_ARGS), "maze_short": (maze_main, MAZE_ARGS)}

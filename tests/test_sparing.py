@@ -2,6 +2,8 @@
 appended without changing any lookup of the HBR's own, planned steps that keep the lifted legs off
 the floor, and the variants that execute from them."""
 
+import json
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -91,3 +93,37 @@ def test_sparing_variants_are_table_entries_that_need_planned_composition(shippe
         hbr_skills(hbr, top_task, composition="waypoints", sparing=True)
     assert hbr_skills(hbr, top_task).sparing is None
     assert hbr_skills(hbr, top_task, sparing=True).sparing is not None
+
+
+def test_the_set_of_the_pattern_lifting_no_leg_is_its_own_elites(shipped):
+    hbr, _ = shipped
+    row = np.asarray(sparing_table(hbr).index[63])
+    np.testing.assert_array_equal(np.sort(row[row >= 0]), np.flatnonzero(np.asarray(hbr.middle_patterns) == 63))
+
+
+def test_train_spare_writes_an_archive_tied_to_its_bottom_layer(shipped, tmp_path):
+    from experiments.pattern_ends import main as ends_main
+    from experiments.train_spare import main as spare_main
+    from hte_jax.hbr.store import load_spare
+    from hte_jax.qd.io import CheckpointError
+
+    def read_json(path):
+        return json.loads(path.read_text())
+
+    hbr, _ = shipped
+    assert spare_main(["--threshold", "1.5", "--out", str(tmp_path / "bad")]) == 2
+    assert ends_main(["--max-lifted", "0"]) == 2
+    out = tmp_path / "spare"
+    assert spare_main(["--preset", "tiny", "--out", str(out), "--no-progress"]) == 0
+    summary = read_json(out / "summary.json")
+    joined = load_spare(out / "spare.npz", hbr)
+    assert joined.spare_count == summary["elites"] > 0
+    own = int(hbr.middle.capacity)
+    fraction = np.asarray(joined.middle.extras["contact_fraction"][own:])
+    bits = np.asarray(joined.middle.descriptors[own:, 3:])
+    np.testing.assert_array_equal(bits, fraction > hbr.middle_task.contact_threshold)  # the HBR's threshold
+    assert summary["threshold"] == STRICT_CONTACT and summary["lifting_each_leg"]["spare"] == (fraction < STRICT_CONTACT).sum(axis=0).tolist()
+    assert spare_main(["--preset", "tiny", "--out", str(out), "--no-progress"]) == 2  # the folder holds a run
+    other = hbr.replace(bottom=hbr.bottom.replace(genotypes=hbr.bottom.genotypes + 0.01))
+    with pytest.raises(CheckpointError, match="another HBR's bottom layer"):
+        load_spare(out / "spare.npz", other)
