@@ -4,6 +4,7 @@ An action is one elite of a repertoire (a top-layer skill of an HBR, or a flat c
 GP input is the elite's normalised descriptor (2-D for the HBR top layer and Flat-2D, 8-D for
 Flat-8D); its outcome is (dx, dy, cos dtheta, sin dtheta) in the pre-action frame, and the GP's
 prior mean is the repertoire's own prediction: the stored final position and arrival heading.
+`replayed_models` rebuilds the GPs of finished episodes from what they recorded.
 """
 
 from __future__ import annotations
@@ -91,3 +92,25 @@ def observe(model: GPData, actions: ActionSet, index: jax.Array, displacement: j
 def predict(model: GPData, actions: ActionSet, kernel: Kernel = RTE_KERNEL) -> tuple[jax.Array, jax.Array]:
     """Predicted outcome (A, 4) and variance (A,) of every action at once."""
     return posterior(kernel, model, actions.inputs, actions.prior)
+
+
+@jax.jit
+def replayed_models(actions: ActionSet, executed: jax.Array, displacements: jax.Array) -> GPData:
+    """The RTE GPs (B, L) of B episodes that executed actions `executed` (B, L) (-1: none, after the
+    episode ended) and measured `displacements` (B, L, 3) (`episode.History.action` and `.observed`
+    of episodes planning on one repertoire with its stored prior), with room for L observations.
+    Actions whose displacement is not finite (a robot whose simulation failed) are left out."""
+    executed, displacements = jnp.asarray(executed), jnp.asarray(displacements, jnp.float32)
+    mask = (executed >= 0) & jnp.all(jnp.isfinite(displacements), axis=-1)
+    index = jnp.maximum(executed, 0)
+
+    def filled(values):
+        return jnp.where(mask[..., None], values, 0.0).astype(jnp.float32)
+
+    return GPData(
+        inputs=filled(actions.inputs[index]),
+        targets=filled(outcome(jnp.where(mask[..., None], displacements, 0.0))),
+        prior=filled(actions.prior[index]),
+        mask=mask,
+        count=mask.sum(axis=-1).astype(jnp.int32),
+    )
