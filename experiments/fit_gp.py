@@ -66,7 +66,7 @@ def run_models(run: Path, variants: set[str] | None) -> tuple[GPData, dict]:
             names, repertoire = list(labels["variants"]), dict(labels["repertoire"])
             executed, observed, predicted = arrays["action"], arrays["observed"], arrays["predicted"]
         except (KeyError, TypeError, ValueError) as error:
-            raise CheckpointError(f"{path}: not a maze_eval episodes file (missing {error})") from None
+            raise CheckpointError(f"{path}: not a maze_eval episodes file ({type(error).__name__}: {error})") from None
         if repertoire.get("kind") != "hbr":
             skipped["flat repertoire"] += len(names)
             continue
