@@ -1,6 +1,6 @@
 """Measured pattern ends (hte_jax.hbr.pattern_ends): the planner's priors against a NumPy loop, the
 measurement against direct skill execution, the file's checks, and the variants that plan with
-them (a batch where no end is usable equals the variant without them, bit for bit)."""
+them (no usable end: the stored outcomes; otherwise each observation learnt against the measured end)."""
 
 import dataclasses
 
@@ -101,7 +101,7 @@ def test_measured_variants_are_entries_that_need_sparing_ends(shipped):
     assert hbr_skills(hbr, task).priors is None
 
 
-def test_with_no_usable_end_the_variant_equals_the_one_without_ends(shipped, tmp_path):
+def test_measured_variant_plans_and_learns_against_the_measured_ends(shipped, tmp_path):
     hbr, task = shipped
     slots = np.flatnonzero(np.asarray(hbr.top.filled))
     stored = np.asarray(skill_ends(hbr.top.descriptors[slots], hbr.top.extras["arrival_yaw"][slots], task.extent))
@@ -118,13 +118,20 @@ def test_with_no_usable_end_the_variant_equals_the_one_without_ends(shipped, tmp
         result = run_batch(dataclasses.replace(config, pattern_ends=str(path)), None, list(names), progress=False)
         return result.episodes
 
-    unusable = run(False, 0.0)
-    history = unusable.history
-    reference = run(False, 0.0, ("hte-spare", "hte-spare")).history  # row 1 has the same key
-    for field in ("action", "observed", "predicted", "patterns"):
-        np.testing.assert_array_equal(getattr(history, field)[1], getattr(reference, field)[1], err_msg=field)
+    # no usable end: every episode plans with the stored outcomes, whatever its last pattern
+    ends = PatternEnds(patterns=patterns, slots=slots.astype(np.int32), ends=stored[None].astype(np.float32),
+                       valid=np.zeros((1, slots.size), bool), table="sparing", fingerprint=fingerprint)
+    skills = hbr_skills(hbr, task, sparing=True, ends=ends)
+    learnt = variants.PatternState(mode=None, oracle=None, optimism=None, secondary=None, contacts=None, motion=None,
+                                   sparing=None, measured=jnp.array([True, True, False]),
+                                   last=jnp.array([47, -1, 47], jnp.int32))
+    np.testing.assert_array_equal(skills.planning_prior(learnt), np.broadcast_to(skills.actions.prior, (3, *skills.actions.prior.shape)))
     shifted = run(True, 0.3)  # every end 0.3 m further in x under leg 1's pattern
-    np.testing.assert_array_equal(shifted.history.action[0], history.action[0])  # hte-spare unaffected
+    measured_prior = np.asarray(hbr_skills(hbr, task, sparing=True, ends=PatternEnds(
+        patterns=patterns, slots=slots.astype(np.int32), ends=(stored + np.array([0.3, 0.0, 0.0], np.float32))[None],
+        valid=np.ones((1, slots.size), bool), table="sparing", fingerprint=fingerprint)).planning_prior(learnt))
+    np.testing.assert_allclose(measured_prior[0, :, 0], skills.actions.prior[:, 0] + 0.3, atol=1e-5)  # measured, pattern 47
+    np.testing.assert_array_equal(measured_prior[1:], np.asarray(skills.planning_prior(learnt))[1:])  # no pattern yet / not measured
     actions = np.asarray(shifted.history.action[1])
     last = np.asarray(shifted.history.patterns[1])[:, -1]
     taken = int(shifted.taken[1])
