@@ -22,7 +22,7 @@ import numpy as np
 
 from hte_jax.errors import ConfigError
 from hte_jax.flat.comparison import resolve
-from hte_jax.hbr.composition import planning_table
+from hte_jax.hbr.composition import planning_table, skill_ends
 from hte_jax.hbr.pattern_ends import TABLES, ends_file, measure_pattern_ends, save_pattern_ends
 from hte_jax.hbr.sparing import lifted_legs, sparing_table
 from hte_jax.hbr.store import load_hbr, load_spare, shipped_hbr_path, spare_beside
@@ -70,7 +70,8 @@ def main(argv=None) -> int:
         print(f"error: {error}", file=sys.stderr)
         return 2
     out = Path(args.out) if args.out else Path(path).parent / ends_file(args.table)
-    stored = np.asarray(hbr.top.descriptors)[ends.slots] * (2 * task.extent) - task.extent
+    stored = np.asarray(skill_ends(hbr.top.descriptors[ends.slots], hbr.top.extras["arrival_yaw"][ends.slots],
+                                   task.extent))[:, :2]
     gap = np.linalg.norm(ends.ends[..., :2] - stored[None], axis=-1)[ends.valid]
     summary = {"skills": int(ends.slots.size), "patterns": ends.patterns.tolist(), "table": args.table,
                "spare": str(spare) if spare else None, "valid_share": float(ends.valid.mean()),

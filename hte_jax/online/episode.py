@@ -246,9 +246,10 @@ def plan_step(maze: Maze, config: AdaptationConfig, skills: Skills, field: jax.A
         return jax.vmap(predict)(gps, maps.replace(prior=prior))  # (K, A, 4), (K, A)
 
     measured = skills.planning_prior(episodes.learnt)  # (B, A, 4) or None
-    priors = (jnp.broadcast_to(maps.prior, (episodes.taken.shape[0], *maps.prior.shape)) if measured is None
-              else measured[:, None])  # (B, K, A, 4)
-    mean, variance = jax.vmap(predict_maps)(episodes.rte, priors)  # (B, K, A, 4), (B, K, A)
+    if measured is None:  # every episode plans with the stored outcomes: one (K, A, 4) prior
+        mean, variance = jax.vmap(predict_maps, in_axes=(0, None))(episodes.rte, maps.prior)
+    else:
+        mean, variance = jax.vmap(predict_maps)(episodes.rte, measured[:, None])  # (B, K, A, 4), (B, K, A)
     rows = jnp.arange(mean.shape[0])
     current = episodes.belief.current
     displacement = displacement_of(mean[rows, current])  # (B, A, 3)
@@ -270,7 +271,7 @@ def plan_step(maze: Maze, config: AdaptationConfig, skills: Skills, field: jax.A
         chosen_map, action = jnp.zeros_like(result.action), result.action
     predicted = displacement_of(mean[rows, chosen_map, action])
     return Decision(plan=result, map=chosen_map, action=action, start=start, predicted=predicted, keys=keys,
-                    prior=priors[rows, chosen_map, action])
+                    prior=maps.prior[chosen_map, action] if measured is None else measured[rows, action])
 
 
 @functools.partial(jax.jit, static_argnames=("maze", "config", "record_every", "rules"))
