@@ -16,6 +16,7 @@ from hte_jax.hbr.sparing import STRICT_CONTACT, lifted_legs, sparing_members, sp
 from hte_jax.hbr.store import load_hbr
 from hte_jax.online import variants
 from hte_jax.online.execute import hbr_skills
+from hte_jax.online.secondary import unusable_legs
 
 
 @pytest.fixture(scope="module")
@@ -84,15 +85,38 @@ def test_planned_sparing_steps_keep_the_lifted_legs_off_the_floor(shipped):
 
 def test_sparing_variants_are_table_entries_that_need_planned_composition(shipped):
     hbr, top_task = shipped
-    assert variants.variant("hte-spare").sparing and variants.variant("hte-spare").rule == "sensed"
-    assert variants.variant("perfect-spare").sparing and variants.variant("perfect-spare").rule == "oracle"
-    assert not any(v.sparing for name, v in variants.VARIANTS.items() if name in ("hte", "rte", "perfect-hte"))
+    assert variants.variant("hte-spare").sparing == "off-floor" and variants.variant("hte-spare").rule == "sensed"
+    assert variants.variant("hte-spare-always").sparing == "always"
+    assert variants.variant("perfect-spare").sparing == "always" and variants.variant("perfect-spare").rule == "oracle"
+    assert not any(v.spares for name, v in variants.VARIANTS.items() if name in ("hte", "rte", "perfect-hte"))
     with pytest.raises(ConfigError, match="no contact patterns"):
-        variants.add_variant(variants.Variant("flat-spare", repertoire="2d", sparing=True, summary="x"))
+        variants.add_variant(variants.Variant("flat-spare", repertoire="2d", sparing="always", summary="x"))
+    with pytest.raises(ConfigError, match="sparing 'sometimes' is not one of"):
+        variants.add_variant(variants.Variant("odd-spare", "sensed", sparing="sometimes", summary="x"))
     with pytest.raises(ConfigError, match="composition planned"):
         hbr_skills(hbr, top_task, composition="waypoints", sparing=True)
     assert hbr_skills(hbr, top_task).sparing is None
     assert hbr_skills(hbr, top_task, sparing=True).sparing is not None
+
+
+def test_spares_now_follows_each_episodes_sparing_mode_and_sensed_contacts():
+    # episodes: never, always, off-floor with a leg sensed off the floor (leg 2 expected 1 s,
+    # sensed none), off-floor with every leg touching as expected (a locked leg), off-floor with
+    # too little evidence yet (0.2 s expected)
+    contacts = np.zeros((5, 2, 6), np.float32)
+    contacts[:, 1, :] = 1.0
+    contacts[:, 0, :] = 1.0
+    contacts[2, 0, 2] = 0.0
+    contacts[4] = 0.2
+    contacts[4, 0, 2] = 0.0
+    never, always, off_floor = (variants.SPARING.index(m) for m in ("never", "always", "off-floor"))
+    learnt = variants.PatternState(mode=None, oracle=None, optimism=None, secondary=None,
+                                   contacts=jnp.asarray(contacts), motion=None,
+                                   sparing=jnp.asarray([never, always, off_floor, off_floor, off_floor], jnp.int32),
+                                   measured=None, last=None)
+    off = np.asarray(unusable_legs(jnp.asarray(contacts))).any(axis=-1)
+    assert off.tolist() == [False, False, True, False, False]
+    np.testing.assert_array_equal(np.asarray(variants.spares_now(learnt)), [False, True, True, False, False])
 
 
 def test_the_set_of_the_pattern_lifting_no_leg_is_its_own_elites(shipped):

@@ -216,6 +216,7 @@ def execute_skill(
     record_every: int = 0,
     table: PatternTable | None = None,
     ends: jax.Array | None = None,
+    limits: ValidityLimits = ValidityLimits(),
 ) -> SkillResult:
     """Execute (B, 9) top genotypes from `start` (B, ...) with damage (B, 6) and contact patterns (B, 3).
 
@@ -223,7 +224,7 @@ def execute_skill(
     k > 0 records the qpos every k control steps (`steps.qpos`, (3, B, F, 25)). table and ends
     (B, 3) (the skills' end poses in the start frame): steps with a pattern >= 0 run the first step
     of a plan among that pattern's elites towards the end (`composition`), not the nearest elite to
-    the next waypoint.
+    the next waypoint. limits: when a step is invalid (default: training's).
     """
     batch = genotypes.shape[0]
     damage = jnp.zeros((batch, NUM_LEGS), bool) if damage is None else jnp.broadcast_to(damage, (batch, NUM_LEGS))
@@ -239,7 +240,7 @@ def execute_skill(
         elite = None
         if table is not None:
             elite = plan_batch(table, hbr.middle_task, state_pose(state), goal, pattern, remaining)
-        step = execute_step(robot, hbr, state, damage, target, pattern, record_every=record_every, elite=elite)
+        step = execute_step(robot, hbr, state, damage, target, pattern, limits, record_every=record_every, elite=elite)
         return step.state, step
 
     remaining = jnp.arange(STEPS_PER_SKILL, 0, -1, dtype=jnp.int32)

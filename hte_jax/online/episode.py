@@ -158,7 +158,8 @@ def start_episodes(
     measured: np.ndarray | None = None,
 ) -> Episodes:
     """B fresh episodes: robots `start` with `damages` (B, 6), secondary `modes` (B,) and `optimism`
-    (B,) (default 0), `sparing` and `measured` (B,) bool (default False: `PatternState`). start:
+    (B,) (default 0), `sparing` (B,) int32 (default 0, never: `variants.SPARING`) and `measured` (B,) bool
+    (default False: `PatternState`). start:
     SimState (B, ...) of simulated robots, or the world planar poses (B, 3)
     of robots an executor drives (`executor.py`; `Episodes.sim` is then None).
 
@@ -201,7 +202,7 @@ def start_episodes(
             secondary=stacked(empty_gp(STEPS_PER_SKILL * length, SECONDARY_DIM, SECONDARY_OUTPUTS), batch),
             contacts=jnp.zeros((batch, 2, NUM_LEGS), jnp.float32),
             motion=jnp.zeros((batch, 2, NUM_LEGS), jnp.float32),
-            sparing=jnp.zeros(batch, bool) if sparing is None else jnp.asarray(sparing, bool),
+            sparing=jnp.zeros(batch, jnp.int32) if sparing is None else jnp.asarray(sparing, jnp.int32),
             measured=jnp.zeros(batch, bool) if measured is None else jnp.asarray(measured, bool),
             last=jnp.full(batch, -1, jnp.int32),
         ),

@@ -27,6 +27,7 @@ from hte_jax.hbr.pattern_ends import ends_file, load_pattern_ends
 from hte_jax.hbr.store import load_hbr, load_spare, shipped_hbr_path, spare_beside
 from hte_jax.online.arena import maze_robot, start_states
 from hte_jax.online.episode import AdaptationConfig, Episodes, RunTimings, run_episodes, start_episodes, variant_mode
+from hte_jax.online.variants import SPARING
 from hte_jax.online.variants import variant as variant_named
 from hte_jax.hbr.composition import COMPOSITIONS
 from hte_jax.online.execute import Skills, flat_skill_maps, flat_skills, hbr_skills
@@ -268,14 +269,14 @@ def run_batch(config: EvalConfig, path: str | None, variants: list[str], maze: M
     batch of episodes. record: batch rows whose states are recorded every `record_every` control
     steps (`BatchResult.replays`); none by default, and then nothing is recorded."""
     maps = len(variants) == 1 and variant_named(variants[0]).repertoire == "aprol"
-    sparing = np.array([variant_named(v).sparing for v, _, _ in batch_labels(config, variants)])
+    sparing = np.array([SPARING.index(variant_named(v).sparing) for v, _, _ in batch_labels(config, variants)], np.int32)
     measured = np.array([variant_named(v).measured_ends for v, _, _ in batch_labels(config, variants)])
-    tables = sorted({"sparing" if variant_named(v).sparing else "planned" for v in variants
+    tables = sorted({"sparing" if variant_named(v).spares else "planned" for v in variants
                      if variant_named(v).measured_ends})
     if len(tables) > 1:
         raise ConfigError("variants planning with ends measured on different tables (sparing and planned) "
                           "cannot share a batch; run them separately")
-    skills, info = load_skills(path, maps=maps, composition=config.composition, sparing=bool(sparing.any()),
+    skills, info = load_skills(path, maps=maps, composition=config.composition, sparing=bool((sparing > 0).any()),
                                spare=config.spare or None, ends_table=tables[0] if tables else None,
                                ends=config.pattern_ends or None)
     labels = batch_labels(config, variants)

@@ -46,7 +46,7 @@ from hte_jax.hbr.top import TopTask
 from hte_jax.online.actions import ActionSet, action_set, displacement_of
 from hte_jax.online.gp import GPData, add_observation
 from hte_jax.online.secondary import relative_error, step_targets
-from hte_jax.online.variants import ERROR_DIM, PatternState, choose, rule_index, step_context
+from hte_jax.online.variants import ERROR_DIM, PatternState, choose, rule_index, spares_now, step_context
 from hte_jax.qd.repertoire import Repertoire
 from hte_jax.sim.controller import NUM_PARAMS, commanded_travel
 from hte_jax.sim.robot import NUM_LEGS, Robot
@@ -275,7 +275,7 @@ def choose_step(
         elite = plan_batch(skills.table, task, here, goal, pattern, STEPS_PER_SKILL - step)
     if skills.sparing is not None:
         spared = plan_batch(skills.sparing, task, here, goal, pattern, STEPS_PER_SKILL - step)
-        elite = jnp.where(learnt.sparing, spared, elite)
+        elite = jnp.where(spares_now(learnt), spared, elite)
     index, found = step_elite(hbr, here, target, pattern, query, elite)
     return pattern, index, found
 

@@ -34,6 +34,7 @@ from hte_jax.online.secondary import (
     predicted_landing_miss,
     predicted_miss,
     ucb_beta,
+    unusable_legs,
     usable_pattern,
 )
 
@@ -87,8 +88,9 @@ class PatternState:
     executed elite). contacts: (B, 2, 6) float32 seconds each leg was sensed on the floor (row 0)
     and expected on it by the executed elites' stored contact fractions (row 1), summed.
     motion: (B, 2, 6) float32 radians each leg's joints moved (row 0) and were commanded to move
-    (row 1), summed. sparing: (B,) bool, a chosen pattern is executed from its sparing set
-    (`hbr.sparing`: the elites that keep its lifted legs off the floor) rather than from its elites.
+    (row 1), summed. sparing: (B,) int32 when a chosen pattern is executed from its sparing set
+    (`hbr.sparing`: the elites that keep its lifted legs off the floor) rather than from its
+    elites, an index into `SPARING` (`spares_now`).
     measured: (B,) bool, the planner's prior of each skill is its end measured under the pattern of
     the last executed step (`hbr.pattern_ends`), not its stored end. last: (B,) int32 the pattern of
     the last executed step (-1: any, or no step yet).
@@ -103,6 +105,18 @@ class PatternState:
     sparing: jax.Array
     measured: jax.Array
     last: jax.Array
+
+
+SPARING = ("never", "always", "off-floor")  # when a variant executes a chosen pattern from its sparing set
+
+
+def spares_now(learnt: PatternState) -> jax.Array:
+    """(B,) bool: the episodes that execute their chosen pattern from its sparing set now: "always",
+    or "off-floor" once some leg is sensed off the floor (`secondary.unusable_legs`). A leg locked
+    in its standing pose keeps touching the floor and holds the body up, so a locked leg is lifted
+    by the pattern's own elites (which may still touch), while a leg blocked in the air is spared."""
+    off_floor = unusable_legs(learnt.contacts).any(axis=-1)
+    return (learnt.sparing == SPARING.index("always")) | ((learnt.sparing == SPARING.index("off-floor")) & off_floor)
 
 
 def candidate_elites(hbr: HBR, desired: jax.Array, patterns: np.ndarray = CANDIDATE_PATTERNS):
@@ -225,9 +239,10 @@ class Variant:
     name: what `maze_eval --variant` calls it. rule: the key in `RULES` that picks each step's
     pattern ("any" for flat repertoires). repertoire: "hbr", or the shipped flat repertoire it plans
     with ("2d", "8d", "aprol": APROL's 21). summary: one line for the docs and `--help`.
-    sparing: a chosen pattern's steps are planned among its sparing set (`hbr.sparing`: the middle
-    elites with under 5 % contact on each leg the pattern lifts, any contact on the others) instead
-    of among the elites of that pattern at the HBR's contact threshold (needs planned composition).
+    sparing: when a chosen pattern's steps are planned among its sparing set (`hbr.sparing`: the
+    middle elites with under 5 % contact on each leg the pattern lifts, any contact on the others)
+    instead of among the elites of that pattern at the HBR's contact threshold (needs planned
+    composition): one of `SPARING`, "never", "always" or "off-floor" (`spares_now`).
     measured_ends: the planner predicts each skill from its end measured under the pattern the
     last step was executed with (`hbr.pattern_ends`, a file beside the HBR), not its stored end.
     """
@@ -236,12 +251,17 @@ class Variant:
     rule: str = "any"
     repertoire: str = "hbr"
     summary: str = ""
-    sparing: bool = False
+    sparing: str = "never"
     measured_ends: bool = False
 
     @property
     def hierarchical(self) -> bool:
         return self.repertoire == "hbr"
+
+    @property
+    def spares(self) -> bool:
+        """Whether the variant ever executes from sparing sets."""
+        return self.sparing != "never"
 
 
 VARIANTS: dict[str, Variant] = {}
@@ -253,7 +273,9 @@ def add_variant(variant: Variant) -> Variant:
         raise ConfigError(f"variant {variant.name!r} is already defined")
     if variant.rule not in RULES:
         raise ConfigError(f"variant {variant.name!r}: unknown rule {variant.rule!r}; known: {', '.join(RULES)}")
-    if not variant.hierarchical and (variant.rule != "any" or variant.sparing or variant.measured_ends):
+    if variant.sparing not in SPARING:
+        raise ConfigError(f"variant {variant.name!r}: sparing {variant.sparing!r} is not one of {', '.join(SPARING)}")
+    if not variant.hierarchical and (variant.rule != "any" or variant.spares or variant.measured_ends):
         raise ConfigError(f"variant {variant.name!r}: a flat repertoire has no contact patterns to choose")
     VARIANTS[variant.name] = variant
     return variant
@@ -282,13 +304,15 @@ for _variant in (
     Variant("hte-legs", "legs", summary="ours: primary mismatch plus a learnt per-leg penalty"),
     Variant("hte-contacts", "contacts", summary="ours: lift the legs sensed not to touch the floor"),
     Variant("hte-sensed", "sensed", summary="ours: lift the legs sensed off the floor or not following their joint commands"),
-    Variant("hte-spare", "sensed", sparing=True,
-            summary="ours: as hte-sensed, with steps that keep the lifted legs really off the floor"),
-    Variant("perfect-spare", "oracle", sparing=True,
+    Variant("hte-spare", "sensed", sparing="off-floor",
+            summary="ours: as hte-sensed, with steps that keep the legs sensed off the floor really off it"),
+    Variant("hte-spare-always", "sensed", sparing="always",
+            summary="as hte-spare, keeping every lifted leg really off the floor, also a locked one"),
+    Variant("perfect-spare", "oracle", sparing="always",
             summary="the true damage's legs kept really off the floor (an upper bound for hte-spare)"),
-    Variant("hte-measured", "sensed", sparing=True, measured_ends=True,
+    Variant("hte-measured", "sensed", sparing="always", measured_ends=True,
             summary="ours: as hte-spare, planning with each skill's end measured under the chosen pattern"),
-    Variant("perfect-measured", "oracle", sparing=True, measured_ends=True,
+    Variant("perfect-measured", "oracle", sparing="always", measured_ends=True,
             summary="as perfect-spare, planning with each skill's end measured under the true damage's pattern"),
     Variant("2d-rte", repertoire="2d", summary="RTE on the flat x-y repertoire"),
     Variant("8d-rte", repertoire="8d", summary="RTE on the flat 8-D repertoire"),
