@@ -69,7 +69,7 @@ from common import earlier_result, environment, parse_setting, result_path, run_
 from hte_jax.flat.store import load_flat, shipped_flat_path
 from hte_jax.flat.task import evaluate_flat
 from hte_jax.hbr.execution import execute_skill
-from hte_jax.hbr.geometry import planar_pose, relative_pose
+from hte_jax.geometry import planar_pose, relative_pose
 from hte_jax.hbr.store import load_hbr
 from hte_jax.hbr.top import evaluate_top
 from hte_jax.sim.damage import paper_damage_masks, parse_damage

@@ -20,7 +20,7 @@ from hte_jax.hbr.composition import (
     planning_table,
 )
 from hte_jax.hbr.execution import execute_skill
-from hte_jax.hbr.geometry import planar_pose, relative_pose
+from hte_jax.geometry import planar_pose, relative_pose
 from hte_jax.hbr.middle import MiddleTask
 from hte_jax.hbr.store import load_hbr, save_hbr
 from hte_jax.online.evaluation import EvalConfig

@@ -10,7 +10,7 @@ import pytest
 
 from experiments.maze_eval import main as maze_main
 from hte_jax.flat.store import shipped_flat_path
-from hte_jax.hbr.geometry import compose_pose, relative_pose
+from hte_jax.geometry import compose_pose, relative_pose
 from hte_jax.online.episode import SECONDS_PER_ACTION
 from hte_jax.online.variants import CANDIDATE_PATTERNS
 from hte_jax.online.maze import PAPER_MAZE

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from hte_jax.flat.store import load_flat, shipped_flat_path
-from hte_jax.hbr.geometry import planar_pose, relative_pose
+from hte_jax.geometry import planar_pose, relative_pose
 from hte_jax.hbr.store import load_hbr
 from hte_jax.online.arena import maze_robot, place, start_states
 from hte_jax.online.execute import (

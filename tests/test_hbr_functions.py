@@ -20,7 +20,7 @@ from hte_jax.hbr.bottom import (
 )
 from hte_jax.hbr.analysis import fitness_by_distance, speed_by_turn
 from hte_jax.hbr.execution import HBR, select_middle, skill_waypoints
-from hte_jax.hbr.geometry import angle_error, compose_pose, heading, medoid_index, planar_pose, relative_pose, wrap_angle
+from hte_jax.geometry import angle_error, compose_pose, heading, medoid_index, planar_pose, relative_pose, wrap_angle
 from hte_jax.hbr.middle import MiddleTask, leg_controllers, nearest_index, pattern_bits, pattern_code
 from hte_jax.hbr.top import TopTask
 from hte_jax.qd.repertoire import Repertoire, empty_repertoire

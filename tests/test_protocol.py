@@ -10,7 +10,7 @@ import numpy as np
 
 from experiments.maze_eval import main as maze_main
 from hte_jax.flat.store import shipped_flat_path
-from hte_jax.hbr.geometry import relative_pose
+from hte_jax.geometry import relative_pose
 from hte_jax.qd.io import read_checkpoint
 
 

@@ -17,7 +17,7 @@ import pytest
 from PIL import Image
 
 from experiments.maze_eval import main as maze_main
-from hte_jax.hbr.geometry import heading
+from hte_jax.geometry import heading
 from hte_jax.online.recording import load_replay, recorded_episodes, replay_path
 from hte_jax.qd.io import read_checkpoint
 from hte_jax.viz.episode import episode_model, frame_states, frame_text

@@ -15,7 +15,7 @@ from hte_jax.flat.store import load_flat, shipped_flat_path
 from hte_jax.flat.training import FlatConfig
 from hte_jax.flat.training import normalised_config as flat_normalised
 from hte_jax.flat.training import preset as flat_preset
-from hte_jax.hbr.geometry import planar_pose
+from hte_jax.geometry import planar_pose
 from hte_jax.hbr.training import PRESETS, HBRConfig, normalised_config
 from hte_jax.online.evaluation import EvalConfig
 from hte_jax.qd.io import prepare_run_dir

@@ -16,7 +16,7 @@ import jax
 import jax.numpy as jnp
 
 from hte_jax.errors import ConfigError, require_int, require_number
-from hte_jax.hbr.geometry import angle_error, planar_pose, relative_pose
+from hte_jax.geometry import angle_error, planar_pose, relative_pose
 from hte_jax.hbr.top import TopTask
 from hte_jax.qd.grid import Grid
 from hte_jax.qd.repertoire import Evaluation

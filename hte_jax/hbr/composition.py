@@ -26,7 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from hte_jax.hbr.geometry import compose_pose, planar_pose, relative_pose
+from hte_jax.geometry import compose_pose, planar_pose, relative_pose
 from hte_jax.hbr.middle import NUM_PATTERNS, PRIMARY, MiddleTask
 from hte_jax.qd.archive import map_rows
 from hte_jax.sim.robot import NUM_LEGS, Robot

@@ -20,7 +20,7 @@ import jax.numpy as jnp
 from flax import struct
 
 from hte_jax.hbr.composition import PatternTable, StepModel, plan_batch
-from hte_jax.hbr.geometry import compose_pose, planar_pose, relative_pose
+from hte_jax.geometry import compose_pose, planar_pose, relative_pose
 from hte_jax.hbr.middle import PRIMARY, MiddleTask, decode, leg_controllers, pattern_code
 from hte_jax.hbr.skill_grid import TopTask
 from hte_jax.qd.archive import map_rows, squared_distance

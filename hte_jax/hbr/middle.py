@@ -29,7 +29,7 @@ import jax
 import jax.numpy as jnp
 
 from hte_jax.errors import require_int, require_number
-from hte_jax.hbr.geometry import angle_error, medoid_index, planar_pose, relative_pose
+from hte_jax.geometry import angle_error, medoid_index, planar_pose, relative_pose
 from hte_jax.qd.archive import Archive, map_rows, squared_distance
 from hte_jax.qd.repertoire import Evaluation, Repertoire
 from hte_jax.qd.task_spec import EvaluateFn, TaskSpec

@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 
 from hte_jax.hbr.execution import HBR, STEPS_PER_SKILL, execute_skill
-from hte_jax.hbr.geometry import angle_error
+from hte_jax.geometry import angle_error
 from hte_jax.hbr.skill_grid import TopTask as TopTask  # the top layer's grid, re-exported
 from hte_jax.qd.repertoire import Evaluation
 from hte_jax.qd.task_spec import EvaluateFn, TaskSpec

@@ -14,7 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from hte_jax.hbr.geometry import wrap_angle
+from hte_jax.geometry import wrap_angle
 from hte_jax.online.gp import RTE_KERNEL, GPData, Kernel, add_observation, empty_gp, posterior
 from hte_jax.qd.repertoire import Repertoire
 

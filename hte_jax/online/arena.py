@@ -14,7 +14,7 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
-from hte_jax.hbr.geometry import heading
+from hte_jax.geometry import heading
 from hte_jax.online.maze import Maze
 from hte_jax.sim.robot import Robot, RobotConfig, load_robot
 from hte_jax.sim.rollout import SimState, standing_state

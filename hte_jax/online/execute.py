@@ -38,7 +38,7 @@ from hte_jax.hbr.execution import (
     state_pose,
     step_elite,
 )
-from hte_jax.hbr.geometry import compose_pose, planar_pose, relative_pose
+from hte_jax.geometry import compose_pose, planar_pose, relative_pose
 from hte_jax.hbr.middle import PRIMARY
 from hte_jax.hbr.pattern_ends import PatternEnds, planning_priors
 from hte_jax.hbr.sparing import sparing_table

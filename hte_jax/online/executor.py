@@ -27,7 +27,7 @@ import numpy as np
 from flax import struct
 
 from hte_jax.hbr.execution import STEPS_PER_SKILL
-from hte_jax.hbr.geometry import planar_pose, relative_pose
+from hte_jax.geometry import planar_pose, relative_pose
 from hte_jax.online.arena import maze_config, place
 from hte_jax.online.episode import AdaptationConfig, Decision, Episodes, plan_step, record_action, start_episodes, variant_mode
 from hte_jax.online.execute import (
