@@ -1,4 +1,5 @@
-"""Planar pose arithmetic shared by the layers: headings, start-frame displacements, angle error.
+"""Planar (SE(2)) pose arithmetic shared by the layers, the flat repertoires and the online loop:
+headings, start-frame displacements, pose composition, angle error (and the medoid of a point set).
 
 All functions broadcast over leading dimensions. Quaternions are (w, x, y, z).
 """
