@@ -43,10 +43,13 @@ def test_planning_priors_match_a_loop():
     slots = np.array([4, 9, 2, 7])
     ends = PatternEnds(patterns=np.array([47, 61, 45]), slots=slots, ends=rng.normal(size=(3, 4, 3)).astype(np.float32),
                        valid=rng.random((3, 4)) > 0.3, table="sparing", fingerprint="x")
-    action_slots = np.array([9, 7, 5, 4, -1])  # slot 5 was not measured; -1 is padding
-    stored = rng.normal(size=(5, 4)).astype(np.float32)
+    action_slots = np.array([9, 7, 5, 4, -1, 12, 0])  # slots 5, 12, 0 were not measured; -1 is padding
+    stored = rng.normal(size=(7, 4)).astype(np.float32)
     priors = planning_priors(ends, action_slots, stored)
-    assert priors.shape == (64, 5, 4)
+    assert priors.shape == (64, 7, 4)
+    nothing = PatternEnds(patterns=np.array([47]), slots=np.zeros(0, int), ends=np.zeros((1, 0, 3), np.float32),
+                          valid=np.zeros((1, 0), bool), table="sparing", fingerprint="x")
+    np.testing.assert_array_equal(planning_priors(nothing, action_slots, stored), np.broadcast_to(stored, (64, 7, 4)))
     for pattern in range(64):
         for a, slot in enumerate(action_slots):
             expected = stored[a]

@@ -123,11 +123,12 @@ def planning_priors(ends: PatternEnds, action_slots: np.ndarray, stored_prior: n
     """
     action_slots = np.asarray(action_slots)
     priors = np.broadcast_to(np.asarray(stored_prior, np.float32), (NUM_PATTERNS, *np.shape(stored_prior))).copy()
-    column = {int(slot): i for i, slot in enumerate(ends.slots)}
+    slots = np.asarray(ends.slots)
+    order = np.argsort(slots, kind="stable")
     rows = np.flatnonzero(action_slots >= 0)
-    found = np.array([int(action_slots[a]) in column for a in rows], bool)
-    rows = rows[found]
-    cols = np.array([column[int(action_slots[a])] for a in rows], np.int64)
+    at = np.minimum(np.searchsorted(slots[order], action_slots[rows]), max(slots.size - 1, 0))
+    found = slots[order][at] == action_slots[rows] if slots.size else np.zeros(rows.size, bool)
+    rows, cols = rows[found], order[at[found]]  # the actions that were measured, and their columns in `ends`
     for k, pattern in enumerate(ends.patterns):
         usable = ends.valid[k, cols]
         moved = ends.ends[k, cols[usable]]
