@@ -10,14 +10,13 @@ from __future__ import annotations
 
 import dataclasses
 
-import jax
 import jax.numpy as jnp
 import numpy as np
-from tqdm.auto import tqdm
 
-from hte_jax.hbr.composition import PatternTable, skill_ends
-from hte_jax.hbr.execution import HBR, STEPS_PER_SKILL, execute_skill
-from hte_jax.hbr.middle import NUM_PATTERNS, pattern_code
+from hte_jax.hbr.composition import PatternTable
+from hte_jax.hbr.execution import HBR
+from hte_jax.hbr.middle import pattern_code
+from hte_jax.hbr.reexecution import checked_pairs, execute_held, stored_ends
 from hte_jax.hbr.top import TopTask
 from hte_jax.sim.robot import Robot
 from hte_jax.sim.rollout import SimState
@@ -130,45 +129,20 @@ def modulate(
     table: plan each step among the pattern's elites towards the skill's end (`composition`)
     instead of the paper's nearest elite to each waypoint.
     """
-    filled = np.flatnonzero(np.asarray(hbr.top.filled))
-    slots = filled if skills is None else np.asarray(skills, np.int64)
-    if not np.isin(slots, filled).all():
-        raise ValueError(f"skills {slots[~np.isin(slots, filled)].tolist()} are not filled cells of the top layer")
-    patterns = np.arange(NUM_PATTERNS) if patterns is None else np.asarray(patterns, np.int64)
-    if patterns.size == 0 or patterns.min() < 0 or patterns.max() >= NUM_PATTERNS:
-        raise ValueError(f"patterns must be in [0, {NUM_PATTERNS}), got {patterns.tolist()}")
-    genotypes = np.asarray(hbr.top.genotypes)[slots]
-    pair_genes = np.repeat(genotypes, patterns.size, axis=0)
-    pair_patterns = np.tile(patterns, slots.size)
-    ends = np.asarray(skill_ends(np.asarray(hbr.top.descriptors)[slots], np.asarray(hbr.top.extras["arrival_yaw"])[slots],
-                                 task.extent))
-    pair_ends = np.repeat(ends, patterns.size, axis=0)
-    total = pair_genes.shape[0]
-    chunk = min(chunk, total)
+    slots, patterns = checked_pairs(hbr, skills, patterns)
     threshold = hbr.middle_task.contact_threshold
-    starts = jax.tree.map(lambda x: jnp.broadcast_to(x, (chunk, *x.shape)), start)
 
-    @jax.jit
-    def run_chunk(hbr, table, genes, wanted, ends):
-        held = jnp.broadcast_to(wanted[:, None], (wanted.shape[0], STEPS_PER_SKILL))
-        skill = execute_skill(robot, hbr, genes, starts, patterns=held, table=table, ends=ends)
+    def summarise(skill):
         fraction = skill.steps.contact_fraction.mean(axis=0)  # (B, 6) over the 3 s
         xy = skill.displacement[:, :2]
         cell = task.grid().cell_index(task.normalise(xy))
         return xy, pattern_code((fraction > threshold).astype(jnp.float32)), skill.valid, skill.steps.pattern_found.all(axis=0), cell
 
-    outputs = []
-    for begin in tqdm(range(0, total, chunk), disable=not progress, desc="modulation", unit="chunk"):
-        genes = pair_genes[begin:begin + chunk]
-        wanted = pair_patterns[begin:begin + chunk]
-        end = pair_ends[begin:begin + chunk]
-        pad = chunk - genes.shape[0]
-        genes = np.concatenate([genes, np.repeat(genes[-1:], pad, axis=0)])
-        wanted = np.concatenate([wanted, np.repeat(wanted[-1:], pad)])
-        end = np.concatenate([end, np.repeat(end[-1:], pad, axis=0)])
-        out = jax.device_get(run_chunk(hbr, table, jnp.asarray(genes), jnp.asarray(wanted, jnp.int32), jnp.asarray(end)))
-        outputs.append([np.asarray(o)[: chunk - pad] for o in out])
-    xy, measured, valid, available, cell = (np.concatenate(parts) for parts in zip(*outputs))
+    # skill-major pairs: pair k = (skill k // P, pattern k % P)
+    xy, measured, valid, available, cell = execute_held(
+        robot, hbr, start, np.repeat(np.asarray(hbr.top.genotypes)[slots], patterns.size, axis=0),
+        np.tile(patterns, slots.size), np.repeat(stored_ends(hbr, task, slots), patterns.size, axis=0), table,
+        summarise, chunk=chunk, progress=progress, desc="modulation")
     shape = (slots.size, patterns.size)
     return Modulation(
         slots=slots,

@@ -17,14 +17,12 @@ import dataclasses
 import hashlib
 from pathlib import Path
 
-import jax
-import jax.numpy as jnp
 import numpy as np
-from tqdm.auto import tqdm
 
-from hte_jax.hbr.composition import PatternTable, skill_ends
-from hte_jax.hbr.execution import HBR, STEPS_PER_SKILL, execute_skill
+from hte_jax.hbr.composition import PatternTable
+from hte_jax.hbr.execution import HBR
 from hte_jax.hbr.middle import NUM_PATTERNS
+from hte_jax.hbr.reexecution import checked_pairs, execute_held, stored_ends
 from hte_jax.hbr.top import TopTask
 from hte_jax.qd.io import CheckpointError, read_checkpoint, save_checkpoint
 from hte_jax.sim.robot import Robot
@@ -78,38 +76,14 @@ def measure_pattern_ends(
     from `start` (the unbatched standing state), in fixed-size jitted chunks of `chunk` executions."""
     if table_name not in TABLES:
         raise ValueError(f"unknown table {table_name!r}; choose from {', '.join(TABLES)}")
-    filled = np.flatnonzero(np.asarray(hbr.top.filled))
-    slots = filled if skills is None else np.asarray(skills, np.int64)
-    if not np.isin(slots, filled).all():
-        raise ValueError(f"skills {slots[~np.isin(slots, filled)].tolist()} are not filled cells of the top layer")
-    patterns = np.asarray(patterns, np.int64)
-    if patterns.size == 0 or patterns.min() < 0 or patterns.max() >= NUM_PATTERNS:
-        raise ValueError(f"patterns must be in [0, {NUM_PATTERNS}), got {patterns.tolist()}")
-    stored = np.asarray(skill_ends(np.asarray(hbr.top.descriptors)[slots], np.asarray(hbr.top.extras["arrival_yaw"])[slots],
-                                   task.extent))
-    pair_slots = np.tile(slots, patterns.size)  # pattern-major: pair k = (k // N, k % N)
-    pair_patterns = np.repeat(patterns, slots.size)
-    total = pair_slots.size
-    chunk = min(chunk, total)
-    starts = jax.tree.map(lambda x: jnp.broadcast_to(x, (chunk, *x.shape)), start)
-    genotypes = np.asarray(hbr.top.genotypes)
-
-    @jax.jit
-    def run_chunk(hbr, table, genes, wanted, ends):
-        held = jnp.broadcast_to(wanted[:, None], (wanted.shape[0], STEPS_PER_SKILL))
-        skill = execute_skill(robot, hbr, genes, starts, patterns=held, table=table, ends=ends)
-        return skill.displacement, skill.valid
-
-    ends, valid = [], []
-    for first in tqdm(range(0, total, chunk), desc="pattern ends", disable=not progress, leave=False):
-        rows = np.arange(first, first + chunk) % total  # the last chunk wraps round (fixed shape)
-        moved, ok = run_chunk(hbr, table, jnp.asarray(genotypes[pair_slots[rows]]), jnp.asarray(pair_patterns[rows], jnp.int32),
-                              jnp.asarray(np.tile(stored, (patterns.size, 1))[rows]))
-        size = min(chunk, total - first)
-        ends.append(np.asarray(moved)[:size])
-        valid.append(np.asarray(ok)[:size])
-    ends = np.concatenate(ends).reshape(patterns.size, slots.size, 3).astype(np.float32)
-    valid = np.concatenate(valid).reshape(patterns.size, slots.size) & np.isfinite(ends).all(axis=-1)
+    slots, patterns = checked_pairs(hbr, skills, patterns)
+    # pattern-major pairs: pair k = (pattern k // N, skill k % N)
+    ends, valid = execute_held(
+        robot, hbr, start, np.asarray(hbr.top.genotypes)[np.tile(slots, patterns.size)], np.repeat(patterns, slots.size),
+        np.tile(stored_ends(hbr, task, slots), (patterns.size, 1)), table,
+        lambda skill: (skill.displacement, skill.valid), chunk=chunk, progress=progress, desc="pattern ends")
+    ends = ends.reshape(patterns.size, slots.size, 3).astype(np.float32)
+    valid = valid.reshape(patterns.size, slots.size) & np.isfinite(ends).all(axis=-1)
     return PatternEnds(patterns=patterns.astype(np.int32), slots=slots.astype(np.int32), ends=ends, valid=valid,
                        table=table_name, fingerprint=skills_fingerprint(hbr))
 
