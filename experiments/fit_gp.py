@@ -24,6 +24,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from experiments.cli import fail, input_errors
 from hte_jax.errors import ConfigError, require_int, require_number
 from hte_jax.hbr.store import load_hbr
 from hte_jax.online.actions import ActionSet, action_set, replayed_models
@@ -105,7 +106,7 @@ def main(argv=None) -> int:
     p.add_argument("--learning-rate", type=float, default=0.05, help="Adam step size in log space (default 0.05)")
     args = p.parse_args(argv)
     run = Path(args.run)
-    try:
+    with input_errors() as errors:
         variants = {v.strip() for v in args.variant.split(",") if v.strip()} or None
         for name in variants or ():
             variant_named(name)  # validates the name
@@ -113,12 +114,10 @@ def main(argv=None) -> int:
         require_number("--learning-rate", args.learning_rate, 0.0, open_low=True)
         data, info = run_models(run, variants)
         fitted, trace = fit_kernel(data, RTE_KERNEL, steps=args.steps, learning_rate=args.learning_rate)
-    except (ConfigError, CheckpointError) as error:
-        print(f"error: {error}", file=sys.stderr)
+    if errors.failed:
         return 2
     if not np.isfinite(trace[-1]):
-        print(f"error: the fit diverged (log-likelihood {trace[-1]}); try a smaller --learning-rate", file=sys.stderr)
-        return 2
+        return fail(f"the fit diverged (log-likelihood {trace[-1]}); try a smaller --learning-rate")
 
     def described(kernel):
         return {"kind": kernel.kind, "length_scale": kernel.length_scale, "variance": kernel.variance,

@@ -16,6 +16,7 @@ import sys
 
 import numpy as np
 
+from experiments.cli import input_errors
 from hte_jax.qd.io import CheckpointError, read_checkpoint
 
 
@@ -51,10 +52,9 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("path")
     args = parser.parse_args(argv)
-    try:
+    with input_errors(CheckpointError) as errors:
         print(describe(args.path))
-    except CheckpointError as error:
-        print(f"error: {error}", file=sys.stderr)
+    if errors.failed:
         return 2
     return 0
 

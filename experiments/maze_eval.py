@@ -42,6 +42,7 @@ import numpy as np
 
 from tqdm.auto import tqdm
 
+from experiments.cli import fail, input_errors
 from hte_jax.errors import ConfigError, require_int
 from hte_jax.online.evaluation import (
     PRESETS,
@@ -71,7 +72,7 @@ from hte_jax.online.plots import (
     plot_variant_mazes,
 )
 from hte_jax.online.statistics import PAPER_FAILURE_REDUCTION, PAPER_QUARTILES, failure_reduction, protocol_statistics
-from hte_jax.qd.io import CheckpointError, save_checkpoint, write_json
+from hte_jax.qd.io import save_checkpoint, write_json
 
 SETTINGS = [f.name for f in dataclasses.fields(EvalConfig)]
 RECORD_EVERY = 4  # control steps between the recorded states of --video episodes (25 per simulated second)
@@ -96,7 +97,7 @@ def parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     args = parser().parse_args(argv)
-    try:
+    with input_errors() as errors:
         overrides = protocol_overrides(args.protocol) if args.protocol is not None else {}
         overrides.update({k: getattr(args, k) for k in SETTINGS if getattr(args, k) is not None})
         config = with_overrides(preset(args.preset), overrides)
@@ -123,8 +124,7 @@ def main(argv=None) -> int:
                   f"{result.repertoire['actions']} actions): "
                   f"{len(rows)} episodes in {result.timings.total:.1f} s, "
                   f"planning median {np.median(result.timings.plan):.2f} s per action")
-    except (ConfigError, CheckpointError) as error:
-        print(f"error: {error}", file=sys.stderr)
+    if errors.failed:
         return 2
     order = {name: i for i, name in enumerate(config.variant_list)}
     records.sort(key=lambda r: order[r["variant"]])  # stable: the variants in the order asked for
@@ -149,8 +149,7 @@ def main(argv=None) -> int:
         print(f"{r['variant']:<12} {r['damage']:<8} {r['replicate']:>3} {r['actions']:>7}  {result}")
     _print_statistics(statistics)
     if failed:
-        print(f"error: {failed}", file=sys.stderr)
-        return 2
+        return fail(failed)
     print(f"wrote {out}")
     return 0
 

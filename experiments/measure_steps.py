@@ -16,6 +16,7 @@ import time
 
 import jax
 
+from experiments.cli import fail, input_errors
 from hte_jax.flat.comparison import resolve
 from hte_jax.hbr.composition import measure_steps
 from hte_jax.hbr.store import load_hbr, save_hbr, shipped_hbr_path
@@ -40,16 +41,13 @@ def main(argv=None) -> int:
     args = parser().parse_args(argv)
     for name in ("starts", "chunk"):
         if getattr(args, name) < 1:
-            print(f"error: --{name} must be >= 1, got {getattr(args, name)}", file=sys.stderr)
-            return 2
+            return fail(f"--{name} must be >= 1, got {getattr(args, name)}")
     if args.seed < 0:
-        print(f"error: --seed must be >= 0, got {args.seed}", file=sys.stderr)
-        return 2
-    try:
+        return fail(f"--seed must be >= 0, got {args.seed}")
+    with input_errors(CheckpointError) as errors:
         path = shipped_hbr_path() if args.hbr is None else resolve(args.hbr)
         hbr, top_task, meta = load_hbr(path)
-    except CheckpointError as error:
-        print(f"error: {error}", file=sys.stderr)
+    if errors.failed:
         return 2
     solver = stored_solver(meta.get("training", {}).get("config", {}))
     robot = load_robot(RobotConfig(**solver))

@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from experiments.cli import fail, input_errors
 from hte_jax.flat.comparison import resolve
 from hte_jax.hbr.composition import COMPOSITIONS, planning_table
 from hte_jax.hbr.modulation import Modulation, modulate
@@ -52,24 +53,19 @@ def parser() -> argparse.ArgumentParser:
 def main(argv=None) -> int:
     args = parser().parse_args(argv)
     if args.max_skills is not None and args.max_skills < 1:
-        print(f"error: --max-skills must be >= 1, got {args.max_skills}", file=sys.stderr)
-        return 2
+        return fail(f"--max-skills must be >= 1, got {args.max_skills}")
     if args.radius is not None and not args.radius > 0:
-        print(f"error: --radius must be > 0, got {args.radius}", file=sys.stderr)
-        return 2
+        return fail(f"--radius must be > 0, got {args.radius}")
     if args.chunk < 1:
-        print(f"error: --chunk must be >= 1, got {args.chunk}", file=sys.stderr)
-        return 2
-    try:
+        return fail(f"--chunk must be >= 1, got {args.chunk}")
+    with input_errors(CheckpointError) as errors:
         hbr, task, _ = load_hbr(None if args.hbr is None else resolve(args.hbr))
-    except CheckpointError as error:
-        print(f"error: {error}", file=sys.stderr)
+    if errors.failed:
         return 2
     if args.data is not None:
-        try:
+        with input_errors(OSError, ValueError) as errors:
             mod = Modulation.load(args.data)
-        except (OSError, ValueError) as error:
-            print(f"error: {error}", file=sys.stderr)
+        if errors.failed:
             return 2
     else:
         robot = load_robot()

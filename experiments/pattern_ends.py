@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from experiments.cli import input_errors
 from hte_jax.errors import ConfigError
 from hte_jax.flat.comparison import resolve
 from hte_jax.hbr.composition import planning_table, skill_ends
@@ -27,7 +28,6 @@ from hte_jax.hbr.pattern_ends import TABLES, ends_file, measure_pattern_ends, sa
 from hte_jax.hbr.sparing import lifted_legs, sparing_table
 from hte_jax.hbr.store import load_hbr, load_spare, shipped_hbr_path, spare_beside
 from hte_jax.online.variants import CANDIDATE_PATTERNS
-from hte_jax.qd.io import CheckpointError
 from hte_jax.sim.robot import RobotConfig, load_robot
 from hte_jax.sim.rollout import standing_state
 
@@ -47,7 +47,7 @@ def parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     args = parser().parse_args(argv)
-    try:
+    with input_errors() as errors:
         if args.max_lifted < 1:
             raise ConfigError(f"--max-lifted must be >= 1, got {args.max_lifted}")
         if args.chunk < 1:
@@ -66,8 +66,7 @@ def main(argv=None) -> int:
         ends = measure_pattern_ends(robot, hbr, task, standing_state(robot), table, args.table, patterns,
                                     chunk=args.chunk, progress=not args.no_progress)
         seconds = time.perf_counter() - began
-    except (ConfigError, CheckpointError) as error:
-        print(f"error: {error}", file=sys.stderr)
+    if errors.failed:
         return 2
     out = Path(args.out) if args.out else Path(path).parent / ends_file(args.table)
     stored = np.asarray(skill_ends(hbr.top.descriptors[ends.slots], hbr.top.extras["arrival_yaw"][ends.slots],

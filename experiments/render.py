@@ -44,6 +44,7 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 from tqdm.auto import tqdm  # noqa: E402
 
+from experiments.cli import input_errors  # noqa: E402
 from hte_jax.errors import ConfigError  # noqa: E402
 from hte_jax.flat.comparison import resolve  # noqa: E402
 from hte_jax.flat.store import load_flat, shipped_flat_path  # noqa: E402
@@ -271,10 +272,9 @@ def episode_video(args) -> Path:
 
 def main(argv=None) -> int:
     args = parser().parse_args(argv)
-    try:
+    with input_errors(ConfigError, CheckpointError, RenderError) as errors:
         written = episode_video(args) if args.command == "episode" else render_clips(args)
-    except (ConfigError, CheckpointError, RenderError) as error:
-        print(f"error: {error}", file=sys.stderr)
+    if errors.failed:
         return 2
     print(f"wrote {written}")
     return 0

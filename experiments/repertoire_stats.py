@@ -14,11 +14,12 @@ import argparse
 import sys
 from pathlib import Path
 
+from experiments.cli import input_errors
 from hte_jax.errors import ConfigError
 from hte_jax.flat.comparison import aggregate, file_statistics, markdown_table
 from hte_jax.flat.store import shipped_flat_path
 from hte_jax.hbr.store import shipped_hbr_path
-from hte_jax.qd.io import CheckpointError, write_json
+from hte_jax.qd.io import write_json
 
 
 def parser() -> argparse.ArgumentParser:
@@ -38,12 +39,11 @@ def main(argv=None) -> int:
         paths = [*(args.hbr or []), *(args.flat8d or []), *(args.flat2d or [])]
     else:
         paths = [shipped_hbr_path(), shipped_flat_path("8d"), shipped_flat_path("2d")]
-    try:
+    with input_errors() as errors:
         if not paths:
             raise ConfigError("no repertoire given")
         rows = [file_statistics(path) for path in paths]
-    except (ConfigError, CheckpointError) as error:
-        print(f"error: {error}", file=sys.stderr)
+    if errors.failed:
         return 2
     table = aggregate(rows)
     text = markdown_table(table)

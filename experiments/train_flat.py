@@ -21,9 +21,9 @@ import dataclasses
 import json
 import sys
 
-from hte_jax.errors import ConfigError
+from experiments.cli import input_errors
 from hte_jax.flat.training import PRESETS, VARIANTS, FlatConfig, preset, train_flat, with_overrides
-from hte_jax.qd.io import CheckpointError, stored_config
+from hte_jax.qd.io import stored_config
 from hte_jax.sim.robot import stored_solver
 
 SETTINGS = [f.name for f in dataclasses.fields(FlatConfig) if f.name != "variant"]
@@ -44,7 +44,7 @@ def parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     args = parser().parse_args(argv)
-    try:
+    with input_errors() as errors:
         config = preset(args.preset, args.variant)
         overrides = {k: getattr(args, k) for k in SETTINGS if getattr(args, k) is not None}
         out = args.out or f"runs/flat-{args.variant}-{args.preset}"
@@ -56,8 +56,7 @@ def main(argv=None) -> int:
             print(json.dumps(config.to_dict(), indent=2))
             return 0
         outcome = train_flat(config, out, resume_run=args.resume, progress=not args.no_progress)
-    except (ConfigError, CheckpointError) as error:
-        print(f"error: {error}", file=sys.stderr)
+    if errors.failed:
         return 2
     summary = outcome.summary
     sizes = [s["size"] for s in summary["statistics"].values()]

@@ -21,9 +21,9 @@ import dataclasses
 import json
 import sys
 
-from hte_jax.errors import ConfigError
+from experiments.cli import input_errors
 from hte_jax.hbr.training import LAYERS, PRESETS, HBRConfig, LayerSchedule, preset, train_hbr, with_overrides
-from hte_jax.qd.io import CheckpointError, stored_config
+from hte_jax.qd.io import stored_config
 from hte_jax.sim.robot import stored_solver
 
 
@@ -55,7 +55,7 @@ def parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     args = parser().parse_args(argv)
-    try:
+    with input_errors() as errors:
         config: HBRConfig = preset(args.preset)
         overrides = {key: getattr(args, key) for key, _ in _settings() if getattr(args, key) is not None}
         out = args.out or f"runs/hbr-{args.preset}"
@@ -67,8 +67,7 @@ def main(argv=None) -> int:
             print(json.dumps(config.to_dict(), indent=2))
             return 0
         outcome = train_hbr(config, out, resume_run=args.resume, progress=not args.no_progress)
-    except (ConfigError, CheckpointError) as error:
-        print(f"error: {error}", file=sys.stderr)
+    if errors.failed:
         return 2
     stats = outcome.summary["statistics"]
     print(

@@ -18,12 +18,12 @@ import argparse
 import dataclasses
 import sys
 
+from experiments.cli import input_errors
 from hte_jax.errors import ConfigError
 from hte_jax.flat.comparison import resolve
 from hte_jax.hbr.sparing import SPARE_L, STRICT_CONTACT, train_spare
 from hte_jax.hbr.store import load_hbr, shipped_hbr_path
 from hte_jax.hbr.training import PRESETS, preset
-from hte_jax.qd.io import CheckpointError
 from hte_jax.sim.robot import stored_solver
 
 
@@ -42,7 +42,7 @@ def parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     args = parser().parse_args(argv)
-    try:
+    with input_errors() as errors:
         if not 0.0 < args.threshold < 1.0:
             raise ConfigError(f"--threshold must be in (0, 1), got {args.threshold}")
         if args.l <= 0.0:
@@ -53,8 +53,7 @@ def main(argv=None) -> int:
         base = dataclasses.replace(preset(args.preset), seed=args.seed, **solver)
         summary = train_spare(hbr, base, args.out, threshold=args.threshold, l=args.l, resume_run=args.resume,
                               progress=not args.no_progress)
-    except (ConfigError, CheckpointError) as error:
-        print(f"error: {error}", file=sys.stderr)
+    if errors.failed:
         return 2
     print(f"spare archive: {summary['elites']} elites over {summary['patterns']} patterns; "
           f"elites lifting each leg: {summary['lifting_each_leg']['spare']} (the HBR's own: "

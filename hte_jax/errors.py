@@ -1,4 +1,4 @@
-"""Exception types raised on bad user input, and the checks that raise them."""
+"""Exception types raised on bad user input, the checks that raise them, and the one rule for overriding settings."""
 
 import dataclasses
 import math
@@ -51,10 +51,50 @@ def convert_setting(key: str, current, value):
 
 
 def with_overrides(config, overrides: dict):
-    """A copy of the flat dataclass `config` with fields replaced, each value read as its field's type."""
-    data = dataclasses.asdict(config)
+    """A copy of the (possibly nested, frozen) dataclass `config` with settings replaced.
+
+    A key names a leaf setting: "field", or "a.b.field" through nested dataclass fields. Each value
+    is read as its setting's current type (`convert_setting`); the copy is rebuilt with
+    `dataclasses.replace`, inner dataclasses first, so every `__post_init__` check runs, and an inner
+    check's message is prefixed with its path ("middle.selection must be ...").
+    """
+    changes: dict = {}  # field name -> new leaf value, or the changes of a nested dataclass
     for key, value in overrides.items():
-        if key not in data:
+        *path, name = key.split(".")
+        target, pending = config, changes
+        for part in path:
+            target = _setting(target, part, key)
+            if not _is_config(target):
+                raise ConfigError(f"unknown setting {key!r}")
+            pending = pending.setdefault(part, {})
+        current = _setting(target, name, key)
+        if _is_config(current):
             raise ConfigError(f"unknown setting {key!r}")
-        data[key] = convert_setting(key, data[key], value)
-    return type(config)(**data)
+        pending[name] = convert_setting(key, current, value)
+    return _rebuilt(config, changes)
+
+
+def _is_config(value) -> bool:
+    return dataclasses.is_dataclass(value) and not isinstance(value, type)
+
+
+def _setting(config, name: str, key: str):
+    """The current value of `config`'s settable field `name`; `key` is the whole setting's name."""
+    if name not in {field.name for field in dataclasses.fields(config) if field.init}:
+        raise ConfigError(f"unknown setting {key!r}")
+    return getattr(config, name)
+
+
+def _rebuilt(config, changes: dict):
+    values = {}
+    for field in dataclasses.fields(config):  # in field order, as a constructor validates them
+        if field.name not in changes:
+            continue
+        value, current = changes[field.name], getattr(config, field.name)
+        if _is_config(current):
+            try:
+                value = _rebuilt(current, value)
+            except ConfigError as error:
+                raise ConfigError(f"{field.name}.{error}") from None
+        values[field.name] = value
+    return dataclasses.replace(config, **values)

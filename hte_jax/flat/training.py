@@ -23,7 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from hte_jax.errors import ConfigError, require_int, require_number
-from hte_jax.errors import with_overrides as with_overrides  # the configuration's override rule, re-exported
+from hte_jax.errors import with_overrides as _with_overrides
 from hte_jax.flat.plots import plot_flat
 from hte_jax.flat.store import FlatRepertoires, save_flat
 from hte_jax.flat.task import QD_OFFSET, FlatTask, evaluate_flat, flat_spec
@@ -34,6 +34,8 @@ from hte_jax.qd.metrics import projected_statistics
 from hte_jax.sim.damage import APROL_DAMAGES, damage_masks
 from hte_jax.sim.robot import RobotConfig, SOLVER_FIELDS, load_robot, stored_solver
 from hte_jax.sim.rollout import standing_state
+
+with_overrides = _with_overrides  # the configurations' one override rule, re-exported
 
 # variant -> (descriptor, damages the repertoires are trained on)
 VARIANTS: dict[str, tuple[str, tuple[str, ...]]] = {

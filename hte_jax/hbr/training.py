@@ -16,11 +16,11 @@ import dataclasses
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
 
 import jax
 
-from hte_jax.errors import ConfigError, convert_setting, require_choice, require_int, require_number
+from hte_jax.errors import ConfigError, require_choice, require_int, require_number
+from hte_jax.errors import with_overrides as _with_overrides
 from hte_jax.hbr import bottom as bottom_layer
 from hte_jax.hbr import middle as middle_layer
 from hte_jax.hbr.analysis import hbr_statistics
@@ -35,6 +35,8 @@ from hte_jax.qd import io
 from hte_jax.qd.loop import MapElites, MapElitesConfig, QDState, resume, run
 from hte_jax.sim.robot import Robot, RobotConfig, SOLVER_FIELDS, load_robot, stored_solver
 from hte_jax.sim.rollout import standing_state
+
+with_overrides = _with_overrides  # the configurations' one override rule, re-exported
 
 LAYERS = ("bottom", "middle", "top")
 
@@ -209,23 +211,6 @@ def preset(name: str) -> HBRConfig:
     if name not in PRESETS:
         raise ConfigError(f"unknown preset {name!r}; choose one of {sorted(PRESETS)}")
     return PRESETS[name]
-
-
-def with_overrides(config: HBRConfig, overrides: dict[str, Any]) -> HBRConfig:
-    """A copy of `config` with "field" or "layer.field" keys replaced (values converted to the field's type)."""
-    data = config.to_dict()
-    for key, value in overrides.items():
-        parts = key.split(".")
-        target = data
-        for part in parts[:-1]:
-            if part not in LAYERS or not isinstance(target.get(part), dict):
-                raise ConfigError(f"unknown setting {key!r}")
-            target = target[part]
-        field = parts[-1]
-        if field not in target or isinstance(target[field], dict):
-            raise ConfigError(f"unknown setting {key!r}")
-        target[field] = convert_setting(key, target[field], value)
-    return HBRConfig.from_dict(data)
 
 
 def layer_algorithms(config: HBRConfig, robot: Robot, start, lower: dict) -> dict[str, Callable[[], MapElites]]:

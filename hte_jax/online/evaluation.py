@@ -21,7 +21,7 @@ import jax
 import numpy as np
 
 from hte_jax.errors import ConfigError, require_choice, require_int, require_number
-from hte_jax.errors import with_overrides as with_overrides  # the configuration's override rule, re-exported
+from hte_jax.errors import with_overrides as _with_overrides
 from hte_jax.flat.store import load_flat, shipped_flat_path
 from hte_jax.hbr.pattern_ends import ends_file, load_pattern_ends
 from hte_jax.hbr.store import load_hbr, load_spare, shipped_hbr_path, spare_beside
@@ -37,6 +37,8 @@ from hte_jax.online.recording import Recorder, Replay, maze_to_dict, replay_of
 from hte_jax.qd.io import CheckpointError, read_checkpoint
 from hte_jax.sim.damage import PAPER_DAMAGES, parse_damage
 from hte_jax.sim.robot import RobotConfig
+
+with_overrides = _with_overrides  # the configurations' one override rule, re-exported
 
 SEED_FILES = {"hbr": "hbr.npz", "2d": "flat2d.npz", "8d": "flat8d.npz", "aprol": "aprol.npz"}  # in a seed folder
 # The paper's Fig. 6 variants, in its order.

@@ -1,0 +1,49 @@
+"""What the command-line tools share: bad input becomes one `error: ...` line on stderr and exit status 2.
+
+    with input_errors() as errors:  # ConfigError or CheckpointError; input_errors(OSError) catches OSError only
+        ...
+    if errors.failed:
+        return 2
+
+    return fail("--chunk must be >= 1, got 0")  # prints the line, returns 2
+"""
+
+from __future__ import annotations
+
+import sys
+
+from hte_jax.errors import ConfigError
+from hte_jax.qd.io import CheckpointError
+
+EXIT_BAD_INPUT = 2
+INPUT_ERRORS = (ConfigError, CheckpointError)
+
+
+def fail(message) -> int:
+    """Print `error: message` on stderr; the exit status of a run refused for bad input."""
+    print(f"error: {message}", file=sys.stderr)
+    return EXIT_BAD_INPUT
+
+
+def input_errors(*types: type[BaseException]) -> InputErrors:
+    """A context manager that reports an exception of `types` (default `INPUT_ERRORS`) with `fail`
+    and swallows it; its `failed` then tells the caller to return `EXIT_BAD_INPUT`. Others propagate."""
+    return InputErrors(types or INPUT_ERRORS)
+
+
+class InputErrors:
+    """See `input_errors`."""
+
+    def __init__(self, types: tuple[type[BaseException], ...]):
+        self.types = types
+        self.failed = False
+
+    def __enter__(self) -> InputErrors:
+        return self
+
+    def __exit__(self, kind, error, traceback) -> bool:
+        if error is None or not isinstance(error, self.types):
+            return False
+        fail(error)
+        self.failed = True
+        return True

@@ -1,0 +1,133 @@
+"""The one override rule (`hte_jax.errors.with_overrides`) on flat and nested configuration dataclasses."""
+
+import dataclasses
+
+import pytest
+
+from hte_jax import errors
+from hte_jax.errors import ConfigError, require_int, with_overrides
+from hte_jax.flat import training as flat_training
+from hte_jax.hbr import training as hbr_training
+from hte_jax.hbr.training import PRESETS, LayerSchedule
+from hte_jax.online import evaluation
+
+
+@dataclasses.dataclass(frozen=True)
+class Inner:
+    count: int = 1
+    scale: float = 0.5
+    name: str = "a"
+
+    def __post_init__(self):
+        require_int("count", self.count)
+
+
+@dataclasses.dataclass(frozen=True)
+class Middle:
+    inner: Inner = Inner()
+    flag: bool = False
+
+
+@dataclasses.dataclass(frozen=True)
+class Outer:
+    middle: Middle = Middle()
+    seed: int = 0
+    label: str = ""
+
+    def __post_init__(self):
+        require_int("seed", self.seed, minimum=0)
+
+
+def test_every_module_shares_the_one_rule():
+    assert hbr_training.with_overrides is errors.with_overrides
+    assert flat_training.with_overrides is errors.with_overrides
+    assert evaluation.with_overrides is errors.with_overrides
+
+
+def test_nested_keys_and_type_conversion():
+    config = with_overrides(Outer(), {"middle.inner.count": "3", "middle.inner.scale": "2", "seed": 4.0,
+                                      "middle.inner.name": "b", "label": 7})
+    assert config == Outer(middle=Middle(inner=Inner(count=3, scale=2.0, name="b")), seed=4, label="7")
+    assert type(config.middle.inner.scale) is float and type(config.seed) is int
+    assert with_overrides(Outer(), {"middle.flag": True}).middle.flag is True
+    assert with_overrides(Outer(), {}) == Outer()
+
+
+def test_the_original_is_unchanged():
+    original = Outer()
+    with_overrides(original, {"middle.inner.count": "3"})
+    assert original == Outer()
+
+
+@pytest.mark.parametrize("key", ["colour", "middle", "middle.inner", "seed.x", "middle.colour", "middle.inner.count.x",
+                                 "colour.count", "", "middle.", ".seed"])
+def test_unknown_settings(key):
+    with pytest.raises(ConfigError) as error:
+        with_overrides(Outer(), {key: 1})
+    assert str(error.value) == f"unknown setting {key!r}"
+
+
+def test_unreadable_values():
+    with pytest.raises(ConfigError) as error:
+        with_overrides(Outer(), {"middle.inner.count": "many"})
+    assert str(error.value) == "setting 'middle.inner.count': cannot read 'many' as int"
+    with pytest.raises(ConfigError) as error:
+        with_overrides(Outer(), {"seed": None})
+    assert str(error.value) == "setting 'seed': cannot read None as int"
+
+
+def test_every_post_init_check_runs_with_the_inner_path_named():
+    with pytest.raises(ConfigError) as error:
+        with_overrides(Outer(), {"seed": "-1"})
+    assert str(error.value) == "seed must be an integer >= 0, got -1"
+    with pytest.raises(ConfigError) as error:
+        with_overrides(Outer(), {"middle.inner.count": "0"})
+    assert str(error.value) == "middle.inner.count must be an integer >= 1, got 0"
+
+
+def test_hbr_overrides_as_before():
+    gpu = PRESETS["gpu"]
+    config = with_overrides(gpu, {"middle.generations": "7", "seed": "3", "contact_threshold": 0.25,
+                                  "top.selection": "density", "top.density_bins": "8"})
+    assert config == dataclasses.replace(
+        gpu, seed=3, contact_threshold=0.25, middle=dataclasses.replace(gpu.middle, generations=7),
+        top=dataclasses.replace(gpu.top, selection="density", density_bins=8))
+    assert config.to_dict() == {**gpu.to_dict(), "seed": 3, "contact_threshold": 0.25,
+                                "middle": {**gpu.to_dict()["middle"], "generations": 7},
+                                "top": {**gpu.to_dict()["top"], "selection": "density", "density_bins": 8}}
+    tiny = with_overrides(PRESETS["tiny"], {"bottom.batch_size": "8", "bottom.init_size": "16",
+                                            "solver_iterations": "6"})
+    assert tiny.bottom == LayerSchedule(batch_size=8, init_size=16, generations=2, block_size=1, mutation_rate=0.17,
+                                        capacity=256)
+    assert tiny.solver_iterations == 6 and tiny.middle is PRESETS["tiny"].middle
+
+
+@pytest.mark.parametrize("overrides, message", [
+    ({"middle.colour": 1}, "unknown setting 'middle.colour'"),
+    ({"middle": 1}, "unknown setting 'middle'"),
+    ({"seed.x": 1}, "unknown setting 'seed.x'"),
+    ({"middle.generations": "x"}, "setting 'middle.generations': cannot read 'x' as int"),
+    ({"middle.frontier_fraction": "2"}, "middle.frontier_fraction must be a finite number in [0.0, 1.0], got 2.0"),
+    ({"top.selection": "best"}, "top.selection must be one of ('uniform', 'density', 'frontier'), got 'best'"),
+    ({"bottom.generations": "-1", "seed": "-1"}, "bottom.generations must be an integer >= 0, got -1"),
+    ({"bottom_fitness": "energy"}, "bottom_fitness must be one of ('commands', 'genes'), got 'energy'"),
+])
+def test_hbr_errors_as_before(overrides, message):
+    with pytest.raises(ConfigError) as error:
+        with_overrides(PRESETS["gpu"], overrides)
+    assert str(error.value) == message
+
+
+def test_flat_and_evaluation_overrides_as_before():
+    flat = with_overrides(flat_training.preset("cpu", "2d"), {"generations": "3", "mutation_rate": "0.2", "seed": 5})
+    assert flat == flat_training.FlatConfig(variant="2d", batch_size=256, init_size=512, generations=3, block_size=4,
+                                            mutation_rate=0.2, seed=5)
+    with pytest.raises(ConfigError, match=r"^unknown setting 'speed'$"):
+        with_overrides(flat_training.preset("cpu", "2d"), {"speed": 1})
+    with pytest.raises(ConfigError, match=r"^unknown setting 'variant.x'$"):
+        with_overrides(flat_training.preset("cpu", "2d"), {"variant.x": 1})
+    config = with_overrides(evaluation.preset("cpu"), {"iterations": "5", "roots": 3, "exploration": "2",
+                                                       "variants": "hte,rte"})
+    assert config == evaluation.EvalConfig(iterations=5, roots=3, exploration=2.0, variants="hte,rte")
+    with pytest.raises(ConfigError, match=r"^setting 'seed': cannot read '1.5' as int$"):
+        with_overrides(evaluation.preset("cpu"), {"seed": "1.5"})
