@@ -223,7 +223,8 @@ class Decision:
     plan: PlanResult with leading B (its action indexes the planning repertoire). map, action: (B,)
     int32 the repertoire and skill to execute (APROL may pick another than the plan's; otherwise
     map 0 and the plan's action). start: (B, 3) pose the planner started from. predicted: (B, 3)
-    the GP's predicted displacement of the executed skill. keys: (B, 2) keys for executing it.
+    the GP's predicted displacement of the executed skill. keys: (B, 3, 2) the keys the action
+    drew: the episode's next key, the plan's and the execution's.
     prior: (B, 4) the GP's prior outcome of the executed skill (what its observation is learnt
     against: the stored outcome, or the measured one, `Skills.planning_prior`).
     """
@@ -289,13 +290,10 @@ def act_step(maze: Maze, config: AdaptationConfig, robot: Robot, skills: Skills,
     """
     if record_every and (not isinstance(record_every, int) or STEP_CONTROL_STEPS % record_every):
         raise ConfigError(f"record_every must divide {STEP_CONTROL_STEPS}, got {record_every!r}")
-    index = decision.action
-    keys = decision.keys
     if skills.hierarchical:
-        outcome = execute_hbr(robot, skills, index, episodes.sim, episodes.damage, episodes.learnt, episodes.taken,
-                              keys[:, 2], record_every=record_every, rules=rules or rule_names())
+        outcome = execute_hbr(robot, skills, episodes, decision, record_every=record_every, rules=rules or rule_names())
     else:
-        outcome = execute_flat(robot, skills.map_genotypes[decision.map, index], episodes.sim, episodes.damage,
+        outcome = execute_flat(robot, skills.map_genotypes[decision.map, decision.action], episodes.sim, episodes.damage,
                                episodes.learnt, record_every=record_every)
     return record_action(maze, config, skills, episodes, decision, outcome), outcome.qpos
 

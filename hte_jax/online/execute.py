@@ -21,6 +21,7 @@ beside the travel its controller commanded (in every variant, so that all of the
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 import jax
 import jax.numpy as jnp
@@ -51,6 +52,9 @@ from hte_jax.qd.repertoire import Repertoire
 from hte_jax.sim.controller import NUM_PARAMS, commanded_travel
 from hte_jax.sim.robot import NUM_LEGS, Robot
 from hte_jax.sim.rollout import RolloutSpec, SimState, ValidityLimits, rollout
+
+if TYPE_CHECKING:  # the episode module builds on this one
+    from hte_jax.online.episode import Decision, Episodes
 
 # The built-in rules' integers (`variants.rule_index`).
 ANY_PATTERN_MODE, UCB_MODE, ORACLE_MODE, RANDOM_MODE, MISS_MODE, DRIFT_MODE, LEGS_MODE, CONTACTS_MODE = (
@@ -302,22 +306,20 @@ def learn_step(hbr: HBR, learnt: PatternState, index: jax.Array, displacement: j
 def execute_hbr(
     robot: Robot,
     skills: Skills,
-    index: jax.Array,
-    state: SimState,
-    damage: jax.Array,
-    learnt: PatternState,
-    action_number: jax.Array,
-    keys: jax.Array,
+    episodes: Episodes,
+    decision: Decision,
     record_every: int = 0,
     rules: tuple[str, ...] | None = None,
 ) -> ActionOutcome:
-    """Run HBR skills `index` (B,) step by step, choosing each step's contact pattern by each
-    episode's rule (`learnt`: what the rules know so far), then 1 s neutral.
-
-    action_number: (B,) int32 actions already taken (the GP-UCB count is t = 1 + step + 3 action_number).
-    keys: (B, 2) PRNG keys (random patterns). rules: the rule names in integer order (default:
-    every registered rule). record_every: k > 0 also returns the state every k control steps (`ActionOutcome.qpos`).
+    """Run the HBR skills `decision.action` (B,) of B episodes step by step from their robots'
+    states, choosing each step's contact pattern by each episode's rule (`episodes.learnt`: what the
+    rules know so far; the GP-UCB count is t = 1 + step + 3 x the actions already taken), then 1 s
+    neutral. Random patterns draw from the decision's execution keys. rules: the rule names in
+    integer order (default: every registered rule). record_every: k > 0 also returns the state every
+    k control steps (`ActionOutcome.qpos`).
     """
+    index, state, damage, learnt = decision.action, episodes.sim, episodes.damage, episodes.learnt
+    action_number, keys = episodes.taken, decision.keys[:, 2]
     hbr = skills.hbr
     origin = state_pose(state)
     targets, goal = skill_targets(skills, index, origin)  # (B, 3, 3), (B, 3)
