@@ -36,12 +36,11 @@ from hte_jax.hbr.execution import STEPS_PER_SKILL, execute_skill, state_pose  # 
 from hte_jax.geometry import relative_pose  # noqa: E402
 from hte_jax.hbr.sparing import sparing_table  # noqa: E402
 from hte_jax.hbr.store import load_hbr, load_spare  # noqa: E402
-from hte_jax.online.execute import ONLINE_LIMITS  # noqa: E402
+from hte_jax.online.execute import neutral_second  # noqa: E402
 from hte_jax.online.secondary import oracle_pattern  # noqa: E402
-from hte_jax.sim.controller import NUM_PARAMS  # noqa: E402
 from hte_jax.sim.damage import damage_masks  # noqa: E402
 from hte_jax.sim.robot import RobotConfig, load_robot  # noqa: E402
-from hte_jax.sim.rollout import RolloutSpec, rollout, standing_state  # noqa: E402
+from hte_jax.sim.rollout import standing_state  # noqa: E402
 
 WAYS = ("rte", "pattern", "sparing")
 
@@ -70,12 +69,11 @@ def main(argv=None) -> int:
     top = np.flatnonzero(np.asarray(hbr.top.filled))
     ends_all = np.asarray(skill_ends(hbr.top.descriptors, hbr.top.extras["arrival_yaw"], task.extent))
     rng = np.random.default_rng(args.seed)
-    neutral = RolloutSpec(num_steps=100, record_contacts=False, limits=ONLINE_LIMITS)
 
     @jax.jit
     def act(hbr, table, state, damage, genes, ends, patterns):
         skill = execute_skill(robot, hbr, genes, state, damage=damage, patterns=patterns, table=table, ends=ends)
-        rest = rollout(robot, jnp.zeros((genes.shape[0], NUM_PARAMS)), damage, skill.state, neutral)
+        rest = neutral_second(robot, skill.state, damage)
         return rest.final_state, skill.valid & rest.valid
 
     rows = []

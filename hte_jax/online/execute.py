@@ -192,7 +192,9 @@ class ActionOutcome:
     qpos: jax.Array | None = None
 
 
-def _neutral(robot: Robot, state: SimState, damage: jax.Array, record_every: int = 0):
+def neutral_second(robot: Robot, state: SimState, damage: jax.Array, record_every: int = 0):
+    """The 1 s neutral pose (all-zero controllers) after a skill, from `state` (B, ...) under the
+    online validity limits; record_every: k > 0 also records the qpos every k control steps."""
     spec = RolloutSpec(num_steps=NEUTRAL_CONTROL_STEPS, record_contacts=False, limits=ONLINE_LIMITS,
                        record_qpos_every=record_every)
     return rollout(robot, jnp.zeros((state.qpos.shape[0], NUM_PARAMS)), damage, state, spec)
@@ -340,7 +342,7 @@ def execute_hbr(
     xs = (jnp.swapaxes(targets, 0, 1), steps, step_keys)
     (state, secondary, contacts, motion), (patterns, middle, errors, reasons, poses, qpos) = jax.lax.scan(
         one_step, (state, learnt.secondary, learnt.contacts, learnt.motion), xs)
-    rest = _neutral(robot, state, damage, record_every)
+    rest = neutral_second(robot, state, damage, record_every)
     end = state_pose(rest.final_state)
     if record_every:  # (3, B, F / 4, 25) steps and (B, F / 4, 25) neutral -> (B, F, 25)
         steps = jnp.swapaxes(qpos, 0, 1)
