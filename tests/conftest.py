@@ -43,6 +43,15 @@ def pytest_collection_modifyitems(session, config, items):
     items.sort(key=lambda item: item.path.name in _LAST)
 
 
+@pytest.fixture(scope="session")
+def shipped_hbr():
+    """(HBR, top task) of the shipped repertoire, loaded once per test process."""
+    from hte_jax.hbr.store import load_hbr
+
+    hbr, task, _ = load_hbr()
+    return hbr, task
+
+
 @pytest.fixture(autouse=True, scope="module")
 def _free_compiled_programs():
     """Drop each module's compiled programs when it ends: a whole session's MJX executables held in

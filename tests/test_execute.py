@@ -5,11 +5,9 @@ actions run end to end in test_episode)."""
 import jax
 import jax.numpy as jnp
 import numpy as np
-import pytest
 
 from hte_jax.flat.store import load_flat, shipped_flat_path
 from hte_jax.geometry import planar_pose, relative_pose
-from hte_jax.hbr.store import load_hbr
 from hte_jax.online.arena import maze_robot, place, start_states
 from hte_jax.online.execute import (
     ANY_PATTERN_MODE,
@@ -100,14 +98,8 @@ def test_flat_action_is_the_trained_controller_and_walls_stop_it():
     np.testing.assert_array_equal(recorded.qpos[:, 4::4, :2], result.poses[:, :3, :2])
 
 
-@pytest.fixture(scope="module")
-def hbr_setup():
-    hbr, task, _ = load_hbr()
-    return hbr, task
-
-
-def test_each_variant_picks_patterns_its_own_way(hbr_setup):
-    hbr, _ = hbr_setup
+def test_each_variant_picks_patterns_its_own_way(shipped_hbr):
+    hbr, _ = shipped_hbr
     desired = jnp.asarray([[0.7, 0.5, 0.5]] * 4)  # 0.2 m forward, no turn (normalised)
     index, found = candidate_elites(hbr, desired)
     assert found.any(axis=1).all()
@@ -135,11 +127,11 @@ def test_each_variant_picks_patterns_its_own_way(hbr_setup):
     assert int(again[0]) != lowest
 
 
-def test_miss_choice_is_rte_until_a_pattern_is_seen_to_miss(hbr_setup):
+def test_miss_choice_is_rte_until_a_pattern_is_seen_to_miss(shipped_hbr):
     """An empty GP predicts no deviation: the predicted-miss choice is the nearest elite of any
     pattern (RTE's). Once that elite's pattern is observed to deviate, a pattern whose nearest elite
     is predicted to land closer wins, exactly as a NumPy evaluation of the rule says."""
-    hbr, _ = hbr_setup
+    hbr, _ = shipped_hbr
     desired = jnp.asarray([[0.7, 0.5, 0.5], [0.45, 0.62, 0.7]])
     modes = jnp.full(2, MISS_MODE, jnp.int32)
     oracle = jnp.full(2, 63, jnp.int32)
@@ -171,11 +163,11 @@ def test_miss_choice_is_rte_until_a_pattern_is_seen_to_miss(hbr_setup):
     assert again == int(ALL_PATTERNS[np.argmin(miss)])
 
 
-def test_drift_choice_aims_against_a_learnt_drift(hbr_setup):
+def test_drift_choice_aims_against_a_learnt_drift(shipped_hbr):
     """With no observations DRIFT_MODE is RTE's choice; after RTE's elite was seen to drift by
     +0.15 in x three times, it looks its elite up 0.15 short (or picks one predicted to land nearer),
     and its predicted landing is nearer the wanted step than RTE's."""
-    hbr, _ = hbr_setup
+    hbr, _ = shipped_hbr
     desired = jnp.asarray([[0.7, 0.5, 0.5]])
     modes = jnp.full(1, DRIFT_MODE, jnp.int32)
     args = (jnp.full(1, 63, jnp.int32),)
@@ -200,11 +192,11 @@ def test_drift_choice_aims_against_a_learnt_drift(hbr_setup):
     assert drift_miss < rte_miss
 
 
-def test_legs_choice_is_rte_until_a_leg_is_seen_to_spoil_steps(hbr_setup):
+def test_legs_choice_is_rte_until_a_leg_is_seen_to_spoil_steps(shipped_hbr):
     """LEGS_MODE with no observations runs RTE's elite; once steps that put one leg down were
     seen to deviate, it runs the elite the NumPy evaluation of `leg_miss` over every pattern's
     nearest elite picks."""
-    hbr, _ = hbr_setup
+    hbr, _ = shipped_hbr
     desired = jnp.asarray([[0.6, 0.5, 0.5]])
     modes = jnp.full(1, LEGS_MODE, jnp.int32)
     oracle, t = jnp.full(1, 63, jnp.int32), jnp.ones(1, jnp.int32)

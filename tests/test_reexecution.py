@@ -5,17 +5,10 @@ import pytest
 
 from hte_jax.hbr.composition import skill_ends
 from hte_jax.hbr.reexecution import checked_pairs, stored_ends
-from hte_jax.hbr.store import load_hbr
 
 
-@pytest.fixture(scope="module")
-def shipped():
-    hbr, task, _ = load_hbr()
-    return hbr, task
-
-
-def test_defaults_are_every_filled_skill_and_every_pattern(shipped):
-    hbr, _ = shipped
+def test_defaults_are_every_filled_skill_and_every_pattern(shipped_hbr):
+    hbr, _ = shipped_hbr
     slots, patterns = checked_pairs(hbr, None, None)
     np.testing.assert_array_equal(slots, np.flatnonzero(np.asarray(hbr.top.filled)))
     np.testing.assert_array_equal(patterns, np.arange(64))
@@ -23,8 +16,8 @@ def test_defaults_are_every_filled_skill_and_every_pattern(shipped):
     assert chosen.tolist() == slots[[3, 1]].tolist() and few.tolist() == [63, 0]
 
 
-def test_empty_cells_and_unknown_patterns_are_refused(shipped):
-    hbr, _ = shipped
+def test_empty_cells_and_unknown_patterns_are_refused(shipped_hbr):
+    hbr, _ = shipped_hbr
     empty = int(np.flatnonzero(~np.asarray(hbr.top.filled))[0])
     with pytest.raises(ValueError, match=rf"skills \[{empty}\] are not filled cells of the top layer"):
         checked_pairs(hbr, [empty], None)
@@ -33,8 +26,8 @@ def test_empty_cells_and_unknown_patterns_are_refused(shipped):
             checked_pairs(hbr, None, bad)
 
 
-def test_stored_ends_are_the_skills_descriptors_in_metres(shipped):
-    hbr, task = shipped
+def test_stored_ends_are_the_skills_descriptors_in_metres(shipped_hbr):
+    hbr, task = shipped_hbr
     slots = np.flatnonzero(np.asarray(hbr.top.filled))[:5]
     ends = stored_ends(hbr, task, slots)
     assert ends.shape == (5, 3)

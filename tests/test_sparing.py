@@ -13,16 +13,9 @@ from hte_jax.errors import ConfigError
 from hte_jax.hbr.composition import plan_batch
 from hte_jax.hbr.execution import select_middle
 from hte_jax.hbr.sparing import STRICT_CONTACT, lifted_legs, sparing_members, sparing_table, with_spare
-from hte_jax.hbr.store import load_hbr
 from hte_jax.online import variants
 from hte_jax.online.execute import hbr_skills
 from hte_jax.online.secondary import unusable_legs
-
-
-@pytest.fixture(scope="module")
-def shipped():
-    hbr, top_task, _ = load_hbr()
-    return hbr, top_task
 
 
 def test_lifted_legs_reads_the_pattern_bits():
@@ -43,8 +36,8 @@ def test_members_match_a_brute_force():
     assert members[63].tolist() == present.tolist()  # nothing lifted: every usable elite
 
 
-def test_spare_elites_join_only_the_sparing_sets(shipped):
-    hbr, _ = shipped
+def test_spare_elites_join_only_the_sparing_sets(shipped_hbr):
+    hbr, _ = shipped_hbr
     own = int(hbr.middle.capacity)
     spare = jax.tree.map(lambda x: x[:own], hbr.middle)  # the HBR's own elites as a stand-in archive
     fraction = np.asarray(spare.extras["contact_fraction"]).copy()
@@ -71,8 +64,8 @@ def test_spare_elites_join_only_the_sparing_sets(shipped):
     np.testing.assert_array_equal(np.sort(row), np.concatenate([own_members, own + np.arange(added)]))
 
 
-def test_planned_sparing_steps_keep_the_lifted_legs_off_the_floor(shipped):
-    hbr, top_task = shipped
+def test_planned_sparing_steps_keep_the_lifted_legs_off_the_floor(shipped_hbr):
+    hbr, top_task = shipped_hbr
     table = sparing_table(hbr)
     fraction = np.asarray(hbr.middle.extras["contact_fraction"])
     here = jnp.zeros((6, 3))
@@ -83,8 +76,8 @@ def test_planned_sparing_steps_keep_the_lifted_legs_off_the_floor(shipped):
     assert (fraction[elite[:3], 1] < STRICT_CONTACT).all() and (fraction[elite[3:], 4] < STRICT_CONTACT).all()
 
 
-def test_sparing_variants_are_table_entries_that_need_planned_composition(shipped):
-    hbr, top_task = shipped
+def test_sparing_variants_are_table_entries_that_need_planned_composition(shipped_hbr):
+    hbr, top_task = shipped_hbr
     assert variants.variant("hte-spare").sparing == "off-floor" and variants.variant("hte-spare").rule == "sensed"
     assert variants.variant("hte-spare-always").sparing == "always"
     assert variants.variant("perfect-spare").sparing == "always" and variants.variant("perfect-spare").rule == "oracle"
@@ -119,13 +112,13 @@ def test_spares_now_follows_each_episodes_sparing_mode_and_sensed_contacts():
     np.testing.assert_array_equal(np.asarray(variants.spares_now(learnt)), [False, True, True, False, False])
 
 
-def test_the_set_of_the_pattern_lifting_no_leg_is_its_own_elites(shipped):
-    hbr, _ = shipped
+def test_the_set_of_the_pattern_lifting_no_leg_is_its_own_elites(shipped_hbr):
+    hbr, _ = shipped_hbr
     row = np.asarray(sparing_table(hbr).index[63])
     np.testing.assert_array_equal(np.sort(row[row >= 0]), np.flatnonzero(np.asarray(hbr.middle_patterns) == 63))
 
 
-def test_train_spare_writes_an_archive_tied_to_its_bottom_layer(shipped, tmp_path):
+def test_train_spare_writes_an_archive_tied_to_its_bottom_layer(shipped_hbr, tmp_path):
     from experiments.pattern_ends import main as ends_main
     from experiments.train_spare import main as spare_main
     from hte_jax.hbr.store import load_spare
@@ -134,7 +127,7 @@ def test_train_spare_writes_an_archive_tied_to_its_bottom_layer(shipped, tmp_pat
     def read_json(path):
         return json.loads(path.read_text())
 
-    hbr, _ = shipped
+    hbr, _ = shipped_hbr
     assert spare_main(["--threshold", "1.5", "--out", str(tmp_path / "bad")]) == 2
     assert ends_main(["--max-lifted", "0"]) == 2
     out = tmp_path / "spare"
