@@ -271,17 +271,18 @@ def run_batch(config: EvalConfig, path: str | None, variants: list[str], maze: M
     batch of episodes. record: batch rows whose states are recorded every `record_every` control
     steps (`BatchResult.replays`); none by default, and then nothing is recorded."""
     maps = len(variants) == 1 and variant_named(variants[0]).repertoire == "aprol"
-    sparing = np.array([SPARING.index(variant_named(v).sparing) for v, _, _ in batch_labels(config, variants)], np.int32)
-    measured = np.array([variant_named(v).measured_ends for v, _, _ in batch_labels(config, variants)])
+    labels = batch_labels(config, variants)
+    sparing = np.array([SPARING.index(variant_named(v).sparing) for v, _, _ in labels], np.int32)
+    measured = np.array([variant_named(v).measured_ends for v, _, _ in labels])
     tables = sorted({"sparing" if variant_named(v).spares else "planned" for v in variants
                      if variant_named(v).measured_ends})
     if len(tables) > 1:
         raise ConfigError("variants planning with ends measured on different tables (sparing and planned) "
                           "cannot share a batch; run them separately")
-    skills, info = load_skills(path, maps=maps, composition=config.composition, sparing=bool((sparing > 0).any()),
+    skills, info = load_skills(path, maps=maps, composition=config.composition,
+                               sparing=any(variant_named(v).spares for v in variants),
                                spare=config.spare or None, ends_table=tables[0] if tables else None,
                                ends=config.pattern_ends or None)
-    labels = batch_labels(config, variants)
     modes = np.array([variant_mode(v, skills.hierarchical) for v, _, _ in labels])
     damages = np.stack([parse_damage(d) for _, d, _ in labels])
     adaptation = config.adaptation
