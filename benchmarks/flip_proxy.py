@@ -19,12 +19,13 @@ Prints, per damage, way and robot, the share of robots flipped after the first a
 all of them, and in which phase the flips began (step 1, 2, 3 of the skill or the neutral
 second); writes JSON to benchmarks/results/.
 Usage: python benchmarks/flip_proxy.py [--damages leg0,leg2,leg3,leg5] [--robots 64] [--actions 3]
-       [--ways rte,pattern,sparing] [--models raised,light,touchless,locked,intact]
+       [--ways rte,pattern,sparing] [--models raised,light,touchless,locked,intact] [--reflex-tilt 0,0.5]
 """
 
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import sys
 import time
@@ -37,6 +38,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.common import environment, result_path  # noqa: E402
+from hte_jax.errors import ConfigError  # noqa: E402
 from hte_jax.hbr.composition import planning_table, skill_ends  # noqa: E402
 from hte_jax.hbr.execution import STEPS_PER_SKILL, execute_skill  # noqa: E402
 from hte_jax.hbr.sparing import sparing_table  # noqa: E402
@@ -85,6 +87,8 @@ def main(argv=None) -> int:
     parser.add_argument("--actions", type=int, default=3)
     parser.add_argument("--ways", default=",".join(WAYS), help=f"ways of executing a skill, of {', '.join(WAYS)}")
     parser.add_argument("--models", default=",".join(ROBOTS), help=f"robot models to run, of {', '.join(ROBOTS)}")
+    parser.add_argument("--reflex-tilt", default="0",
+                        help="comma-separated tilt-reflex angles (rad, RobotConfig.reflex_tilt; 0 = off), each run")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--label", default="")
     args = parser.parse_args(argv)
@@ -99,8 +103,13 @@ def main(argv=None) -> int:
     if spare:
         hbr = load_spare(spare, hbr)
     tables = {"pattern": planning_table(hbr), "sparing": sparing_table(hbr)}
-    configs = {name: RobotConfig(damage_model=name, body_floor_contact=True) for name in ("raised", "locked")}
-    models = {name: load_robot(config) for name, config in configs.items()}
+    try:
+        reflexes = [float(angle) for angle in args.reflex_tilt.split(",")]
+        configs = {(name, reflex): RobotConfig(damage_model=name, body_floor_contact=True, reflex_tilt=reflex)
+                   for reflex in reflexes for name in ("raised", "locked")}
+    except (ValueError, ConfigError) as error:
+        parser.error(f"--reflex-tilt: {error}")
+    models = {key: load_robot(config) for key, config in configs.items()}
     top = np.flatnonzero(np.asarray(hbr.top.filled))
     ends_all = np.asarray(skill_ends(hbr.top.descriptors, hbr.top.extras["arrival_yaw"], task.extent))
     rng = np.random.default_rng(args.seed)
@@ -114,17 +123,18 @@ def main(argv=None) -> int:
 
     rows = []
     names = args.damages.split(",")
-    print(f"{'damage':8s} {'way':8s} {'robot':9s} flipped after 1 / {args.actions} actions   flips began in "
+    print(f"{'damage':8s} {'way':8s} {'robot':9s} reflex flipped after 1 / {args.actions} actions   flips began in "
           + " / ".join(PHASES), flush=True)
-    for name, mask in zip(names, damage_masks(names)):
+    for (name, mask), reflex in itertools.product(zip(names, damage_masks(names)), reflexes):
         batch = args.robots
         pattern = oracle_pattern(mask)
         chosen = rng.choice(top, size=(args.actions, batch))
         legs = np.flatnonzero(mask).tolist()
-        robots = {"raised": (models["raised"], mask), "locked": (models["locked"], mask),
-                  "light": (altered_robot(configs["raised"], legs, lighter=LIGHTER), mask),
-                  "touchless": (altered_robot(configs["raised"], legs, touchless=True), np.zeros(NUM_LEGS, bool)),
-                  "intact": (models["raised"], np.zeros(NUM_LEGS, bool))}
+        raised, locked = (configs[model, reflex] for model in ("raised", "locked"))
+        robots = {"raised": (models["raised", reflex], mask), "locked": (models["locked", reflex], mask),
+                  "light": (altered_robot(raised, legs, lighter=LIGHTER), mask),
+                  "touchless": (altered_robot(raised, legs, touchless=True), np.zeros(NUM_LEGS, bool)),
+                  "intact": (models["raised", reflex], np.zeros(NUM_LEGS, bool))}
         for way in chosen_ways:
             table = tables.get(way)
             wanted = -1 if way == "rte" else pattern
@@ -145,11 +155,12 @@ def main(argv=None) -> int:
                     began_in += np.bincount(phase[newly], minlength=len(PHASES))
                     alive &= ~newly
                     flipped_after.append(float(1 - alive.mean()))
-                row = {"damage": name, "way": way, "robot": robot_name, "flipped_after_action": flipped_after,
+                row = {"damage": name, "way": way, "robot": robot_name, "reflex_tilt": reflex,
+                       "flipped_after_action": flipped_after,
                        "flips_began_in": dict(zip(PHASES, began_in.tolist())),
                        "seconds": time.perf_counter() - began}
                 rows.append(row)
-                print(f"{name:8s} {way:8s} {robot_name:9s} {flipped_after[0]:.2f} / {flipped_after[-1]:.2f}"
+                print(f"{name:8s} {way:8s} {robot_name:9s} {reflex:6.2f} {flipped_after[0]:.2f} / {flipped_after[-1]:.2f}"
                       f"                     " + " / ".join(str(n) for n in began_in.tolist()), flush=True)
     env = environment()
     out = result_path(f"flip_proxy{args.label}", env)

@@ -2,6 +2,8 @@
 invalid robot is detected and ends HBR and flat episodes with its reason (the episode that reaches
 the goal is docs/extending.md's example 4, run by test_extending)."""
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -20,7 +22,7 @@ from hte_jax.online.maze import PAPER_MAZE
 from hte_jax.online.mcts import PlannerConfig
 from hte_jax.online.secondary import oracle_pattern
 from hte_jax.sim.damage import parse_damage
-from hte_jax.sim.robot import NUM_LEGS
+from hte_jax.sim.robot import NUM_LEGS, RobotConfig
 from hte_jax.sim.rollout import InvalidReason, RolloutSpec, rollout
 
 LEG1 = parse_damage("leg1")
@@ -167,3 +169,30 @@ def test_run_episode_refuses_a_variant_its_repertoire_cannot_run():
     with pytest.raises(ConfigError, match="needs an HBR"):
         run_episode(PAPER_MAZE, CONFIG, flat_skills(flat[0], flat.task.extent), robot, "hte")
     assert robot.commands == []
+
+
+def test_native_mujoco_runs_the_tilt_reflex_as_the_rollout_does():
+    """With `RobotConfig.reflex_tilt`, a robot started 15 degrees tilted holds the neutral pose for the
+    rest of that second, then walks the next: the same as the robot without the reflex sent the
+    all-zero controller for that second (the rollout's own test: test_rollout)."""
+    def tilted(executor):
+        start = executor.state()
+        qpos = start.qpos.copy()
+        half = np.deg2rad(15.0) / 2
+        qpos[2] += 0.05
+        qpos[3:7] = [np.cos(half), np.sin(half), 0.0, 0.0]
+        executor._set(qpos, np.zeros_like(start.qvel), np.zeros_like(start.qvel))
+        return executor
+
+    base = RobotConfig()
+    walk = np.stack([np.full(36, 0.5, np.float32)] * 2)  # (2, 36): two seconds of one gait
+    reflexive = tilted(MujocoExecutor.in_maze(PAPER_MAZE, np.zeros(NUM_LEGS, bool),
+                                              dataclasses.replace(base, reflex_tilt=0.1)))
+    plain = tilted(MujocoExecutor.in_maze(PAPER_MAZE, np.zeros(NUM_LEGS, bool), base))
+    np.testing.assert_array_equal(reflexive.state().qpos, plain.state().qpos)
+    fired = reflexive.run(walk)
+    reference = plain.run(walk * np.array([[0.0], [1.0]], np.float32))
+    assert fired.invalid_reason == 0
+    np.testing.assert_array_equal(fired.poses, reference.poses)
+    np.testing.assert_array_equal(reflexive.state().qpos, plain.state().qpos)
+    assert np.abs(fired.leg_travel[1]).sum() > np.abs(fired.leg_travel[0]).sum()  # the gait came back

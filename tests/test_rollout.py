@@ -4,6 +4,7 @@ Every test reuses one module-wide batch of 16 rollouts (one compilation) where i
 MJX compiles take ~20 s each on a 2-core CPU.
 """
 
+import dataclasses
 import math
 
 import jax
@@ -15,7 +16,7 @@ import pytest
 from hte_jax.errors import ConfigError
 from hte_jax.sim.controller import target_table, servo_command
 from hte_jax.sim.damage import DAMAGED_POSE, paper_damage_masks
-from hte_jax.sim.robot import load_robot, mj_model
+from hte_jax.sim.robot import RobotConfig, load_robot, mj_model
 from hte_jax.sim.rollout import InvalidReason, RolloutSpec, initial_state, rollout, standing_state
 
 # Tripod gait of the 36-parameter controller, per leg (a, p, d) hip then (a, p, d) vertical.
@@ -240,3 +241,40 @@ def test_bad_inputs_are_clear_errors(robot):
         RolloutSpec(num_steps=10, pose_steps=(11,))
     with pytest.raises(ConfigError, match="num_steps"):
         RolloutSpec(num_steps=0)
+
+
+def _tilted(state, degrees: float, lift: float):
+    """Batched `state` rolled by `degrees` about the body's x axis and lifted by `lift` metres."""
+    half = math.radians(degrees) / 2
+    qpos = np.array(state.qpos)
+    qpos[:, 2] += lift
+    qpos[:, 3:7] = [math.cos(half), math.sin(half), 0.0, 0.0]
+    return state.replace(qpos=jnp.asarray(qpos))
+
+
+def test_tilt_reflex_holds_the_neutral_pose_until_the_segment_ends(robot, batch):
+    """RobotConfig.reflex_tilt: a robot started 15 degrees tilted drops its gait for the neutral pose
+    for the rest of the 1 s segment, then walks the next segment; an upright tripod never fires it.
+    Reference: the same physics without the reflex, running the all-zero controller where it fired."""
+    reflexive = load_robot(dataclasses.replace(robot.config, reflex_tilt=0.1))
+    upright = jax.tree.map(lambda x: x[jnp.asarray([TRIPOD_IDX, TRIPOD_IDX])], batch["init"])
+    starts = jax.tree.map(lambda a, b: jnp.stack([a[0], b[1]]), _tilted(upright, 15.0, 0.05), upright)
+    spec = RolloutSpec(num_steps=200, pose_steps=(0, 50, 100, 200))
+    tripods = jnp.asarray(np.stack([np.stack([TRIPOD, TRIPOD])] * 2))
+    reflexes = rollout(reflexive, tripods, jnp.zeros(6, bool), starts, spec)
+    reference = rollout(robot, tripods.at[0, 0].set(0.0), jnp.zeros(6, bool), starts, spec)
+    assert _np(reflexes.valid).all()
+    np.testing.assert_allclose(_np(reflexes.base_pos), _np(reference.base_pos), atol=1e-5)
+    np.testing.assert_allclose(_np(reflexes.final_state.qpos), _np(reference.final_state.qpos), atol=1e-4)
+    pos = _np(reflexes.base_pos[0])
+    assert np.linalg.norm(pos[2, :2] - pos[1, :2]) < 0.01  # stood in its first second
+    assert pos[3, 0] - pos[2, 0] > 0.03  # and walked in the second
+    assert _up_z(_np(reflexes.base_quat[1])).min() > math.cos(0.1)  # the upright tripod stayed below the angle
+    # without the reflex, the tilted tripod does not stand still in its first second
+    free = rollout(robot, tripods, jnp.zeros(6, bool), starts, spec)
+    assert np.abs(_np(free.base_pos[0, 2]) - pos[2]).max() > 0.01
+
+
+def test_reflex_tilt_is_validated():
+    with pytest.raises(ConfigError, match="reflex_tilt"):
+        RobotConfig(reflex_tilt=-0.1)

@@ -66,6 +66,8 @@ class EvalConfig:
     file; "" = the spare.npz beside the HBR file, if any). pattern_ends: the skills' ends measured
     under each pattern (`hbr.pattern_ends`, `experiments.pattern_ends`) that the variants planning
     with measured ends use ("" = the pattern_ends_<table>.npz beside the HBR file). seed: PRNG seed. solver_iterations, ls_iterations, solver_tolerance: the physics' Newton solver.
+    reflex_tilt: the robot's tilt reflex (`RobotConfig.reflex_tilt`, rad): past this tilt a skill's
+    gait gives way to the neutral pose for the rest of its second; 0 (default, the paper's robot): off.
     """
 
     variants: str = "hte"
@@ -90,6 +92,7 @@ class EvalConfig:
     solver_iterations: int = RobotConfig.solver_iterations
     ls_iterations: int = RobotConfig.ls_iterations
     solver_tolerance: float = RobotConfig.solver_tolerance
+    reflex_tilt: float = RobotConfig.reflex_tilt
 
     def __post_init__(self):
         require_int("replicates", self.replicates)
@@ -143,7 +146,8 @@ class EvalConfig:
     def robot(self) -> RobotConfig:
         """The simulated robot's options (before the maze's walls are added)."""
         return RobotConfig(damage_model=self.damage_model, solver_iterations=self.solver_iterations,
-                           ls_iterations=self.ls_iterations, solver_tolerance=self.solver_tolerance)
+                           ls_iterations=self.ls_iterations, solver_tolerance=self.solver_tolerance,
+                           reflex_tilt=self.reflex_tilt)
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)

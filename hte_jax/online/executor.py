@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import math
 from typing import Protocol
 
 import jax
@@ -200,7 +201,8 @@ class MujocoExecutor:
     (damaged legs in their pose), the velocity servo command, `mj_step`; a foot touches the floor
     when its sphere is within `RolloutSpec.contact_tolerance` of it. Every state is checked as the
     rollout checks it (`rollout.check_state`); at the first invalid one the robot is put back to the
-    state before it and stops.
+    state before it and stops. The tilt reflex of `config` (`RobotConfig.reflex_tilt`) runs as in
+    the rollout, for the rest of the second.
     """
 
     def __init__(self, config: RobotConfig, damage: np.ndarray, start: SimState,
@@ -212,6 +214,7 @@ class MujocoExecutor:
         self.joints, self.feet = np.asarray(info.joint_qpos), np.asarray(info.foot_geoms)
         self.damaged = np.repeat(np.asarray(damage, bool), JOINTS_PER_LEG)
         self.damaged_pose = np.tile(np.asarray(damaged_pose(config.damage_model)), NUM_LEGS)
+        self.neutral = np.asarray(_target_tables(jnp.zeros((1, NUM_PARAMS), jnp.float32)), np.float64)[0]
         self._set(np.asarray(start.qpos), np.asarray(start.qvel), np.asarray(start.qacc_warmstart))
 
     @classmethod
@@ -268,8 +271,12 @@ class MujocoExecutor:
         warm = np.zeros((steps, model.nv))
         touching = np.zeros((steps, NUM_LEGS), bool)
         tolerance = RolloutSpec.contact_tolerance
+        braced, upright = False, math.cos(self.config.reflex_tilt)
         for k in range(steps):
-            target = np.where(self.damaged, self.damaged_pose, table[k % SAMPLES_PER_PERIOD])
+            if self.config.reflex_tilt > 0.0:  # the tilt reflex, as `rollout` runs it
+                braced = braced or 1.0 - 2.0 * (data.qpos[4] ** 2 + data.qpos[5] ** 2) < upright
+            row = self.neutral[k % SAMPLES_PER_PERIOD] if braced else table[k % SAMPLES_PER_PERIOD]
+            target = np.where(self.damaged, self.damaged_pose, row)
             error = target - data.qpos[self.joints]
             data.ctrl[:] = np.clip(error / SERVO_TIME_CONSTANT, -self.config.max_joint_velocity,
                                    self.config.max_joint_velocity)

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import math
 import os
 from pathlib import Path
 
@@ -71,6 +72,10 @@ class RobotConfig:
       the online phase turns it on so that a damaged robot that tips over lands on its body.
     damage_model: the pose a damaged leg holds: "raised" (blocked in the air, the paper's
       description) or "locked" (in the standing pose); see `hte_jax.sim.damage`.
+    reflex_tilt: a tilt reflex of the controller: once the body tilts more than this angle (rad)
+      from upright, the gait is dropped and the neutral pose (the all-zero controller) is held until
+      the running controller's time is up (a 1 s step; a segment of `rollout`'s params). 0 (default,
+      the paper's robot) never fires.
     """
 
     timestep: float = 0.01
@@ -88,6 +93,7 @@ class RobotConfig:
     bumper_radius: float = 0.25
     body_floor_contact: bool = False
     damage_model: str = "raised"
+    reflex_tilt: float = 0.0
 
     def __post_init__(self):
         for name in ("timestep", "control_dt", "servo_gain", "max_torque", "max_joint_velocity"):
@@ -103,6 +109,7 @@ class RobotConfig:
         require_number("armature", self.armature, 0.0)
         require_choice("wall_contact", self.wall_contact, WALL_CONTACTS)
         require_number("bumper_radius", self.bumper_radius, 0.0, open_low=True)
+        require_number("reflex_tilt", self.reflex_tilt, 0.0, math.pi)
         require_choice("damage_model", self.damage_model, DAMAGE_MODELS)
         for wall in self.walls:
             if len(wall) != 4 or not (wall[0] < wall[2] and wall[1] < wall[3]):

@@ -170,12 +170,16 @@ def _world_z_of(qpos: jax.Array, points: np.ndarray) -> jax.Array:
     return qpos[2] + points @ row_z
 
 
+def _up_z(qpos: jax.Array) -> jax.Array:
+    """World z of the body's z axis (cosine of its tilt) for a base pose qpos[:7] (unit quaternion)."""
+    return 1.0 - 2.0 * (qpos[4] ** 2 + qpos[5] ** 2)
+
+
 def check_state(qpos: jax.Array, qvel: jax.Array, limits: ValidityLimits) -> jax.Array:
     """InvalidReason bits (int32 scalar, 0 = valid) of one state: qpos (25,), qvel (24,)."""
     finite = jnp.isfinite(qpos).all() & jnp.isfinite(qvel).all()
     exploded = jnp.abs(qvel).max() > limits.max_speed
-    up_z = 1.0 - 2.0 * (qpos[4] ** 2 + qpos[5] ** 2)  # world z of the body's z axis
-    flipped = up_z < math.cos(limits.max_tilt)
+    flipped = _up_z(qpos) < math.cos(limits.max_tilt)
     height = (qpos[2] < limits.min_base_height) | (qpos[2] > limits.max_base_height)
     on_floor = (_world_z_of(qpos, _BODY_BOTTOM).min() < 0.0) & limits.body_on_floor
     return (
@@ -206,11 +210,19 @@ def _rollout_one(
         hit = jnp.arange(num_poses) == pose_slot[step]
         return jnp.where(hit[:, None], qpos[None, :7], buffer)
 
+    reflex = config.reflex_tilt > 0.0
+    neutral = target_table(jnp.zeros(NUM_PARAMS, jnp.float32))  # (100, 18) the all-zero controller
+
     def control_step(carry, step):
-        data, reason, invalid_step, poses, command_sum, travel = carry
+        data, reason, invalid_step, poses, command_sum, travel, braced = carry
         poses = record_pose(poses, data.qpos, step)
         row = (step % segment_steps) % SAMPLES_PER_PERIOD
-        target = apply_damage(tables[step // segment_steps, row], damage, damaged_pose(config.damage_model))
+        gait = tables[step // segment_steps, row]
+        if reflex:  # tilted past the reflex angle: the neutral pose until this controller's segment ends
+            fresh = step % segment_steps == 0
+            braced = (braced & ~fresh) | (_up_z(data.qpos) < math.cos(config.reflex_tilt))
+            gait = jnp.where(braced, neutral[row], gait)
+        target = apply_damage(gait, damage, damaged_pose(config.damage_model))
         command = servo_command(target, data.qpos[joint_qpos], config.max_joint_velocity)
         stepped = data.replace(ctrl=command)
         for _ in range(config.substeps):
@@ -238,7 +250,7 @@ def _rollout_one(
             outputs["joints"] = data.qpos[joint_qpos]
         if spec.record_qpos_every:
             outputs["qpos"] = data.qpos
-        return (stepped, new_reason, invalid_step, poses, command_sum, travel), outputs
+        return (stepped, new_reason, invalid_step, poses, command_sum, travel, braced), outputs
 
     data = template.replace(qpos=init.qpos, qvel=init.qvel, qacc_warmstart=init.qacc_warmstart)
     data = mjx.kinematics(robot.model, data)  # geom_xpos of the initial state
@@ -249,8 +261,9 @@ def _rollout_one(
         jnp.zeros((num_poses, 7), jnp.float32),
         jnp.zeros(NUM_JOINTS, jnp.float32),
         jnp.zeros(NUM_JOINTS, jnp.float32),
+        jnp.bool_(False),
     )
-    (data, reason, invalid_step, poses, command_sum, travel), outputs = jax.lax.scan(
+    (data, reason, invalid_step, poses, command_sum, travel, _), outputs = jax.lax.scan(
         control_step, carry, jnp.arange(spec.num_steps)
     )
     poses = record_pose(poses, data.qpos, spec.num_steps)
