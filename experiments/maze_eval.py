@@ -71,7 +71,13 @@ from hte_jax.online.plots import (
     plot_protocol_box,
     plot_variant_mazes,
 )
-from hte_jax.online.statistics import PAPER_FAILURE_REDUCTION, PAPER_QUARTILES, failure_reduction, protocol_statistics
+from hte_jax.online.statistics import (
+    PAPER_FAILURE_REDUCTION,
+    PAPER_QUARTILES,
+    failure_reduction,
+    failure_reductions,
+    protocol_statistics,
+)
 from hte_jax.qd.io import save_checkpoint, write_json
 
 SETTINGS = [f.name for f in dataclasses.fields(EvalConfig)]
@@ -134,6 +140,8 @@ def main(argv=None) -> int:
     if variant in statistics["variants"] and baseline in statistics["variants"]:
         statistics["failure_reduction"] = {"variant": variant, "baseline": baseline, "paper_percent": paper_reduction,
                                            "percent": failure_reduction(statistics, variant, baseline)}
+    if baseline in statistics["variants"] and len(statistics["variants"]) > 1:
+        statistics["failure_reductions"] = {"baseline": baseline, "percent": failure_reductions(statistics, baseline)}
     write_json(out / "episodes.json", {"episodes": records})
     write_json(out / "summary.json", summary)
     write_json(out / "statistics.json", statistics)
@@ -203,6 +211,10 @@ def _print_statistics(statistics: dict) -> None:
     if reduction and reduction["percent"] is not None:
         print(f"{reduction['variant']} has {reduction['percent']:.0f} % fewer failures than {reduction['baseline']} "
               f"(paper: {reduction['paper_percent']:.0f} %)")
+    reductions = statistics.get("failure_reductions")
+    if reductions and any(p is not None for p in reductions["percent"].values()):
+        print(f"fewer failures than {reductions['baseline']}: " + ", ".join(
+            f"{name} {percent:.0f} %" for name, percent in reductions["percent"].items() if percent is not None))
 
 
 def _save_batch(path: Path, result) -> None:

@@ -8,6 +8,7 @@ from scipy import stats
 from hte_jax.online.statistics import (
     bonferroni,
     failure_reduction,
+    failure_reductions,
     nearest_percentile,
     pairwise_tests,
     protocol_statistics,
@@ -88,3 +89,7 @@ def test_failure_reduction():
                                "none": {"failure_percent": 0.0}}}
     assert failure_reduction(statistics, "hte", "2d-rte") == pytest.approx(100 * (1 - 3 / 7))
     assert failure_reduction(statistics, "hte", "none") is None
+    every = failure_reductions(statistics, "2d-rte")
+    assert list(every) == ["hte", "none"]
+    assert every["hte"] == pytest.approx(100 * (1 - 3 / 7)) and every["none"] == pytest.approx(100.0)
+    assert failure_reductions(statistics, "none") == {"hte": None, "2d-rte": None}

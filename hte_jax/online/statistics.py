@@ -97,3 +97,8 @@ def failure_reduction(statistics: dict, variant: str, baseline: str) -> float | 
     v = statistics["variants"]
     base = v[baseline]["failure_percent"]
     return None if base == 0 else 100.0 * (1.0 - v[variant]["failure_percent"] / base)
+
+
+def failure_reductions(statistics: dict, baseline: str) -> dict[str, float | None]:
+    """`failure_reduction` of every other variant of `statistics` against `baseline`, in their order."""
+    return {name: failure_reduction(statistics, name, baseline) for name in statistics["variants"] if name != baseline}
