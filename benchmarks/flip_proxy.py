@@ -15,9 +15,11 @@ robot flips:
   feet pass through the floor (support lost, mass where the controller holds it);
 - intact: the intact robot running the damage's gaits.
 
-Prints, per damage, way and robot, the share of robots flipped after the first action and after
-all of them, and in which phase the flips began (step 1, 2, 3 of the skill or the neutral
-second); writes JSON to benchmarks/results/.
+Prints, per damage, way, robot and tilt-reflex angle (`--reflex-tilt`), the share of robots
+flipped after the first action and after all of them, in which phase the flips began (step 1, 2,
+3 of the skill or the neutral second), and the median distance between a whole skill's end and
+its stored end point (what a reflex that fires in a stable gait costs); writes JSON to
+benchmarks/results/.
 Usage: python benchmarks/flip_proxy.py [--damages leg0,leg2,leg3,leg5] [--robots 64] [--actions 3]
        [--ways rte,pattern,sparing] [--models raised,light,touchless,locked,intact] [--reflex-tilt 0,0.5]
 """
@@ -61,6 +63,14 @@ def first_invalid_phase(step_reasons: np.ndarray, rest_valid: np.ndarray) -> np.
     first invalid phase, -1 where the whole action stayed valid."""
     bad = np.concatenate([step_reasons != 0, ~rest_valid[None]], axis=0)  # (4, B)
     return np.where(bad.any(axis=0), bad.argmax(axis=0), -1)
+
+
+def skill_miss_median(misses: list[np.ndarray]) -> float:
+    """Median over every whole skill run of how far (m, x-y) it ended from its stored end point; the
+    robots' per-action arrays `misses`; NaN when no skill ran whole. The reflex's cost: a skill cut
+    short by it ends short."""
+    runs = np.concatenate([np.asarray(m, np.float64).ravel() for m in misses]) if misses else np.zeros(0)
+    return float(np.median(runs)) if runs.size else float("nan")
 
 
 def altered_robot(config: RobotConfig, legs, lighter: float = 1.0, touchless: bool = False) -> Robot:
@@ -119,12 +129,13 @@ def main(argv=None) -> int:
         skill = execute_skill(robot, hbr, genes, state, damage=damage, patterns=patterns, table=table, ends=ends,
                               limits=ONLINE_LIMITS)
         rest = neutral_second(robot, skill.state, damage)
-        return rest.final_state, skill.steps.invalid_reason, rest.valid
+        miss = jnp.linalg.norm(skill.displacement[:, :2] - ends[:, :2], axis=-1)
+        return rest.final_state, skill.steps.invalid_reason, rest.valid, miss
 
     rows = []
     names = args.damages.split(",")
     print(f"{'damage':8s} {'way':8s} {'robot':9s} reflex flipped after 1 / {args.actions} actions   flips began in "
-          + " / ".join(PHASES), flush=True)
+          + " / ".join(PHASES) + "   end miss (m)", flush=True)
     for (name, mask), reflex in itertools.product(zip(names, damage_masks(names)), reflexes):
         batch = args.robots
         pattern = oracle_pattern(mask)
@@ -145,12 +156,13 @@ def main(argv=None) -> int:
                 damage = jnp.broadcast_to(jnp.asarray(robot_mask), (batch, NUM_LEGS))
                 state = standing_state(robot, damage)
                 alive = np.ones(batch, bool)
-                flipped_after, began_in = [], np.zeros(len(PHASES), int)
+                flipped_after, began_in, misses = [], np.zeros(len(PHASES), int), []
                 for a in range(args.actions):
                     slots = chosen[a]
-                    state, reasons, rest_valid = act(robot, hbr, table, state, damage, hbr.top.genotypes[slots],
-                                                     jnp.asarray(ends_all[slots]), patterns)
+                    state, reasons, rest_valid, miss = act(robot, hbr, table, state, damage, hbr.top.genotypes[slots],
+                                                           jnp.asarray(ends_all[slots]), patterns)
                     phase = first_invalid_phase(np.asarray(reasons), np.asarray(rest_valid))
+                    misses.append(np.asarray(miss)[alive & (phase < 0)])  # skills that ran whole
                     newly = alive & (phase >= 0)
                     began_in += np.bincount(phase[newly], minlength=len(PHASES))
                     alive &= ~newly
@@ -158,10 +170,12 @@ def main(argv=None) -> int:
                 row = {"damage": name, "way": way, "robot": robot_name, "reflex_tilt": reflex,
                        "flipped_after_action": flipped_after,
                        "flips_began_in": dict(zip(PHASES, began_in.tolist())),
+                       "end_miss_median_m": skill_miss_median(misses),
                        "seconds": time.perf_counter() - began}
                 rows.append(row)
                 print(f"{name:8s} {way:8s} {robot_name:9s} {reflex:6.2f} {flipped_after[0]:.2f} / {flipped_after[-1]:.2f}"
-                      f"                     " + " / ".join(str(n) for n in began_in.tolist()), flush=True)
+                      f"                     " + " / ".join(str(n) for n in began_in.tolist())
+                      + f"   {row['end_miss_median_m']:.3f}", flush=True)
     env = environment()
     out = result_path(f"flip_proxy{args.label}", env)
     out.write_text(json.dumps({"environment": env, "args": vars(args), "rows": rows}, indent=1))

@@ -1,6 +1,7 @@
 """The flip proxy's bookkeeping (benchmarks/flip_proxy.py): first invalid phase and altered robots."""
 
 import numpy as np
+import pytest
 
 from hte_jax.sim.robot import FLOOR_BIT, RobotConfig, mj_model
 from tests.benchmark_runner import benchmark_module
@@ -34,3 +35,10 @@ def test_altered_robot_lightens_and_unfloors_only_the_named_legs():
     for name in ("leg_3_3", "foot_3", "base_link"):
         assert contype[base.geom(name).id] & FLOOR_BIT
     assert base.body_mass[base.body("leg_2_2").id] > 0.1  # the cached model is untouched
+
+
+def test_skill_miss_median_pools_the_whole_skills_of_every_action():
+    misses = [np.array([0.1, 0.3]), np.array([], np.float32), np.array([0.2])]
+    assert flip_proxy.skill_miss_median(misses) == pytest.approx(0.2)
+    assert np.isnan(flip_proxy.skill_miss_median([np.array([])]))
+    assert np.isnan(flip_proxy.skill_miss_median([]))
