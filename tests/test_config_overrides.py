@@ -5,7 +5,7 @@ import dataclasses
 import pytest
 
 from hte_jax import errors
-from hte_jax.errors import ConfigError, require_int, with_overrides
+from hte_jax.errors import ConfigError, config_dict, config_from_dict, inline, require_int, settings, with_overrides
 from hte_jax.flat import training as flat_training
 from hte_jax.hbr import training as hbr_training
 from hte_jax.hbr.training import PRESETS, LayerSchedule
@@ -36,6 +36,40 @@ class Outer:
 
     def __post_init__(self):
         require_int("seed", self.seed, minimum=0)
+
+
+@dataclasses.dataclass(frozen=True)
+class Flattened:
+    inner: Inner = inline(Inner(count=2))
+    middle: Middle = Middle()
+    seed: int = 0
+
+
+def test_inlined_settings_read_as_the_parents_own():
+    """An `inline` configuration: overridden by its own names or through its field, stored flat, read
+    back from the flat or the nested layout, and its checks' messages carry no path."""
+    config = with_overrides(Flattened(), {"count": "3", "inner.scale": "2", "middle.inner.count": 4})
+    assert config == Flattened(inner=Inner(count=3, scale=2.0), middle=Middle(inner=Inner(count=4)))
+    stored = config_dict(config)
+    assert stored == {"count": 3, "scale": 2.0, "name": "a", "middle": {"inner": {"count": 4, "scale": 0.5,
+                                                                                   "name": "a"}, "flag": False},
+                      "seed": 0}
+    assert config_from_dict(Flattened, stored) == config == config_from_dict(Flattened, dataclasses.asdict(config))
+    assert config_from_dict(Flattened, {"scale": 2.0}) == Flattened(inner=Inner(count=2, scale=2.0))
+    assert config_from_dict(Flattened, {"seed": 1}, base=config) == dataclasses.replace(config, seed=1)
+    assert list(settings(Flattened)) == ["count", "scale", "name", "middle.inner.count", "middle.inner.scale",
+                                         "middle.inner.name", "middle.flag", "seed"]
+    with pytest.raises(ConfigError) as error:
+        with_overrides(Flattened(), {"count": "0"})
+    assert str(error.value) == "count must be an integer >= 1, got 0"
+    with pytest.raises(ConfigError) as error:
+        config_from_dict(Flattened, {"middle": {"inner": {"count": 0}}})
+    assert str(error.value) == "middle.inner.count must be an integer >= 1, got 0"
+    for key in ("inner", "middle.count", "inner.inner"):
+        with pytest.raises(ConfigError, match=f"^unknown setting '{key}'$"):
+            with_overrides(Flattened(), {key: 1})
+    with pytest.raises(TypeError):
+        config_from_dict(Flattened, {"colour": 1})
 
 
 def test_every_module_shares_the_one_rule():
