@@ -43,7 +43,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from experiments.cli import fail, input_errors
-from hte_jax.errors import ConfigError, require_int
+from hte_jax.errors import ConfigError, require_int, settings
 from hte_jax.online.evaluation import (
     PRESETS,
     PROTOCOLS,
@@ -74,7 +74,7 @@ from hte_jax.online.plots import (
 from hte_jax.online.statistics import PAPER_FAILURE_REDUCTION, PAPER_QUARTILES, failure_reduction, protocol_statistics
 from hte_jax.qd.io import save_checkpoint, write_json
 
-SETTINGS = [f.name for f in dataclasses.fields(EvalConfig)]
+SETTINGS = list(settings(EvalConfig))  # override keys, inlined settings (the planner's, the solver's) by their names
 RECORD_EVERY = 4  # control steps between the recorded states of --video episodes (25 per simulated second)
 ROOT = Path(__file__).resolve().parents[1]
 ALIASES = {"variants": "--variant", "damages": "--damage"}

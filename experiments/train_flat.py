@@ -17,16 +17,16 @@ different value is then an error.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import sys
 
 from experiments.cli import input_errors
+from hte_jax.errors import settings
 from hte_jax.flat.training import PRESETS, VARIANTS, FlatConfig, preset, train_flat, with_overrides
 from hte_jax.qd.io import stored_config
 from hte_jax.sim.robot import stored_solver
 
-SETTINGS = [f.name for f in dataclasses.fields(FlatConfig) if f.name != "variant"]
+SETTINGS = [key for key in settings(FlatConfig) if key != "variant"]
 
 
 def parser() -> argparse.ArgumentParser:

@@ -17,12 +17,12 @@ were settings) unless they are given; a different value is then an error.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import sys
 
 from experiments.cli import input_errors
-from hte_jax.hbr.training import LAYERS, PRESETS, HBRConfig, LayerSchedule, preset, train_hbr, with_overrides
+from hte_jax.errors import settings
+from hte_jax.hbr.training import PRESETS, HBRConfig, preset, train_hbr, with_overrides
 from hte_jax.qd.io import stored_config
 from hte_jax.sim.robot import stored_solver
 
@@ -32,13 +32,8 @@ def _flag(key: str) -> str:
 
 
 def _settings() -> list[tuple[str, type]]:
-    keys = []
-    for field in dataclasses.fields(HBRConfig):
-        if field.name in LAYERS:
-            keys += [(f"{field.name}.{f.name}", f.type) for f in dataclasses.fields(LayerSchedule)]
-        else:
-            keys.append((field.name, field.type))
-    return keys
+    """(override key, type) of every setting: "seed", "middle.generations", "solver_iterations" ..."""
+    return [(key, field.type) for key, field in settings(HBRConfig).items()]
 
 
 def parser() -> argparse.ArgumentParser:

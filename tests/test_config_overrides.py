@@ -133,7 +133,7 @@ def test_hbr_overrides_as_before():
                                             "solver_iterations": "6"})
     assert tiny.bottom == LayerSchedule(batch_size=8, init_size=16, generations=2, block_size=1, mutation_rate=0.17,
                                         capacity=256)
-    assert tiny.solver_iterations == 6 and tiny.middle is PRESETS["tiny"].middle
+    assert tiny.solver.solver_iterations == 6 and tiny.middle is PRESETS["tiny"].middle
 
 
 @pytest.mark.parametrize("overrides, message", [

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import jax
 
-from hte_jax.errors import ConfigError, require_choice, require_int, require_number
+from hte_jax.errors import ConfigError, config_dict, config_from_dict, inline, require_choice, require_int, require_number
 from hte_jax.errors import with_overrides as _with_overrides
 from hte_jax.hbr import bottom as bottom_layer
 from hte_jax.hbr import middle as middle_layer
@@ -33,7 +33,7 @@ from hte_jax.hbr.store import save_hbr
 from hte_jax.hbr.top import TopTask, evaluate_top, top_spec
 from hte_jax.qd import io
 from hte_jax.qd.loop import MapElites, MapElitesConfig, QDState, resume, run
-from hte_jax.sim.robot import Robot, RobotConfig, SOLVER_FIELDS, load_robot, stored_solver
+from hte_jax.sim.robot import Robot, RobotConfig, SolverConfig, load_robot, stored_solver
 from hte_jax.sim.rollout import standing_state
 
 with_overrides = _with_overrides  # the configurations' one override rule, re-exported
@@ -96,8 +96,9 @@ class HBRConfig:
       paper's fitness; `MiddleTask.purity`).
     bottom_l / middle_l: archive distance thresholds. top_bins: grid cells per axis.
     bottom_fitness: "commands" (measured joint commands) or "genes" (the original's gene sum).
-    solver_iterations / ls_iterations / solver_tolerance: the physics' Newton solver (`RobotConfig`);
-      a configuration stored without them ran 4 / 8 / 1e-8 and resumes with that.
+    solver: the physics' Newton solver (`SolverConfig`, inlined: settings solver_iterations,
+      ls_iterations, solver_tolerance); a configuration stored without them ran 4 / 8 / 1e-8 and
+      resumes with that.
     step_starts: start states from which every middle elite's step is measured once the layers
       are trained (`composition.measure_steps`, stored in hbr.npz); 0: no step model.
     """
@@ -113,9 +114,7 @@ class HBRConfig:
     middle_l: float = middle_layer.ARCHIVE_L
     top_bins: int = 100
     bottom_fitness: str = "commands"
-    solver_iterations: int = RobotConfig.solver_iterations
-    ls_iterations: int = RobotConfig.ls_iterations
-    solver_tolerance: float = RobotConfig.solver_tolerance
+    solver: SolverConfig = inline(SolverConfig())
     step_starts: int = 8
 
     def __post_init__(self):
@@ -128,12 +127,11 @@ class HBRConfig:
         require_number("middle_l", self.middle_l, 0.0, open_low=True)
         require_int("top_bins", self.top_bins)
         require_choice("bottom_fitness", self.bottom_fitness, BOTTOM_FITNESSES)
-        self.robot  # noqa: B018 (RobotConfig validates the solver settings)
 
     @property
     def robot(self) -> RobotConfig:
         """The simulated robot's options."""
-        return RobotConfig(**{name: getattr(self, name) for name in SOLVER_FIELDS})
+        return self.solver.robot()
 
     @property
     def bottom_task(self) -> BottomTask:
@@ -149,18 +147,14 @@ class HBRConfig:
         return TopTask(bins=self.top_bins)
 
     def to_dict(self) -> dict:
-        return dataclasses.asdict(self)
+        """The stored layout (`errors.config_dict`: the solver's settings among the others)."""
+        return config_dict(self)
 
     @classmethod
     def from_dict(cls, data: dict) -> HBRConfig:
-        """A configuration from `to_dict`'s output; missing solver settings are the ones it ran with (`LEGACY_SOLVER`)."""
-        data = {**data, **stored_solver(data)}
-        for layer in LAYERS:
-            try:
-                data[layer] = LayerSchedule(**data[layer])
-            except ConfigError as error:
-                raise ConfigError(f"{layer}.{error}") from None
-        return cls(**data)
+        """A configuration from `to_dict`'s output or the nested layout of `dataclasses.asdict`;
+        missing solver settings are the ones it ran with (`LEGACY_SOLVER`)."""
+        return config_from_dict(cls, {**data, **stored_solver(data)})
 
 
 def _schedule(batch, init, generations, block, mutation, capacity=1) -> LayerSchedule:

@@ -20,7 +20,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from hte_jax.errors import ConfigError, require_choice, require_int, require_number
+from hte_jax.errors import ConfigError, config_dict, config_from_dict, inline, require_choice, require_int, require_number
 from hte_jax.errors import with_overrides as _with_overrides
 from hte_jax.flat.store import load_flat, shipped_flat_path
 from hte_jax.hbr.pattern_ends import ends_file, load_pattern_ends
@@ -36,7 +36,7 @@ from hte_jax.online.mcts import PlannerConfig
 from hte_jax.online.recording import Recorder, Replay, maze_to_dict, replay_of
 from hte_jax.qd.io import CheckpointError, read_checkpoint
 from hte_jax.sim.damage import PAPER_DAMAGES, parse_damage
-from hte_jax.sim.robot import RobotConfig
+from hte_jax.sim.robot import RobotConfig, SolverConfig
 
 with_overrides = _with_overrides  # the configurations' one override rule, re-exported
 
@@ -65,9 +65,11 @@ class EvalConfig:
     execute from them (`hbr.sparing`; a spare file of `experiments.train_spare` or another HBR
     file; "" = the spare.npz beside the HBR file, if any). pattern_ends: the skills' ends measured
     under each pattern (`hbr.pattern_ends`, `experiments.pattern_ends`) that the variants planning
-    with measured ends use ("" = the pattern_ends_<table>.npz beside the HBR file). seed: PRNG seed. solver_iterations, ls_iterations, solver_tolerance: the physics' Newton solver.
-    reflex_tilt: the robot's tilt reflex (`RobotConfig.reflex_tilt`, rad): past this tilt a skill's
-    gait gives way to the neutral pose for the rest of its second; 0 (default, the paper's robot): off.
+    with measured ends use ("" = the pattern_ends_<table>.npz beside the HBR file). seed: PRNG seed.
+    solver: the physics' Newton solver (`SolverConfig`, inlined: settings solver_iterations,
+    ls_iterations, solver_tolerance). reflex_tilt: the robot's tilt reflex (`RobotConfig.reflex_tilt`,
+    rad): past this tilt a skill's gait gives way to the neutral pose for the rest of its second; 0
+    (default, the paper's robot): off.
     """
 
     variants: str = "hte"
@@ -89,9 +91,7 @@ class EvalConfig:
     spare: str = ""
     pattern_ends: str = ""
     seed: int = 0
-    solver_iterations: int = RobotConfig.solver_iterations
-    ls_iterations: int = RobotConfig.ls_iterations
-    solver_tolerance: float = RobotConfig.solver_tolerance
+    solver: SolverConfig = inline(SolverConfig())
     reflex_tilt: float = RobotConfig.reflex_tilt
 
     def __post_init__(self):
@@ -145,12 +145,17 @@ class EvalConfig:
     @property
     def robot(self) -> RobotConfig:
         """The simulated robot's options (before the maze's walls are added)."""
-        return RobotConfig(damage_model=self.damage_model, solver_iterations=self.solver_iterations,
-                           ls_iterations=self.ls_iterations, solver_tolerance=self.solver_tolerance,
-                           reflex_tilt=self.reflex_tilt)
+        return self.solver.robot(damage_model=self.damage_model, reflex_tilt=self.reflex_tilt)
 
     def to_dict(self) -> dict:
-        return dataclasses.asdict(self)
+        """The stored layout (`errors.config_dict`: inlined settings among the others)."""
+        return config_dict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict) -> EvalConfig:
+        """A configuration from `to_dict`'s output (a run's config.json without its preset and
+        protocol) or the nested layout of `dataclasses.asdict`."""
+        return config_from_dict(cls, data)
 
 
 def protocol_overrides(name: str) -> dict:
