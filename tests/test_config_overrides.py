@@ -10,6 +10,7 @@ from hte_jax.flat import training as flat_training
 from hte_jax.hbr import training as hbr_training
 from hte_jax.hbr.training import PRESETS, LayerSchedule
 from hte_jax.online import evaluation
+from hte_jax.online.mcts import PlannerConfig
 
 
 @dataclasses.dataclass(frozen=True)
@@ -162,6 +163,42 @@ def test_flat_and_evaluation_overrides_as_before():
         with_overrides(flat_training.preset("cpu", "2d"), {"variant.x": 1})
     config = with_overrides(evaluation.preset("cpu"), {"iterations": "5", "roots": 3, "exploration": "2",
                                                        "variants": "hte,rte"})
-    assert config == evaluation.EvalConfig(iterations=5, roots=3, exploration=2.0, variants="hte,rte")
+    assert config == evaluation.EvalConfig(planner=PlannerConfig(iterations=5, roots=3, exploration=2.0), variants="hte,rte")
     with pytest.raises(ConfigError, match=r"^setting 'seed': cannot read '1.5' as int$"):
         with_overrides(evaluation.preset("cpu"), {"seed": "1.5"})
+
+
+# Configurations as stored before the nested ones (`to_dict` of then: every setting flat), changed
+# from the presets in a few places.
+OLD_EVAL = {"variants": "hte", "damages": "all", "replicates": 30, "repertoire": "", "repertoire_dir": "",
+            "damage_model": "raised", "max_actions": 80, "iterations": 50, "roots": 4, "candidates": 100,
+            "exploration": 100.0, "widening": 0.5, "gamma": 0.9, "depth": 20, "optimism": 0.0, "composition": "planned",
+            "spare": "", "pattern_ends": "", "seed": 0, "solver_iterations": 2, "ls_iterations": 4,
+            "solver_tolerance": 1e-08, "reflex_tilt": 0.3}
+OLD_LAYER = {"batch_size": 16, "init_size": 32, "generations": 2, "block_size": 1, "mutation_rate": 0.17, "eta_m": 10.0,
+             "capacity": 256, "selection": "uniform", "density_bins": 16, "density_dims": 3, "frontier_fraction": 0.5,
+             "frontier_angle_bins": 16, "frontier_level_bins": 16}
+OLD_HBR = {"bottom": OLD_LAYER, "middle": {**OLD_LAYER, "mutation_rate": 0.11},
+           "top": {**OLD_LAYER, "mutation_rate": 0.14, "capacity": 1, "selection": "density", "density_bins": 8},
+           "seed": 0, "middle_samples": 2, "contact_threshold": 0.3, "contact_purity": 0.0, "bottom_l": 0.01,
+           "middle_l": 0.05, "top_bins": 100, "bottom_fitness": "commands", "solver_iterations": 6, "ls_iterations": 4,
+           "solver_tolerance": 1e-08, "step_starts": 2}
+OLD_FLAT = {"variant": "8d", "batch_size": 16, "init_size": 32, "generations": 2, "block_size": 1, "mutation_rate": 0.14,
+            "eta_m": 10.0, "seed": 0, "bins": 20, "contact_threshold": 0.3, "solver_iterations": 3, "ls_iterations": 4,
+            "solver_tolerance": 1e-08}
+
+
+def test_configurations_stored_flat_read_as_the_nested_ones():
+    """A configuration stored before the nesting (flat) reads as the same nested configuration as the
+    nested layout does, and is stored again as it was (the planner's two rewards added)."""
+    evaluation_config = with_overrides(evaluation.preset("gpu"), {"planner.iterations": 50, "solver.solver_iterations": 2,
+                                                                  "reflex_tilt": 0.3})
+    hbr = with_overrides(PRESETS["tiny"], {"top.selection": "density", "top.density_bins": 8, "solver_iterations": 6})
+    flat = with_overrides(flat_training.preset("tiny", "8d"), {"solver_iterations": 3})
+    for cls, old, config in ((evaluation.EvalConfig, OLD_EVAL, evaluation_config), (hbr_training.HBRConfig, OLD_HBR, hbr),
+                             (flat_training.FlatConfig, OLD_FLAT, flat)):
+        assert cls.from_dict(old) == config == cls.from_dict(dataclasses.asdict(config))
+        assert cls.from_dict(config.to_dict()) == config
+        rewards = {"collision_reward": -1000.0, "goal_reward": 100.0} if cls is evaluation.EvalConfig else {}
+        assert config.to_dict() == {**old, **rewards}
+    assert hbr_training.normalised_config(OLD_HBR) == OLD_HBR and flat_training.normalised_config(OLD_FLAT) == OLD_FLAT

@@ -55,8 +55,9 @@ class EvalConfig:
     "rte" ("" = the shipped HBR). repertoire_dir: a folder with one subfolder per repertoire seed
     (files `SEED_FILES`) used instead of the shipped repertoires. damage_model: "raised" (a
     damaged leg blocked in the air, the paper's words) or "locked" (in the standing pose, the
-    original code's). max_actions: the failure cap. iterations, roots, candidates,
-    exploration, widening, gamma, depth: MCTS settings (see PlannerConfig). optimism: how many
+    original code's). max_actions: the failure cap. planner: the MCTS settings (`PlannerConfig`,
+    inlined: settings iterations, roots, exploration, widening, gamma, depth, candidates,
+    collision_reward, goal_reward; 200 x 2 trees by default). optimism: how many
     standard deviations "hte-miss" takes off each elite's predicted deviation (0: greedy).
     composition: how an HBR step with a chosen contact pattern picks its elite: "planned" (ours,
     `hbr.composition`: a plan among the pattern's elites to the skill's end) or "waypoints" (the
@@ -79,13 +80,7 @@ class EvalConfig:
     repertoire_dir: str = ""
     damage_model: str = "raised"
     max_actions: int = 80
-    iterations: int = 200
-    roots: int = 2
-    candidates: int = 100
-    exploration: float = 100.0
-    widening: float = 0.5
-    gamma: float = 0.9
-    depth: int = 20
+    planner: PlannerConfig = inline(PlannerConfig(iterations=200, roots=2))
     optimism: float = 0.0
     composition: str = "planned"
     spare: str = ""
@@ -105,7 +100,7 @@ class EvalConfig:
         if self.repertoire and self.repertoire_dir:
             raise ConfigError("give either repertoire (one HBR file) or repertoire_dir (seed folders), not both")
         self.robot  # noqa: B018 (RobotConfig validates the damage model)
-        self.adaptation  # noqa: B018 (validates the planner settings)
+        self.adaptation  # noqa: B018 (validates max_actions)
 
     @property
     def variant_list(self) -> tuple[str, ...]:
@@ -136,11 +131,7 @@ class EvalConfig:
 
     @property
     def adaptation(self) -> AdaptationConfig:
-        planner = PlannerConfig(
-            iterations=self.iterations, roots=self.roots, exploration=self.exploration, widening=self.widening,
-            gamma=self.gamma, depth=self.depth, candidates=self.candidates,
-        )
-        return AdaptationConfig(max_actions=self.max_actions, planner=planner)
+        return AdaptationConfig(max_actions=self.max_actions, planner=self.planner)
 
     @property
     def robot(self) -> RobotConfig:
@@ -169,8 +160,8 @@ def protocol_overrides(name: str) -> dict:
 # original planner (1000 iterations x 4 trees); paper: HTE's original 6000 iterations x 32 trees.
 PRESETS = {
     "cpu": EvalConfig(),
-    "gpu": EvalConfig(replicates=30, iterations=1000, roots=4),
-    "paper": EvalConfig(replicates=30, iterations=6000, roots=32),
+    "gpu": EvalConfig(replicates=30, planner=PlannerConfig(iterations=1000, roots=4)),
+    "paper": EvalConfig(replicates=30, planner=PlannerConfig(iterations=6000, roots=32)),
 }
 
 
