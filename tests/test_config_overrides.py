@@ -11,6 +11,7 @@ from hte_jax.hbr import training as hbr_training
 from hte_jax.hbr.training import PRESETS, LayerSchedule
 from hte_jax.online import evaluation
 from hte_jax.online.mcts import PlannerConfig
+from hte_jax.qd.selection import SelectionConfig
 
 
 @dataclasses.dataclass(frozen=True)
@@ -126,7 +127,7 @@ def test_hbr_overrides_as_before():
                                   "top.selection": "density", "top.density_bins": "8"})
     assert config == dataclasses.replace(
         gpu, seed=3, contact_threshold=0.25, middle=dataclasses.replace(gpu.middle, generations=7),
-        top=dataclasses.replace(gpu.top, selection="density", density_bins=8))
+        top=dataclasses.replace(gpu.top, parents=SelectionConfig(selection="density", density_bins=8)))
     assert config.to_dict() == {**gpu.to_dict(), "seed": 3, "contact_threshold": 0.25,
                                 "middle": {**gpu.to_dict()["middle"], "generations": 7},
                                 "top": {**gpu.to_dict()["top"], "selection": "density", "density_bins": 8}}

@@ -33,6 +33,7 @@ from hte_jax.hbr.store import save_hbr
 from hte_jax.hbr.top import TopTask, evaluate_top, top_spec
 from hte_jax.qd import io
 from hte_jax.qd.loop import MapElites, MapElitesConfig, QDState, resume, run
+from hte_jax.qd.selection import SelectionConfig
 from hte_jax.sim.robot import Robot, RobotConfig, SolverConfig, load_robot, stored_solver
 from hte_jax.sim.rollout import standing_state
 
@@ -49,10 +50,9 @@ class LayerSchedule:
     batch_size); generations: after the initial batch; block_size: generations per jitted block
     (one progress tick, CSV row and checkpoint each); mutation_rate / eta_m: polynomial mutation;
     capacity: archive slots (bottom and middle; the top layer is a fixed grid).
-    selection: "uniform" (the original's), "density" (every occupied cell of a coarse grid over
-    the first `density_dims` descriptors equally likely) or "frontier" (a share
-    `frontier_fraction` of every batch from the outermost elites in x-y per direction sector and
-    level of the third descriptor); see `MapElitesConfig`.
+    parents: parent selection (`qd.selection.SelectionConfig`, inlined: settings selection
+    ("uniform", the original's, "density" or "frontier"), density_bins, density_dims,
+    frontier_fraction, frontier_angle_bins, frontier_level_bins).
     """
 
     batch_size: int
@@ -62,12 +62,7 @@ class LayerSchedule:
     mutation_rate: float
     eta_m: float = 10.0
     capacity: int = 1
-    selection: str = MapElitesConfig.selection
-    density_bins: int = MapElitesConfig.density_bins
-    density_dims: int = MapElitesConfig.density_dims
-    frontier_fraction: float = MapElitesConfig.frontier_fraction
-    frontier_angle_bins: int = MapElitesConfig.frontier_angle_bins
-    frontier_level_bins: int = MapElitesConfig.frontier_level_bins
+    parents: SelectionConfig = inline(SelectionConfig())
 
     def __post_init__(self):
         require_int("generations", self.generations, minimum=0)
@@ -80,9 +75,9 @@ class LayerSchedule:
         return self.init_size + self.generations * self.batch_size
 
     def map_elites_config(self, qd_offset: float) -> MapElitesConfig:
-        """The MapElitesConfig of this layer: every setting the two share by name, and `qd_offset`."""
-        shared = {f.name: getattr(self, f.name) for f in dataclasses.fields(MapElitesConfig) if hasattr(self, f.name)}
-        return MapElitesConfig(**shared, qd_offset=qd_offset)
+        """The MapElitesConfig of this layer: its batch, variation and parent selection, and `qd_offset`."""
+        return MapElitesConfig(batch_size=self.batch_size, init_size=self.init_size, mutation_rate=self.mutation_rate,
+                               eta_m=self.eta_m, qd_offset=qd_offset, parents=self.parents)
 
 
 @dataclasses.dataclass(frozen=True)
