@@ -9,6 +9,7 @@
     python -m experiments.maze_eval --protocol paper --damage-model locked
     python -m experiments.maze_eval --protocol paper --preset gpu --repertoire-dir runs/seeds  # R seeds
     python -m experiments.maze_eval --variant hte --damage leg1 --video 1   # and a video of the episode
+    python -m experiments.maze_eval --set planner.iterations=50 --set solver.ls_iterations=8  # dotted keys
 
 Variants: hte, perfect-hte, random-hte, rte (on an HBR: the shipped one or --repertoire; rte
 also on a flat file), 2d-rte, 8d-rte (shipped flat repertoires), aprol (shipped 21 damaged
@@ -42,7 +43,7 @@ import numpy as np
 
 from tqdm.auto import tqdm
 
-from experiments.cli import fail, input_errors
+from experiments.cli import add_set_flag, fail, input_errors, set_overrides
 from hte_jax.errors import ConfigError, require_int, settings
 from hte_jax.online.evaluation import (
     PRESETS,
@@ -92,6 +93,7 @@ def parser() -> argparse.ArgumentParser:
     for key in SETTINGS:
         flag = ALIASES.get(key, "--" + key.replace("_", "-"))
         p.add_argument(flag, dest=key, default=None, metavar="V", help=f"override {key}")
+    add_set_flag(p)
     return p
 
 
@@ -100,6 +102,7 @@ def main(argv=None) -> int:
     with input_errors() as errors:
         overrides = protocol_overrides(args.protocol) if args.protocol is not None else {}
         overrides.update({k: getattr(args, k) for k in SETTINGS if getattr(args, k) is not None})
+        overrides.update(set_overrides(args.set))
         config = with_overrides(preset(args.preset), overrides)
         videos = _video_count(args.video)
         if args.show_config:
