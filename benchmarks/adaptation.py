@@ -81,7 +81,7 @@ def main(argv=None) -> int:
     skills, info = load_skills(path, maps=kind == "aprol", composition=config.composition)
     env = environment()
     rows = [measure(config, skills, args.variant, int(b), args.repeats, args.seed) for b in args.batch_sizes.split(",")]
-    print(f"\n{args.variant} on {env['device']}, planner {config.iterations} iterations x {config.roots} trees, "
+    print(f"\n{args.variant} on {env['device']}, planner {config.planner.iterations} iterations x {config.planner.roots} trees, "
           f"{info['actions']} actions, cap {config.max_actions} actions")
     print(f"{'episodes':>8} {'compile s':>9} {'plan med s':>10} {'plan p95 s':>10} {'act med s':>9} {'run wall s':>10} {'actions':>8}")
     for row in rows:

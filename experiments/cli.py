@@ -6,10 +6,14 @@
         return 2
 
     return fail("--chunk must be >= 1, got 0")  # prints the line, returns 2
+
+    add_set_flag(parser)  # --set KEY=VALUE, repeatable: any setting by its dotted key
+    overrides.update(set_overrides(args.set))
 """
 
 from __future__ import annotations
 
+import argparse
 import sys
 
 from hte_jax.errors import ConfigError
@@ -47,3 +51,22 @@ class InputErrors:
         fail(error)
         self.failed = True
         return True
+
+
+def add_set_flag(parser: argparse.ArgumentParser) -> None:
+    """`--set KEY=VALUE` (repeatable): override any setting by its key, dotted through nested
+    configurations (`errors.with_overrides`); applied after the setting flags."""
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="override a setting by its key, dotted through nested configurations "
+                             "(planner.iterations=50, solver.ls_iterations=8, top.parents.selection=density); repeatable")
+
+
+def set_overrides(items: list[str]) -> dict[str, str]:
+    """The overrides of `--set` items "KEY=VALUE" (ConfigError if one has no "=" or no key)."""
+    overrides = {}
+    for item in items:
+        key, equals, value = item.partition("=")
+        if not equals or not key.strip():
+            raise ConfigError(f"--set {item!r}: expected KEY=VALUE, e.g. seed=3")
+        overrides[key.strip()] = value
+    return overrides

@@ -9,6 +9,7 @@
     python -m experiments.maze_eval --protocol paper --damage-model locked
     python -m experiments.maze_eval --protocol paper --preset gpu --repertoire-dir runs/seeds  # R seeds
     python -m experiments.maze_eval --variant hte --damage leg1 --video 1   # and a video of the episode
+    python -m experiments.maze_eval --set planner.iterations=50 --set solver.ls_iterations=8  # dotted keys
 
 Variants: hte, perfect-hte, random-hte, rte (on an HBR: the shipped one or --repertoire; rte
 also on a flat file), 2d-rte, 8d-rte (shipped flat repertoires), aprol (shipped 21 damaged
@@ -42,8 +43,8 @@ import numpy as np
 
 from tqdm.auto import tqdm
 
-from experiments.cli import fail, input_errors
-from hte_jax.errors import ConfigError, require_int
+from experiments.cli import add_set_flag, fail, input_errors, set_overrides
+from hte_jax.errors import ConfigError, require_int, settings
 from hte_jax.online.evaluation import (
     PRESETS,
     PROTOCOLS,
@@ -80,7 +81,7 @@ from hte_jax.online.statistics import (
 )
 from hte_jax.qd.io import save_checkpoint, write_json
 
-SETTINGS = [f.name for f in dataclasses.fields(EvalConfig)]
+SETTINGS = list(settings(EvalConfig))  # override keys, inlined settings (the planner's, the solver's) by their names
 RECORD_EVERY = 4  # control steps between the recorded states of --video episodes (25 per simulated second)
 ROOT = Path(__file__).resolve().parents[1]
 ALIASES = {"variants": "--variant", "damages": "--damage"}
@@ -98,6 +99,7 @@ def parser() -> argparse.ArgumentParser:
     for key in SETTINGS:
         flag = ALIASES.get(key, "--" + key.replace("_", "-"))
         p.add_argument(flag, dest=key, default=None, metavar="V", help=f"override {key}")
+    add_set_flag(p)
     return p
 
 
@@ -106,6 +108,7 @@ def main(argv=None) -> int:
     with input_errors() as errors:
         overrides = protocol_overrides(args.protocol) if args.protocol is not None else {}
         overrides.update({k: getattr(args, k) for k in SETTINGS if getattr(args, k) is not None})
+        overrides.update(set_overrides(args.set))
         config = with_overrides(preset(args.preset), overrides)
         videos = _video_count(args.video)
         if args.show_config:

@@ -6,6 +6,7 @@
     python -m experiments.train_flat --variant 2d --out runs/f --resume   # continue a killed run
     python -m experiments.train_flat --variant 2d --generations 50 --seed 3   # override any value
     python -m experiments.train_flat --variant 2d --solver-iterations 4 --ls-iterations 8   # the solver
+    python -m experiments.train_flat --variant 2d --set solver.solver_iterations=4   # any setting, dotted
 
 Writes config.json, checkpoint.npz, metrics.csv, repertoires.npz, summary.json and plots/ under
 --out (default runs/flat-<variant>-<preset>). `--show-config` prints the resolved configuration.
@@ -17,16 +18,16 @@ different value is then an error.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import sys
 
-from experiments.cli import input_errors
+from experiments.cli import add_set_flag, input_errors, set_overrides
+from hte_jax.errors import settings
 from hte_jax.flat.training import PRESETS, VARIANTS, FlatConfig, preset, train_flat, with_overrides
 from hte_jax.qd.io import stored_config
 from hte_jax.sim.robot import stored_solver
 
-SETTINGS = [f.name for f in dataclasses.fields(FlatConfig) if f.name != "variant"]
+SETTINGS = [key for key in settings(FlatConfig) if key != "variant"]
 
 
 def parser() -> argparse.ArgumentParser:
@@ -39,6 +40,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--show-config", action="store_true", help="print the resolved configuration and exit")
     for key in SETTINGS:
         p.add_argument("--" + key.replace("_", "-"), dest=key, default=None, metavar="V", help=f"override {key}")
+    add_set_flag(p)
     return p
 
 
@@ -47,6 +49,7 @@ def main(argv=None) -> int:
     with input_errors() as errors:
         config = preset(args.preset, args.variant)
         overrides = {k: getattr(args, k) for k in SETTINGS if getattr(args, k) is not None}
+        overrides.update(set_overrides(args.set))
         out = args.out or f"runs/flat-{args.variant}-{args.preset}"
         stored = stored_config(out) if args.resume else None
         if stored is not None:

@@ -6,6 +6,7 @@
     python -m experiments.train_hbr --out runs/hbr --resume          # continue a killed run
     python -m experiments.train_hbr --middle-generations 100 --seed 3   # override any value
     python -m experiments.train_hbr --solver-iterations 4 --ls-iterations 8   # the physics' solver
+    python -m experiments.train_hbr --set middle.parents.selection=density    # any setting, dotted
 
 Writes config.json, per-layer checkpoints and metrics CSVs, hbr.npz, summary.json and plots/
 under --out (default runs/hbr-<preset>). Every preset value has a flag; `--show-config` prints
@@ -17,12 +18,12 @@ were settings) unless they are given; a different value is then an error.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import sys
 
-from experiments.cli import input_errors
-from hte_jax.hbr.training import LAYERS, PRESETS, HBRConfig, LayerSchedule, preset, train_hbr, with_overrides
+from experiments.cli import add_set_flag, input_errors, set_overrides
+from hte_jax.errors import settings
+from hte_jax.hbr.training import PRESETS, HBRConfig, preset, train_hbr, with_overrides
 from hte_jax.qd.io import stored_config
 from hte_jax.sim.robot import stored_solver
 
@@ -32,13 +33,8 @@ def _flag(key: str) -> str:
 
 
 def _settings() -> list[tuple[str, type]]:
-    keys = []
-    for field in dataclasses.fields(HBRConfig):
-        if field.name in LAYERS:
-            keys += [(f"{field.name}.{f.name}", f.type) for f in dataclasses.fields(LayerSchedule)]
-        else:
-            keys.append((field.name, field.type))
-    return keys
+    """(override key, type) of every setting: "seed", "middle.generations", "solver_iterations" ..."""
+    return [(key, field.type) for key, field in settings(HBRConfig).items()]
 
 
 def parser() -> argparse.ArgumentParser:
@@ -50,6 +46,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--show-config", action="store_true", help="print the resolved configuration and exit")
     for key, kind in _settings():
         p.add_argument(_flag(key), dest=key, default=None, metavar=str(kind).upper(), help=f"override {key}")
+    add_set_flag(p)
     return p
 
 
@@ -58,6 +55,7 @@ def main(argv=None) -> int:
     with input_errors() as errors:
         config: HBRConfig = preset(args.preset)
         overrides = {key: getattr(args, key) for key, _ in _settings() if getattr(args, key) is not None}
+        overrides.update(set_overrides(args.set))
         out = args.out or f"runs/hbr-{args.preset}"
         stored = stored_config(out) if args.resume else None
         if stored is not None:

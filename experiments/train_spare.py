@@ -24,7 +24,7 @@ from hte_jax.flat.comparison import resolve
 from hte_jax.hbr.sparing import SPARE_L, STRICT_CONTACT, train_spare
 from hte_jax.hbr.store import load_hbr, shipped_hbr_path
 from hte_jax.hbr.training import PRESETS, preset
-from hte_jax.sim.robot import stored_solver
+from hte_jax.sim.robot import SolverConfig, stored_solver
 
 
 def parser() -> argparse.ArgumentParser:
@@ -50,7 +50,7 @@ def main(argv=None) -> int:
         path = shipped_hbr_path() if args.hbr is None else resolve(args.hbr)
         hbr, _, meta = load_hbr(path)
         solver = stored_solver(meta.get("training", {}).get("config", {}))
-        base = dataclasses.replace(preset(args.preset), seed=args.seed, **solver)
+        base = dataclasses.replace(preset(args.preset), seed=args.seed, solver=SolverConfig(**solver))
         summary = train_spare(hbr, base, args.out, threshold=args.threshold, l=args.l, resume_run=args.resume,
                               progress=not args.no_progress)
     if errors.failed:

@@ -5,11 +5,13 @@ import dataclasses
 import pytest
 
 from hte_jax import errors
-from hte_jax.errors import ConfigError, require_int, with_overrides
+from hte_jax.errors import ConfigError, config_dict, config_from_dict, inline, require_int, settings, with_overrides
 from hte_jax.flat import training as flat_training
 from hte_jax.hbr import training as hbr_training
 from hte_jax.hbr.training import PRESETS, LayerSchedule
 from hte_jax.online import evaluation
+from hte_jax.online.mcts import PlannerConfig
+from hte_jax.qd.selection import SelectionConfig
 
 
 @dataclasses.dataclass(frozen=True)
@@ -36,6 +38,40 @@ class Outer:
 
     def __post_init__(self):
         require_int("seed", self.seed, minimum=0)
+
+
+@dataclasses.dataclass(frozen=True)
+class Flattened:
+    inner: Inner = inline(Inner(count=2))
+    middle: Middle = Middle()
+    seed: int = 0
+
+
+def test_inlined_settings_read_as_the_parents_own():
+    """An `inline` configuration: overridden by its own names or through its field, stored flat, read
+    back from the flat or the nested layout, and its checks' messages carry no path."""
+    config = with_overrides(Flattened(), {"count": "3", "inner.scale": "2", "middle.inner.count": 4})
+    assert config == Flattened(inner=Inner(count=3, scale=2.0), middle=Middle(inner=Inner(count=4)))
+    stored = config_dict(config)
+    assert stored == {"count": 3, "scale": 2.0, "name": "a", "middle": {"inner": {"count": 4, "scale": 0.5,
+                                                                                   "name": "a"}, "flag": False},
+                      "seed": 0}
+    assert config_from_dict(Flattened, stored) == config == config_from_dict(Flattened, dataclasses.asdict(config))
+    assert config_from_dict(Flattened, {"scale": 2.0}) == Flattened(inner=Inner(count=2, scale=2.0))
+    assert config_from_dict(Flattened, {"seed": 1}, base=config) == dataclasses.replace(config, seed=1)
+    assert list(settings(Flattened)) == ["count", "scale", "name", "middle.inner.count", "middle.inner.scale",
+                                         "middle.inner.name", "middle.flag", "seed"]
+    with pytest.raises(ConfigError) as error:
+        with_overrides(Flattened(), {"count": "0"})
+    assert str(error.value) == "count must be an integer >= 1, got 0"
+    with pytest.raises(ConfigError) as error:
+        config_from_dict(Flattened, {"middle": {"inner": {"count": 0}}})
+    assert str(error.value) == "middle.inner.count must be an integer >= 1, got 0"
+    for key in ("inner", "middle.count", "inner.inner"):
+        with pytest.raises(ConfigError, match=f"^unknown setting '{key}'$"):
+            with_overrides(Flattened(), {key: 1})
+    with pytest.raises(TypeError):
+        config_from_dict(Flattened, {"colour": 1})
 
 
 def test_every_module_shares_the_one_rule():
@@ -91,7 +127,7 @@ def test_hbr_overrides_as_before():
                                   "top.selection": "density", "top.density_bins": "8"})
     assert config == dataclasses.replace(
         gpu, seed=3, contact_threshold=0.25, middle=dataclasses.replace(gpu.middle, generations=7),
-        top=dataclasses.replace(gpu.top, selection="density", density_bins=8))
+        top=dataclasses.replace(gpu.top, parents=SelectionConfig(selection="density", density_bins=8)))
     assert config.to_dict() == {**gpu.to_dict(), "seed": 3, "contact_threshold": 0.25,
                                 "middle": {**gpu.to_dict()["middle"], "generations": 7},
                                 "top": {**gpu.to_dict()["top"], "selection": "density", "density_bins": 8}}
@@ -99,7 +135,7 @@ def test_hbr_overrides_as_before():
                                             "solver_iterations": "6"})
     assert tiny.bottom == LayerSchedule(batch_size=8, init_size=16, generations=2, block_size=1, mutation_rate=0.17,
                                         capacity=256)
-    assert tiny.solver_iterations == 6 and tiny.middle is PRESETS["tiny"].middle
+    assert tiny.solver.solver_iterations == 6 and tiny.middle is PRESETS["tiny"].middle
 
 
 @pytest.mark.parametrize("overrides, message", [
@@ -128,6 +164,42 @@ def test_flat_and_evaluation_overrides_as_before():
         with_overrides(flat_training.preset("cpu", "2d"), {"variant.x": 1})
     config = with_overrides(evaluation.preset("cpu"), {"iterations": "5", "roots": 3, "exploration": "2",
                                                        "variants": "hte,rte"})
-    assert config == evaluation.EvalConfig(iterations=5, roots=3, exploration=2.0, variants="hte,rte")
+    assert config == evaluation.EvalConfig(planner=PlannerConfig(iterations=5, roots=3, exploration=2.0), variants="hte,rte")
     with pytest.raises(ConfigError, match=r"^setting 'seed': cannot read '1.5' as int$"):
         with_overrides(evaluation.preset("cpu"), {"seed": "1.5"})
+
+
+# Configurations as stored before the nested ones (`to_dict` of then: every setting flat), changed
+# from the presets in a few places.
+OLD_EVAL = {"variants": "hte", "damages": "all", "replicates": 30, "repertoire": "", "repertoire_dir": "",
+            "damage_model": "raised", "max_actions": 80, "iterations": 50, "roots": 4, "candidates": 100,
+            "exploration": 100.0, "widening": 0.5, "gamma": 0.9, "depth": 20, "optimism": 0.0, "composition": "planned",
+            "spare": "", "pattern_ends": "", "seed": 0, "solver_iterations": 2, "ls_iterations": 4,
+            "solver_tolerance": 1e-08, "reflex_tilt": 0.3}
+OLD_LAYER = {"batch_size": 16, "init_size": 32, "generations": 2, "block_size": 1, "mutation_rate": 0.17, "eta_m": 10.0,
+             "capacity": 256, "selection": "uniform", "density_bins": 16, "density_dims": 3, "frontier_fraction": 0.5,
+             "frontier_angle_bins": 16, "frontier_level_bins": 16}
+OLD_HBR = {"bottom": OLD_LAYER, "middle": {**OLD_LAYER, "mutation_rate": 0.11},
+           "top": {**OLD_LAYER, "mutation_rate": 0.14, "capacity": 1, "selection": "density", "density_bins": 8},
+           "seed": 0, "middle_samples": 2, "contact_threshold": 0.3, "contact_purity": 0.0, "bottom_l": 0.01,
+           "middle_l": 0.05, "top_bins": 100, "bottom_fitness": "commands", "solver_iterations": 6, "ls_iterations": 4,
+           "solver_tolerance": 1e-08, "step_starts": 2}
+OLD_FLAT = {"variant": "8d", "batch_size": 16, "init_size": 32, "generations": 2, "block_size": 1, "mutation_rate": 0.14,
+            "eta_m": 10.0, "seed": 0, "bins": 20, "contact_threshold": 0.3, "solver_iterations": 3, "ls_iterations": 4,
+            "solver_tolerance": 1e-08}
+
+
+def test_configurations_stored_flat_read_as_the_nested_ones():
+    """A configuration stored before the nesting (flat) reads as the same nested configuration as the
+    nested layout does, and is stored again as it was (the planner's two rewards added)."""
+    evaluation_config = with_overrides(evaluation.preset("gpu"), {"planner.iterations": 50, "solver.solver_iterations": 2,
+                                                                  "reflex_tilt": 0.3})
+    hbr = with_overrides(PRESETS["tiny"], {"top.selection": "density", "top.density_bins": 8, "solver_iterations": 6})
+    flat = with_overrides(flat_training.preset("tiny", "8d"), {"solver_iterations": 3})
+    for cls, old, config in ((evaluation.EvalConfig, OLD_EVAL, evaluation_config), (hbr_training.HBRConfig, OLD_HBR, hbr),
+                             (flat_training.FlatConfig, OLD_FLAT, flat)):
+        assert cls.from_dict(old) == config == cls.from_dict(dataclasses.asdict(config))
+        assert cls.from_dict(config.to_dict()) == config
+        rewards = {"collision_reward": -1000.0, "goal_reward": 100.0} if cls is evaluation.EvalConfig else {}
+        assert config.to_dict() == {**old, **rewards}
+    assert hbr_training.normalised_config(OLD_HBR) == OLD_HBR and flat_training.normalised_config(OLD_FLAT) == OLD_FLAT

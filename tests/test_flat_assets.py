@@ -10,7 +10,7 @@ from hte_jax.flat.store import load_flat, shipped_flat_path
 from hte_jax.flat.training import FlatConfig, flat_statistics, preset
 from hte_jax.hbr.middle import pattern_code
 from hte_jax.sim.damage import APROL_DAMAGES
-from hte_jax.sim.robot import LEGACY_SOLVER, SOLVER_FIELDS
+from hte_jax.sim.robot import LEGACY_SOLVER, SOLVER_FIELDS, SolverConfig
 
 
 @pytest.mark.parametrize("variant", ["2d", "8d", "aprol"])
@@ -18,7 +18,7 @@ def test_shipped_flat_sets_are_the_gpu_preset_as_trained(variant):
     path = shipped_flat_path(variant)
     flat, meta = load_flat(path)
     # trained before the solver was a setting, i.e. with 4 / 8 (the file is as written then)
-    config = dataclasses.replace(preset("gpu", variant), **dict(zip(SOLVER_FIELDS, LEGACY_SOLVER)))
+    config = dataclasses.replace(preset("gpu", variant), solver=SolverConfig(*LEGACY_SOLVER))
     stored = {k: v for k, v in config.to_dict().items() if k not in SOLVER_FIELDS}
     assert meta["training"]["config"] == stored and flat.task == config.task
     assert FlatConfig.from_dict(meta["training"]["config"]) == config

@@ -8,7 +8,7 @@ import pytest
 
 from hte_jax.hbr import PRESETS, hbr_statistics, load_hbr, shipped_hbr_path
 from hte_jax.hbr.training import HBRConfig
-from hte_jax.sim.robot import LEGACY_SOLVER, SOLVER_FIELDS
+from hte_jax.sim.robot import LEGACY_SOLVER, SolverConfig
 
 
 @pytest.fixture(scope="module")
@@ -21,7 +21,7 @@ def test_shipped_hbr_is_the_gpu_preset_and_covers_the_map(shipped):
     folder = shipped_hbr_path().parent
     # Read through today's HBRConfig: settings added after training take their (old-behaviour) defaults,
     # the solver the 4 / 8 it was trained with.
-    trained = dataclasses.replace(PRESETS["gpu"], **dict(zip(SOLVER_FIELDS, LEGACY_SOLVER)))
+    trained = dataclasses.replace(PRESETS["gpu"], solver=SolverConfig(*LEGACY_SOLVER))
     assert HBRConfig.from_dict(meta["training"]["config"]) == trained
     assert HBRConfig.from_dict(json.loads((folder / "config.json").read_text())) == trained
     stats = hbr_statistics(hbr)

@@ -141,12 +141,12 @@ def test_every_preset_value_can_be_overridden():
     with pytest.raises(ConfigError, match="bottom_fitness must be one of"):
         with_overrides(config, {"bottom_fitness": "energy"})
     density = with_overrides(config, {"middle.selection": "density", "middle.density_bins": "8"})
-    assert density.middle.map_elites_config(0.0).selection == "density"
-    assert density.middle.map_elites_config(0.0).density_bins == 8 and config.middle.selection == "uniform"
+    assert density.middle.map_elites_config(0.0).parents.selection == "density"
+    assert density.middle.map_elites_config(0.0).parents.density_bins == 8 and config.middle.parents.selection == "uniform"
     with pytest.raises(ConfigError, match="selection must be one of"):
         with_overrides(config, {"top.selection": "best"})
     frontier = with_overrides(config, {"middle.selection": "frontier", "middle.frontier_fraction": "0.25"})
-    assert frontier.middle.map_elites_config(0.0).frontier_fraction == 0.25
+    assert frontier.middle.map_elites_config(0.0).parents.frontier_fraction == 0.25
     with pytest.raises(ConfigError, match="middle.frontier_fraction"):
         with_overrides(config, {"middle.frontier_fraction": "2"})
     for name in ("cpu", "gpu", "paper"):

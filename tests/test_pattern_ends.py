@@ -25,6 +25,7 @@ from hte_jax.hbr.store import load_hbr, load_spare, spare_beside
 from hte_jax.online import variants
 from hte_jax.online.evaluation import EvalConfig, run_batch
 from hte_jax.online.execute import hbr_skills
+from hte_jax.online.mcts import PlannerConfig
 from hte_jax.qd.io import CheckpointError
 from hte_jax.sim.robot import RobotConfig, load_robot
 from hte_jax.sim.rollout import standing_state
@@ -110,7 +111,8 @@ def test_measured_variant_plans_and_learns_against_the_measured_ends(shipped, tm
     stored = np.asarray(skill_ends(hbr.top.descriptors[slots], hbr.top.extras["arrival_yaw"][slots], task.extent))
     patterns = np.array([47])  # leg 1 lifted
     fingerprint = skills_fingerprint(hbr)
-    config = EvalConfig(damages="leg1", replicates=1, max_actions=3, iterations=50, roots=1, damage_model="raised")
+    config = EvalConfig(damages="leg1", replicates=1, max_actions=3, planner=PlannerConfig(iterations=50, roots=1),
+                        damage_model="raised")
 
     def run(valid: bool, shift: float, names=("hte-spare", "hte-measured")):
         ends = PatternEnds(patterns=patterns, slots=slots.astype(np.int32),

@@ -1,7 +1,6 @@
 """The MAP-Elites loop, metrics, variation, checkpoints and plots (acceptance 2-4)."""
 
 import csv
-import dataclasses
 import subprocess
 import sys
 from pathlib import Path
@@ -12,7 +11,7 @@ import matplotlib.image
 import numpy as np
 import pytest
 
-from hte_jax.errors import ConfigError
+from hte_jax.errors import ConfigError, with_overrides
 from hte_jax.qd import (
     Archive,
     CheckpointError,
@@ -30,7 +29,7 @@ from hte_jax.qd import io as qd_io
 from hte_jax.qd.plots import grid_projection, plot_grid, plot_metrics, plot_scatter
 from hte_jax.qd.tasks import planar_arm, planar_arm_evaluate
 from hte_jax.hbr.selection import frontier_elites, frontier_selection
-from hte_jax.qd.selection import density_selection, uniform_selection
+from hte_jax.qd.selection import SelectionConfig, density_selection, uniform_selection
 from hte_jax.qd.variation import polynomial_mutation, sbx_crossover
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -154,7 +153,8 @@ def test_density_selection_in_the_loop():
     algos = {
         kind: MapElites(
             grid, planar_arm_evaluate, 6,
-            MapElitesConfig(batch_size=32, init_size=32, selection=kind, density_bins=4, density_dims=2),
+            MapElitesConfig(batch_size=32, init_size=32,
+                            parents=SelectionConfig(selection=kind, density_bins=4, density_dims=2)),
         )
         for kind in ("uniform", "density")
     }
@@ -226,16 +226,17 @@ def test_frontier_selection_spends_its_share_on_the_edge():
 
 def test_frontier_selection_in_the_loop_and_its_checkpoint_metadata():
     grid = Grid(bins=(16, 16), low=(0.0, 0.0), high=(1.0, 1.0))
-    config = MapElitesConfig(batch_size=32, init_size=32, selection="frontier", frontier_angle_bins=8, frontier_level_bins=1)
+    config = MapElitesConfig(batch_size=32, init_size=32,
+                             parents=SelectionConfig(selection="frontier", frontier_angle_bins=8, frontier_level_bins=1))
     algo = MapElites(grid, planar_arm_evaluate, 6, config)
-    uniform = MapElites(grid, planar_arm_evaluate, 6, dataclasses.replace(config, selection="uniform"))
+    uniform = MapElites(grid, planar_arm_evaluate, 6, with_overrides(config, {"selection": "uniform"}))
     state = algo.run_block(algo.init(jax.random.PRNGKey(5)), 5)[0]
     other = uniform.run_block(uniform.init(jax.random.PRNGKey(5)), 5)[0]
     assert int(state.repertoire.filled.sum()) > 32
     assert not np.array_equal(np.asarray(state.repertoire.filled), np.asarray(other.repertoire.filled))
     meta = algo.checkpoint_metadata()["config"]
     assert meta["selection"] == "frontier" and meta["frontier_angle_bins"] == 8 and "density_bins" not in meta
-    density = dataclasses.replace(config, selection="density")
+    density = with_overrides(config, {"selection": "density"})
     meta = MapElites(grid, planar_arm_evaluate, 6, density).checkpoint_metadata()["config"]
     assert meta["selection"] == "density" and "frontier_fraction" not in meta  # older density checkpoints resume
     one_dim = MapElites(Grid(bins=(8,), low=(0.0,), high=(1.0,)), planar_arm_evaluate, 6, config)
@@ -260,13 +261,13 @@ def test_config_errors():
     with pytest.raises(ConfigError, match="batch_size"):
         MapElitesConfig(batch_size=0)
     with pytest.raises(ConfigError, match="selection must be one of"):
-        MapElitesConfig(selection="tournament")
+        MapElitesConfig(parents=SelectionConfig(selection="tournament"))
     with pytest.raises(ConfigError, match="density_bins\\^density_dims"):
-        MapElitesConfig(selection="density", density_bins=100, density_dims=9)
+        MapElitesConfig(parents=SelectionConfig(selection="density", density_bins=100, density_dims=9))
     with pytest.raises(ConfigError, match="frontier_fraction"):
-        MapElitesConfig(selection="frontier", frontier_fraction=1.5)
+        MapElitesConfig(parents=SelectionConfig(selection="frontier", frontier_fraction=1.5))
     with pytest.raises(ConfigError, match="frontier_angle_bins"):
-        MapElitesConfig(frontier_angle_bins=0)
+        MapElitesConfig(parents=SelectionConfig(frontier_angle_bins=0))
 
 
 # --- checkpoints -------------------------------------------------------------------------

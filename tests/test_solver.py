@@ -20,7 +20,7 @@ from hte_jax.hbr.training import PRESETS, HBRConfig, normalised_config
 from hte_jax.online.evaluation import EvalConfig
 from hte_jax.qd.io import prepare_run_dir
 from hte_jax.sim.damage import paper_damage_masks
-from hte_jax.sim.robot import FOOT_RADIUS, LEGACY_SOLVER, SOLVER_FIELDS, RobotConfig, load_robot, mj_model
+from hte_jax.sim.robot import FOOT_RADIUS, LEGACY_SOLVER, SOLVER_FIELDS, RobotConfig, SolverConfig, load_robot, mj_model
 from hte_jax.sim.rollout import RolloutSpec, rollout, standing_state
 
 # Converged: doubling both counts changes no final position (benchmarks/physics_frontier.py).
@@ -77,7 +77,7 @@ def test_solver_settings_reach_the_model():
     assert mj_model(RobotConfig()).opt.tolerance == pytest.approx(1e-8)  # MuJoCo's default, unchanged
     with pytest.raises(ConfigError, match="solver_tolerance"):
         RobotConfig(solver_tolerance=-1.0)
-    robot = EvalConfig(solver_iterations=4, ls_iterations=8).robot
+    robot = EvalConfig(solver=SolverConfig(solver_iterations=4, ls_iterations=8)).robot
     assert (robot.solver_iterations, robot.ls_iterations) == (4, 8)
     assert EvalConfig().robot == RobotConfig()
     for config in (PRESETS["tiny"], flat_preset("tiny", "2d")):

@@ -22,7 +22,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from hte_jax.errors import ConfigError, require_int, require_number
+from hte_jax.errors import ConfigError, config_dict, config_from_dict, inline, require_int, require_number
 from hte_jax.errors import with_overrides as _with_overrides
 from hte_jax.flat.plots import plot_flat
 from hte_jax.flat.store import FlatRepertoires, save_flat
@@ -32,7 +32,7 @@ from hte_jax.qd.batched import BatchedMapElites
 from hte_jax.qd.loop import MapElitesConfig, QDState, resume, run
 from hte_jax.qd.metrics import projected_statistics
 from hte_jax.sim.damage import APROL_DAMAGES, damage_masks
-from hte_jax.sim.robot import RobotConfig, SOLVER_FIELDS, load_robot, stored_solver
+from hte_jax.sim.robot import RobotConfig, SolverConfig, load_robot, stored_solver
 from hte_jax.sim.rollout import standing_state
 
 with_overrides = _with_overrides  # the configurations' one override rule, re-exported
@@ -53,8 +53,9 @@ class FlatConfig:
     (init_size a multiple of batch_size). block_size: generations per jitted block (one progress
     tick, CSV row and checkpoint). mutation_rate / eta_m: polynomial mutation. seed: PRNG seed.
     bins: x-y cells per axis. contact_threshold: contact-bit threshold of the 8-D descriptor.
-    solver_iterations / ls_iterations / solver_tolerance: the physics' Newton solver (`RobotConfig`);
-    a configuration stored without them ran 4 / 8 / 1e-8 and resumes with that.
+    solver: the physics' Newton solver (`SolverConfig`, inlined: settings solver_iterations,
+    ls_iterations, solver_tolerance); a configuration stored without them ran 4 / 8 / 1e-8 and
+    resumes with that.
     """
 
     variant: str
@@ -67,9 +68,7 @@ class FlatConfig:
     seed: int = 0
     bins: int = 100
     contact_threshold: float = 0.3
-    solver_iterations: int = RobotConfig.solver_iterations
-    ls_iterations: int = RobotConfig.ls_iterations
-    solver_tolerance: float = RobotConfig.solver_tolerance
+    solver: SolverConfig = inline(SolverConfig())
 
     def __post_init__(self):
         if self.variant not in VARIANTS:
@@ -80,12 +79,11 @@ class FlatConfig:
         require_number("eta_m", self.eta_m, 0.0)
         self.task  # noqa: B018 - validates bins and contact_threshold
         self.map_elites_config()  # validates batch, init and mutation
-        self.robot  # noqa: B018 (RobotConfig validates the solver settings)
 
     @property
     def robot(self) -> RobotConfig:
         """The simulated robot's options."""
-        return RobotConfig(**{name: getattr(self, name) for name in SOLVER_FIELDS})
+        return self.solver.robot()
 
     @property
     def task(self) -> FlatTask:
@@ -110,12 +108,14 @@ class FlatConfig:
         )
 
     def to_dict(self) -> dict:
-        return dataclasses.asdict(self)
+        """The stored layout (`errors.config_dict`: the solver's settings among the others)."""
+        return config_dict(self)
 
     @classmethod
     def from_dict(cls, data: dict) -> FlatConfig:
-        """A configuration from `to_dict`'s output; missing solver settings are the ones it ran with (`LEGACY_SOLVER`)."""
-        return cls(**{**data, **stored_solver(data)})
+        """A configuration from `to_dict`'s output or the nested layout of `dataclasses.asdict`;
+        missing solver settings are the ones it ran with (`LEGACY_SOLVER`)."""
+        return config_from_dict(cls, {**data, **stored_solver(data)})
 
 
 def normalised_config(data: dict) -> dict:

@@ -1,7 +1,7 @@
 """Frontier selection: parents from the outer shell of the hexapod's displacement descriptors.
 
-Registered in `hte_jax.qd.selection.SELECTIONS` as "frontier", so `MapElitesConfig(selection=
-"frontier")` (and the HBR's `LayerSchedule.selection`) picks it.
+Registered in `hte_jax.qd.selection.SELECTIONS` as "frontier", so `SelectionConfig(selection=
+"frontier")` (a `MapElitesConfig`'s or an HBR `LayerSchedule`'s parents; setting "selection") picks it.
 """
 
 from __future__ import annotations

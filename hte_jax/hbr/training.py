@@ -19,7 +19,7 @@ from pathlib import Path
 
 import jax
 
-from hte_jax.errors import ConfigError, require_choice, require_int, require_number
+from hte_jax.errors import ConfigError, config_dict, config_from_dict, inline, require_choice, require_int, require_number
 from hte_jax.errors import with_overrides as _with_overrides
 from hte_jax.hbr import bottom as bottom_layer
 from hte_jax.hbr import middle as middle_layer
@@ -33,7 +33,8 @@ from hte_jax.hbr.store import save_hbr
 from hte_jax.hbr.top import TopTask, evaluate_top, top_spec
 from hte_jax.qd import io
 from hte_jax.qd.loop import MapElites, MapElitesConfig, QDState, resume, run
-from hte_jax.sim.robot import Robot, RobotConfig, SOLVER_FIELDS, load_robot, stored_solver
+from hte_jax.qd.selection import SelectionConfig
+from hte_jax.sim.robot import Robot, RobotConfig, SolverConfig, load_robot, stored_solver
 from hte_jax.sim.rollout import standing_state
 
 with_overrides = _with_overrides  # the configurations' one override rule, re-exported
@@ -49,10 +50,9 @@ class LayerSchedule:
     batch_size); generations: after the initial batch; block_size: generations per jitted block
     (one progress tick, CSV row and checkpoint each); mutation_rate / eta_m: polynomial mutation;
     capacity: archive slots (bottom and middle; the top layer is a fixed grid).
-    selection: "uniform" (the original's), "density" (every occupied cell of a coarse grid over
-    the first `density_dims` descriptors equally likely) or "frontier" (a share
-    `frontier_fraction` of every batch from the outermost elites in x-y per direction sector and
-    level of the third descriptor); see `MapElitesConfig`.
+    parents: parent selection (`qd.selection.SelectionConfig`, inlined: settings selection
+    ("uniform", the original's, "density" or "frontier"), density_bins, density_dims,
+    frontier_fraction, frontier_angle_bins, frontier_level_bins).
     """
 
     batch_size: int
@@ -62,12 +62,7 @@ class LayerSchedule:
     mutation_rate: float
     eta_m: float = 10.0
     capacity: int = 1
-    selection: str = MapElitesConfig.selection
-    density_bins: int = MapElitesConfig.density_bins
-    density_dims: int = MapElitesConfig.density_dims
-    frontier_fraction: float = MapElitesConfig.frontier_fraction
-    frontier_angle_bins: int = MapElitesConfig.frontier_angle_bins
-    frontier_level_bins: int = MapElitesConfig.frontier_level_bins
+    parents: SelectionConfig = inline(SelectionConfig())
 
     def __post_init__(self):
         require_int("generations", self.generations, minimum=0)
@@ -80,9 +75,9 @@ class LayerSchedule:
         return self.init_size + self.generations * self.batch_size
 
     def map_elites_config(self, qd_offset: float) -> MapElitesConfig:
-        """The MapElitesConfig of this layer: every setting the two share by name, and `qd_offset`."""
-        shared = {f.name: getattr(self, f.name) for f in dataclasses.fields(MapElitesConfig) if hasattr(self, f.name)}
-        return MapElitesConfig(**shared, qd_offset=qd_offset)
+        """The MapElitesConfig of this layer: its batch, variation and parent selection, and `qd_offset`."""
+        return MapElitesConfig(batch_size=self.batch_size, init_size=self.init_size, mutation_rate=self.mutation_rate,
+                               eta_m=self.eta_m, qd_offset=qd_offset, parents=self.parents)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -96,8 +91,9 @@ class HBRConfig:
       paper's fitness; `MiddleTask.purity`).
     bottom_l / middle_l: archive distance thresholds. top_bins: grid cells per axis.
     bottom_fitness: "commands" (measured joint commands) or "genes" (the original's gene sum).
-    solver_iterations / ls_iterations / solver_tolerance: the physics' Newton solver (`RobotConfig`);
-      a configuration stored without them ran 4 / 8 / 1e-8 and resumes with that.
+    solver: the physics' Newton solver (`SolverConfig`, inlined: settings solver_iterations,
+      ls_iterations, solver_tolerance); a configuration stored without them ran 4 / 8 / 1e-8 and
+      resumes with that.
     step_starts: start states from which every middle elite's step is measured once the layers
       are trained (`composition.measure_steps`, stored in hbr.npz); 0: no step model.
     """
@@ -113,9 +109,7 @@ class HBRConfig:
     middle_l: float = middle_layer.ARCHIVE_L
     top_bins: int = 100
     bottom_fitness: str = "commands"
-    solver_iterations: int = RobotConfig.solver_iterations
-    ls_iterations: int = RobotConfig.ls_iterations
-    solver_tolerance: float = RobotConfig.solver_tolerance
+    solver: SolverConfig = inline(SolverConfig())
     step_starts: int = 8
 
     def __post_init__(self):
@@ -128,12 +122,11 @@ class HBRConfig:
         require_number("middle_l", self.middle_l, 0.0, open_low=True)
         require_int("top_bins", self.top_bins)
         require_choice("bottom_fitness", self.bottom_fitness, BOTTOM_FITNESSES)
-        self.robot  # noqa: B018 (RobotConfig validates the solver settings)
 
     @property
     def robot(self) -> RobotConfig:
         """The simulated robot's options."""
-        return RobotConfig(**{name: getattr(self, name) for name in SOLVER_FIELDS})
+        return self.solver.robot()
 
     @property
     def bottom_task(self) -> BottomTask:
@@ -149,18 +142,14 @@ class HBRConfig:
         return TopTask(bins=self.top_bins)
 
     def to_dict(self) -> dict:
-        return dataclasses.asdict(self)
+        """The stored layout (`errors.config_dict`: the solver's settings among the others)."""
+        return config_dict(self)
 
     @classmethod
     def from_dict(cls, data: dict) -> HBRConfig:
-        """A configuration from `to_dict`'s output; missing solver settings are the ones it ran with (`LEGACY_SOLVER`)."""
-        data = {**data, **stored_solver(data)}
-        for layer in LAYERS:
-            try:
-                data[layer] = LayerSchedule(**data[layer])
-            except ConfigError as error:
-                raise ConfigError(f"{layer}.{error}") from None
-        return cls(**data)
+        """A configuration from `to_dict`'s output or the nested layout of `dataclasses.asdict`;
+        missing solver settings are the ones it ran with (`LEGACY_SOLVER`)."""
+        return config_from_dict(cls, {**data, **stored_solver(data)})
 
 
 def _schedule(batch, init, generations, block, mutation, capacity=1) -> LayerSchedule:

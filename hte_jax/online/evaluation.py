@@ -20,7 +20,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from hte_jax.errors import ConfigError, require_choice, require_int, require_number
+from hte_jax.errors import ConfigError, config_dict, config_from_dict, inline, require_choice, require_int, require_number
 from hte_jax.errors import with_overrides as _with_overrides
 from hte_jax.flat.store import load_flat, shipped_flat_path
 from hte_jax.hbr.pattern_ends import ends_file, load_pattern_ends
@@ -36,7 +36,7 @@ from hte_jax.online.mcts import PlannerConfig
 from hte_jax.online.recording import Recorder, Replay, maze_to_dict, replay_of
 from hte_jax.qd.io import CheckpointError, read_checkpoint
 from hte_jax.sim.damage import PAPER_DAMAGES, parse_damage
-from hte_jax.sim.robot import RobotConfig
+from hte_jax.sim.robot import RobotConfig, SolverConfig
 
 with_overrides = _with_overrides  # the configurations' one override rule, re-exported
 
@@ -55,8 +55,9 @@ class EvalConfig:
     "rte" ("" = the shipped HBR). repertoire_dir: a folder with one subfolder per repertoire seed
     (files `SEED_FILES`) used instead of the shipped repertoires. damage_model: "raised" (a
     damaged leg blocked in the air, the paper's words) or "locked" (in the standing pose, the
-    original code's). max_actions: the failure cap. iterations, roots, candidates,
-    exploration, widening, gamma, depth: MCTS settings (see PlannerConfig). optimism: how many
+    original code's). max_actions: the failure cap. planner: the MCTS settings (`PlannerConfig`,
+    inlined: settings iterations, roots, exploration, widening, gamma, depth, candidates,
+    collision_reward, goal_reward; 200 x 2 trees by default). optimism: how many
     standard deviations "hte-miss" takes off each elite's predicted deviation (0: greedy).
     composition: how an HBR step with a chosen contact pattern picks its elite: "planned" (ours,
     `hbr.composition`: a plan among the pattern's elites to the skill's end) or "waypoints" (the
@@ -65,9 +66,11 @@ class EvalConfig:
     execute from them (`hbr.sparing`; a spare file of `experiments.train_spare` or another HBR
     file; "" = the spare.npz beside the HBR file, if any). pattern_ends: the skills' ends measured
     under each pattern (`hbr.pattern_ends`, `experiments.pattern_ends`) that the variants planning
-    with measured ends use ("" = the pattern_ends_<table>.npz beside the HBR file). seed: PRNG seed. solver_iterations, ls_iterations, solver_tolerance: the physics' Newton solver.
-    reflex_tilt: the robot's tilt reflex (`RobotConfig.reflex_tilt`, rad): past this tilt a skill's
-    gait gives way to the neutral pose for the rest of its second; 0 (default, the paper's robot): off.
+    with measured ends use ("" = the pattern_ends_<table>.npz beside the HBR file). seed: PRNG seed.
+    solver: the physics' Newton solver (`SolverConfig`, inlined: settings solver_iterations,
+    ls_iterations, solver_tolerance). reflex_tilt: the robot's tilt reflex (`RobotConfig.reflex_tilt`,
+    rad): past this tilt a skill's gait gives way to the neutral pose for the rest of its second; 0
+    (default, the paper's robot): off.
     """
 
     variants: str = "hte"
@@ -77,21 +80,13 @@ class EvalConfig:
     repertoire_dir: str = ""
     damage_model: str = "raised"
     max_actions: int = 80
-    iterations: int = 200
-    roots: int = 2
-    candidates: int = 100
-    exploration: float = 100.0
-    widening: float = 0.5
-    gamma: float = 0.9
-    depth: int = 20
+    planner: PlannerConfig = inline(PlannerConfig(iterations=200, roots=2))
     optimism: float = 0.0
     composition: str = "planned"
     spare: str = ""
     pattern_ends: str = ""
     seed: int = 0
-    solver_iterations: int = RobotConfig.solver_iterations
-    ls_iterations: int = RobotConfig.ls_iterations
-    solver_tolerance: float = RobotConfig.solver_tolerance
+    solver: SolverConfig = inline(SolverConfig())
     reflex_tilt: float = RobotConfig.reflex_tilt
 
     def __post_init__(self):
@@ -105,7 +100,7 @@ class EvalConfig:
         if self.repertoire and self.repertoire_dir:
             raise ConfigError("give either repertoire (one HBR file) or repertoire_dir (seed folders), not both")
         self.robot  # noqa: B018 (RobotConfig validates the damage model)
-        self.adaptation  # noqa: B018 (validates the planner settings)
+        self.adaptation  # noqa: B018 (validates max_actions)
 
     @property
     def variant_list(self) -> tuple[str, ...]:
@@ -136,21 +131,22 @@ class EvalConfig:
 
     @property
     def adaptation(self) -> AdaptationConfig:
-        planner = PlannerConfig(
-            iterations=self.iterations, roots=self.roots, exploration=self.exploration, widening=self.widening,
-            gamma=self.gamma, depth=self.depth, candidates=self.candidates,
-        )
-        return AdaptationConfig(max_actions=self.max_actions, planner=planner)
+        return AdaptationConfig(max_actions=self.max_actions, planner=self.planner)
 
     @property
     def robot(self) -> RobotConfig:
         """The simulated robot's options (before the maze's walls are added)."""
-        return RobotConfig(damage_model=self.damage_model, solver_iterations=self.solver_iterations,
-                           ls_iterations=self.ls_iterations, solver_tolerance=self.solver_tolerance,
-                           reflex_tilt=self.reflex_tilt)
+        return self.solver.robot(damage_model=self.damage_model, reflex_tilt=self.reflex_tilt)
 
     def to_dict(self) -> dict:
-        return dataclasses.asdict(self)
+        """The stored layout (`errors.config_dict`: inlined settings among the others)."""
+        return config_dict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict) -> EvalConfig:
+        """A configuration from `to_dict`'s output (a run's config.json without its preset and
+        protocol) or the nested layout of `dataclasses.asdict`."""
+        return config_from_dict(cls, data)
 
 
 def protocol_overrides(name: str) -> dict:
@@ -164,8 +160,8 @@ def protocol_overrides(name: str) -> dict:
 # original planner (1000 iterations x 4 trees); paper: HTE's original 6000 iterations x 32 trees.
 PRESETS = {
     "cpu": EvalConfig(),
-    "gpu": EvalConfig(replicates=30, iterations=1000, roots=4),
-    "paper": EvalConfig(replicates=30, iterations=6000, roots=32),
+    "gpu": EvalConfig(replicates=30, planner=PlannerConfig(iterations=1000, roots=4)),
+    "paper": EvalConfig(replicates=30, planner=PlannerConfig(iterations=6000, roots=32)),
 }
 
 

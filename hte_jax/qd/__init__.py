@@ -9,7 +9,7 @@ from hte_jax.qd.io import CheckpointError, load_checkpoint, save_checkpoint
 from hte_jax.qd.loop import MapElites, MapElitesConfig, QDState, resume, run
 from hte_jax.qd.metrics import RepertoireMetrics, repertoire_metrics
 from hte_jax.qd.repertoire import Evaluation, Insertion, Repertoire
-from hte_jax.qd.selection import DensitySelection, UniformSelection
+from hte_jax.qd.selection import DensitySelection, SelectionConfig, UniformSelection
 from hte_jax.qd.store import load_repertoire, save_repertoire
 from hte_jax.qd.task_spec import TaskSpec
 from hte_jax.qd.variation import SbxPolynomial
@@ -30,6 +30,7 @@ __all__ = [
     "Repertoire",
     "RepertoireMetrics",
     "SbxPolynomial",
+    "SelectionConfig",
     "TaskSpec",
     "UniformSelection",
     "VariationEmitter",

@@ -68,4 +68,5 @@ class VariationEmitter(Emitter):
 
 def config_emitter(config, container) -> VariationEmitter:
     """The emitter `MapElitesConfig` describes: its selection, SBX crossover and polynomial mutation."""
-    return VariationEmitter(selection_from_config(config, container), SbxPolynomial.from_config(config), config.batch_size)
+    return VariationEmitter(selection_from_config(config.parents, container), SbxPolynomial.from_config(config),
+                            config.batch_size)

@@ -21,15 +21,13 @@ import jax.numpy as jnp
 from flax import struct
 from tqdm.auto import tqdm
 
-from hte_jax.errors import ConfigError, require_choice, require_int, require_number
+from hte_jax.errors import ConfigError, config_dict, inline, require_int, require_number
 from hte_jax.qd import io
 from hte_jax.qd.emitters import Emitter, config_emitter
 from hte_jax.qd.metrics import MetricsLog, RepertoireMetrics, repertoire_metrics
 from hte_jax.qd.repertoire import Evaluation, Repertoire
-from hte_jax.qd.selection import SELECTIONS
+from hte_jax.qd.selection import SELECTIONS, SelectionConfig
 from hte_jax.qd.task_spec import TaskSpec, container_metadata
-
-MAX_DENSITY_CELLS = 1 << 22
 
 # evaluate(key, genotypes (B, G)) -> Evaluation with B rows; must be jittable.
 EvaluateFn = Callable[[jax.Array, jax.Array], Evaluation]
@@ -43,13 +41,8 @@ class MapElitesConfig:
     (a multiple of batch_size). mutation_rate / eta_m: per-gene polynomial mutation.
     crossover_rate / eta_c: fraction of offspring made by SBX crossover before mutation.
     qd_offset: fitness lower bound used by the QD score.
-    selection: "uniform" (every elite equally likely, the original's) or "density" (every occupied
-      cell of a coarse `density_bins`^`density_dims` grid over the first `density_dims`
-      descriptor dimensions, all of them if the container has fewer, equally likely;
-      `selection.density_selection`) or "frontier" (a share `frontier_fraction` of every batch
-      drawn among the elites farthest from the centre of the plane of the first two descriptors,
-      one per cell of `frontier_angle_bins` sectors x `frontier_level_bins` levels of the third
-      descriptor, the rest uniformly; `hte_jax.hbr.selection`); `qd.selection.SELECTIONS`.
+    parents: parent selection (`qd.selection.SelectionConfig`, inlined: settings selection,
+      density_bins, density_dims, frontier_fraction, frontier_angle_bins, frontier_level_bins).
     These settings make the default emitter (`emitters.config_emitter`); a `MapElites` given its
     own emitter reads only batch_size, init_size and qd_offset.
     """
@@ -61,12 +54,7 @@ class MapElitesConfig:
     crossover_rate: float = 0.0
     eta_c: float = 10.0
     qd_offset: float = 0.0
-    selection: str = "uniform"
-    density_bins: int = 16
-    density_dims: int = 3
-    frontier_fraction: float = 0.5
-    frontier_angle_bins: int = 16
-    frontier_level_bins: int = 16
+    parents: SelectionConfig = inline(SelectionConfig())
 
     def __post_init__(self):
         require_int("batch_size", self.batch_size)
@@ -78,16 +66,6 @@ class MapElitesConfig:
         require_number("eta_m", self.eta_m, 0.0)
         require_number("eta_c", self.eta_c, 0.0)
         require_number("qd_offset", self.qd_offset)
-        require_choice("selection", self.selection, SELECTIONS)
-        require_int("density_bins", self.density_bins)
-        require_int("density_dims", self.density_dims)
-        if self.density_bins**self.density_dims > MAX_DENSITY_CELLS:
-            raise ConfigError(
-                f"density_bins^density_dims = {self.density_bins}^{self.density_dims} exceeds {MAX_DENSITY_CELLS} cells"
-            )
-        require_number("frontier_fraction", self.frontier_fraction, 0.0, 1.0)
-        require_int("frontier_angle_bins", self.frontier_angle_bins)
-        require_int("frontier_level_bins", self.frontier_level_bins)
 
 
 @struct.dataclass
@@ -212,8 +190,9 @@ class MapElites:
         """What must match for a checkpoint to be resumed by this algorithm: the container, the
         config without the fields of selections other than its own (`qd.selection.SELECTIONS`),
         the genotype size and, for an emitter given explicitly, its repr."""
-        unread = {name for _, read in SELECTIONS.values() for name in read} - set(SELECTIONS[self.config.selection][1])
-        config = {key: value for key, value in dataclasses.asdict(self.config).items() if key not in unread}
+        read = SELECTIONS[self.config.parents.selection][1]
+        unread = {name for _, fields in SELECTIONS.values() for name in fields} - set(read)
+        config = {key: value for key, value in config_dict(self.config).items() if key not in unread}
         metadata = {
             "container": container_metadata(self.container),
             "config": config,

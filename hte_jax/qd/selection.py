@@ -1,8 +1,8 @@
-"""Parent selection: which elites get offspring. Functions, the objects emitters hold, and the
-registry of the selections `MapElitesConfig.selection` can name.
+"""Parent selection: which elites get offspring. Functions, the objects emitters hold, the
+registry of the selections `SelectionConfig.selection` can name, and their settings (`SelectionConfig`).
 
 A selection object has `select(key, repertoire, num) -> (num,) int32 slots` of filled slots
-(drawn with replacement) and a `from_config(config, container)` class method.
+(drawn with replacement) and a `from_config(config, container)` class method (config: a `SelectionConfig`).
 """
 
 from __future__ import annotations
@@ -13,9 +13,12 @@ import importlib
 import jax
 import jax.numpy as jnp
 
+from hte_jax.errors import ConfigError, require_choice, require_int, require_number
 from hte_jax.qd.repertoire import Repertoire
 
-# name -> ("module:Class" of the selection object, the MapElitesConfig fields it reads). The
+MAX_DENSITY_CELLS = 1 << 22
+
+# name -> ("module:Class" of the selection object, the SelectionConfig fields it reads). The
 # fields are recorded in checkpoints: uniform records none (not even `selection`), as before
 # selection was a setting, so old checkpoints resume; a new entry should list "selection".
 # A class is imported when first used: "frontier" is the hexapod's and lives in `hte_jax.hbr`.
@@ -29,7 +32,41 @@ SELECTIONS: dict[str, tuple[str, tuple[str, ...]]] = {
 }
 
 
-def selection_from_config(config, container):
+@dataclasses.dataclass(frozen=True)
+class SelectionConfig:
+    """How parents are selected: the settings of the selections in `SELECTIONS` (inlined in
+    `MapElitesConfig` and `hbr.training.LayerSchedule`: stored and overridden by these names).
+
+    selection: "uniform" (every elite equally likely, the original's) or "density" (every occupied
+      cell of a coarse `density_bins`^`density_dims` grid over the first `density_dims`
+      descriptor dimensions, all of them if the container has fewer, equally likely;
+      `density_selection`) or "frontier" (a share `frontier_fraction` of every batch drawn among
+      the elites farthest from the centre of the plane of the first two descriptors, one per cell
+      of `frontier_angle_bins` sectors x `frontier_level_bins` levels of the third descriptor, the
+      rest uniformly; `hte_jax.hbr.selection`).
+    """
+
+    selection: str = "uniform"
+    density_bins: int = 16
+    density_dims: int = 3
+    frontier_fraction: float = 0.5
+    frontier_angle_bins: int = 16
+    frontier_level_bins: int = 16
+
+    def __post_init__(self):
+        require_choice("selection", self.selection, SELECTIONS)
+        require_int("density_bins", self.density_bins)
+        require_int("density_dims", self.density_dims)
+        if self.density_bins**self.density_dims > MAX_DENSITY_CELLS:
+            raise ConfigError(
+                f"density_bins^density_dims = {self.density_bins}^{self.density_dims} exceeds {MAX_DENSITY_CELLS} cells"
+            )
+        require_number("frontier_fraction", self.frontier_fraction, 0.0, 1.0)
+        require_int("frontier_angle_bins", self.frontier_angle_bins)
+        require_int("frontier_level_bins", self.frontier_level_bins)
+
+
+def selection_from_config(config: SelectionConfig, container):
     """The selection object `config.selection` names, set up from `config` for `container`."""
     module, name = SELECTIONS[config.selection][0].split(":")
     return getattr(importlib.import_module(module), name).from_config(config, container)

@@ -30,9 +30,8 @@ WALL_BIT = 2
 WALL_HEIGHT = 0.9
 WALL_CONTACTS = ("bumper", "links", "feet")
 DAMAGE_MODELS = ("raised", "locked")  # the pose of a damaged leg (poses in hte_jax.sim.damage)
-# The solver settings that training and evaluation configurations carry, and the values every
-# configuration stored before they did (run folders, checkpoints, shipped repertoires) ran with.
-SOLVER_FIELDS = ("solver_iterations", "ls_iterations", "solver_tolerance")
+# The solver settings (`SolverConfig`) every configuration stored before they were settings (run
+# folders, checkpoints, shipped repertoires) ran with.
 LEGACY_SOLVER = (4, 8, 1e-8)
 
 
@@ -122,6 +121,30 @@ class RobotConfig:
 
 
 @dataclasses.dataclass(frozen=True)
+class SolverConfig:
+    """The physics' Newton solver: the settings of `RobotConfig` that training and evaluation
+    configurations carry (inlined, `errors.inline`: stored and overridden by these names).
+
+    solver_iterations / ls_iterations: Newton solver and line-search iterations (caps).
+    solver_tolerance: the Newton loop's early-stop tolerance (`RobotConfig.solver_tolerance`).
+    """
+
+    solver_iterations: int = RobotConfig.solver_iterations
+    ls_iterations: int = RobotConfig.ls_iterations
+    solver_tolerance: float = RobotConfig.solver_tolerance
+
+    def __post_init__(self):
+        self.robot()  # RobotConfig validates the settings
+
+    def robot(self, **options) -> RobotConfig:
+        """The robot with this solver and the other `options` (RobotConfig's fields)."""
+        return RobotConfig(**dataclasses.asdict(self), **options)
+
+
+SOLVER_FIELDS = tuple(field.name for field in dataclasses.fields(SolverConfig))
+
+
+@dataclasses.dataclass(frozen=True)
 class RobotInfo:
     """Static facts about a compiled model (Python ints and tuples only).
 
@@ -204,7 +227,9 @@ def build_spec(config: RobotConfig) -> mujoco.MjSpec:
 
 
 def stored_solver(stored: dict) -> dict:
-    """The solver settings of a stored configuration; one stored without them ran `LEGACY_SOLVER`."""
+    """The solver settings of a stored configuration (flat, or nested under "solver"); one stored
+    without them ran `LEGACY_SOLVER`."""
+    stored = {**stored.get("solver", {}), **stored}
     return {name: stored.get(name, legacy) for name, legacy in zip(SOLVER_FIELDS, LEGACY_SOLVER)}
 
 
