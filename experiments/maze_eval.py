@@ -44,6 +44,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from experiments.cli import add_set_flag, fail, input_errors, set_overrides
+from experiments.devices import add_device_flags, device_mesh, is_writer
 from hte_jax.errors import ConfigError, require_int, settings
 from hte_jax.online.evaluation import (
     PRESETS,
@@ -96,6 +97,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--show-config", action="store_true", help="print the resolved configuration and exit")
     p.add_argument("--video", default="0", metavar="N",
                    help="record the first N episodes of each variant and write their videos (default 0: none)")
+    add_device_flags(p)
     for key in SETTINGS:
         flag = ALIASES.get(key, "--" + key.replace("_", "-"))
         p.add_argument(flag, dest=key, default=None, metavar="V", help=f"override {key}")
@@ -106,6 +108,8 @@ def parser() -> argparse.ArgumentParser:
 def main(argv=None) -> int:
     args = parser().parse_args(argv)
     with input_errors() as errors:
+        mesh = device_mesh(args)  # first: --distributed must start before jax touches the devices
+        writer = is_writer()  # only process 0 of a multi-host run writes files
         overrides = protocol_overrides(args.protocol) if args.protocol is not None else {}
         overrides.update({k: getattr(args, k) for k in SETTINGS if getattr(args, k) is not None})
         overrides.update(set_overrides(args.set))
@@ -115,19 +119,23 @@ def main(argv=None) -> int:
             print(json.dumps(config.to_dict(), indent=2))
             return 0
         out = Path(args.out)
-        out.mkdir(parents=True, exist_ok=True)
-        write_json(out / "config.json", {"preset": args.preset, "protocol": args.protocol, **config.to_dict()})
+        if writer:
+            out.mkdir(parents=True, exist_ok=True)
+            write_json(out / "config.json", {"preset": args.preset, "protocol": args.protocol, **config.to_dict()})
         records, curves, tracks = [], {}, {}
         earlier, recorded = {}, []  # episodes of each variant in earlier batches; (variant, episode) recorded
         for k, (seed, path, variants) in enumerate(batches(config)):
             labels = [v for v, _, _ in batch_labels(config, variants)]
             result = run_batch(config, path, variants, progress=not args.no_progress, seed=seed,
-                               record=rows_to_record(labels, videos, earlier), record_every=RECORD_EVERY)
+                               record=rows_to_record(labels, videos, earlier), record_every=RECORD_EVERY, mesh=mesh)
             rows = episode_records(result, config.max_actions)
             records += rows
-            _save_batch(out / f"episodes_{k}.npz", result)
-            recorded += _save_replays(out, result, episode_numbers(labels, earlier), k)
+            numbers = episode_numbers(labels, earlier)
             earlier = {v: earlier.get(v, 0) + labels.count(v) for v in {*earlier, *labels}}
+            if not writer:
+                continue
+            _save_batch(out / f"episodes_{k}.npz", result)
+            recorded += _save_replays(out, result, numbers, k)
             _plot_batch(out / "plots", result, curves, tracks)
             print(f"batch {k} ({'/'.join(variants)} on seed {seed}: {result.repertoire['path']}, "
                   f"{result.repertoire['actions']} actions): "
@@ -135,6 +143,8 @@ def main(argv=None) -> int:
                   f"planning median {np.median(result.timings.plan):.2f} s per action")
     if errors.failed:
         return 2
+    if not writer:
+        return 0
     order = {name: i for i, name in enumerate(config.variant_list)}
     records.sort(key=lambda r: order[r["variant"]])  # stable: the variants in the order asked for
     summary = summarise(records, config.max_actions)

@@ -22,6 +22,7 @@ import json
 import sys
 
 from experiments.cli import add_set_flag, input_errors, set_overrides
+from experiments.devices import add_device_flags, device_mesh, is_writer
 from hte_jax.errors import settings
 from hte_jax.flat.training import PRESETS, VARIANTS, FlatConfig, preset, train_flat, with_overrides
 from hte_jax.qd.io import stored_config
@@ -38,6 +39,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--resume", action="store_true", help="continue the run in --out")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--show-config", action="store_true", help="print the resolved configuration and exit")
+    add_device_flags(p)
     for key in SETTINGS:
         p.add_argument("--" + key.replace("_", "-"), dest=key, default=None, metavar="V", help=f"override {key}")
     add_set_flag(p)
@@ -47,6 +49,7 @@ def parser() -> argparse.ArgumentParser:
 def main(argv=None) -> int:
     args = parser().parse_args(argv)
     with input_errors() as errors:
+        mesh = device_mesh(args)  # first: --distributed must start before jax touches the devices
         config = preset(args.preset, args.variant)
         overrides = {k: getattr(args, k) for k in SETTINGS if getattr(args, k) is not None}
         overrides.update(set_overrides(args.set))
@@ -58,9 +61,11 @@ def main(argv=None) -> int:
         if args.show_config:
             print(json.dumps(config.to_dict(), indent=2))
             return 0
-        outcome = train_flat(config, out, resume_run=args.resume, progress=not args.no_progress)
+        outcome = train_flat(config, out, resume_run=args.resume, progress=not args.no_progress, mesh=mesh)
     if errors.failed:
         return 2
+    if not is_writer():
+        return 0
     summary = outcome.summary
     sizes = [s["size"] for s in summary["statistics"].values()]
     fitness = [s["mean_fitness"] for s in summary["statistics"].values()]

@@ -22,6 +22,7 @@ import json
 import sys
 
 from experiments.cli import add_set_flag, input_errors, set_overrides
+from experiments.devices import add_device_flags, device_mesh, is_writer
 from hte_jax.errors import settings
 from hte_jax.hbr.training import PRESETS, HBRConfig, preset, train_hbr, with_overrides
 from hte_jax.qd.io import stored_config
@@ -44,6 +45,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--resume", action="store_true", help="continue the run in --out")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     p.add_argument("--show-config", action="store_true", help="print the resolved configuration and exit")
+    add_device_flags(p)
     for key, kind in _settings():
         p.add_argument(_flag(key), dest=key, default=None, metavar=str(kind).upper(), help=f"override {key}")
     add_set_flag(p)
@@ -53,6 +55,7 @@ def parser() -> argparse.ArgumentParser:
 def main(argv=None) -> int:
     args = parser().parse_args(argv)
     with input_errors() as errors:
+        mesh = device_mesh(args)  # first: --distributed must start before jax touches the devices
         config: HBRConfig = preset(args.preset)
         overrides = {key: getattr(args, key) for key, _ in _settings() if getattr(args, key) is not None}
         overrides.update(set_overrides(args.set))
@@ -64,9 +67,11 @@ def main(argv=None) -> int:
         if args.show_config:
             print(json.dumps(config.to_dict(), indent=2))
             return 0
-        outcome = train_hbr(config, out, resume_run=args.resume, progress=not args.no_progress)
+        outcome = train_hbr(config, out, resume_run=args.resume, progress=not args.no_progress, mesh=mesh)
     if errors.failed:
         return 2
+    if not is_writer():
+        return 0
     stats = outcome.summary["statistics"]
     print(
         f"{out}: bottom {stats['bottom']['elites']} primitives, middle {stats['middle']['elites']} motions "

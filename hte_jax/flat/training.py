@@ -21,6 +21,7 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.sharding import Mesh
 
 from hte_jax.errors import ConfigError, config_dict, config_from_dict, inline, require_int, require_number
 from hte_jax.errors import with_overrides as _with_overrides
@@ -149,14 +150,15 @@ def preset(name: str, variant: str) -> FlatConfig:
     return PRESETS[name][variant]
 
 
-def flat_algorithm(config: FlatConfig) -> BatchedMapElites:
-    """The batched MAP-Elites of a configuration: one run per damage, each from its own standing state."""
+def flat_algorithm(config: FlatConfig, mesh: Mesh | None = None) -> BatchedMapElites:
+    """The batched MAP-Elites of a configuration: one run per damage, each from its own standing state;
+    every run's batch spread over `mesh` (None: all visible devices)."""
     robot = load_robot(config.robot)
     task = config.task
     masks = jnp.asarray(damage_masks(config.damages))
     conditions = {"damage": masks, "start": standing_state(robot, masks)}
     spec = flat_spec(task, evaluate=lambda key, genes, c: evaluate_flat(robot, task, c["start"], c["damage"], key, genes))
-    return BatchedMapElites.from_spec(spec, conditions, config.damages, config.map_elites_config())
+    return BatchedMapElites.from_spec(spec, conditions, config.damages, config.map_elites_config(), mesh=mesh)
 
 
 @dataclasses.dataclass
@@ -182,10 +184,16 @@ def train_flat(
     progress: bool = True,
     on_block: Callable[[int, QDState, dict], None] | None = None,
     plots: bool = True,
+    mesh: Mesh | None = None,
 ) -> FlatOutcome:
-    """Train (or finish training) a variant's repertoires; see the module docstring for the outputs."""
-    out = io.prepare_run_dir(out_dir, config.to_dict(), resume_run, normalise=normalised_config)
-    algo = flat_algorithm(config)
+    """Train (or finish training) a variant's repertoires; see the module docstring for the outputs.
+    mesh: the devices every generation is spread over (None: all visible); the repertoires do not
+    depend on it. In a multi-process run only process 0 writes files."""
+    writer = jax.process_index() == 0
+    out = Path(out_dir)
+    if writer:
+        out = io.prepare_run_dir(out_dir, config.to_dict(), resume_run, normalise=normalised_config)
+    algo = flat_algorithm(config, mesh)
     checkpoint = out / "checkpoint.npz"
     began = time.perf_counter()
     state = resume(algo, checkpoint) if checkpoint.exists() else algo.init(jax.random.PRNGKey(config.seed))
@@ -200,7 +208,7 @@ def train_flat(
         on_block=on_block,
         description=f"flat {config.variant}",
     )
-    if not checkpoint.exists():  # no block ran (generations = 0)
+    if writer and not checkpoint.exists():  # no block ran (generations = 0)
         io.save_checkpoint(checkpoint, state, algo.checkpoint_metadata())
     flat = FlatRepertoires(task=config.task, damages=config.damages, repertoire=state.repertoire)
     statistics = flat_statistics(flat)
@@ -213,6 +221,8 @@ def train_flat(
         "mean_elites": float(np.mean([s["size"] for s in statistics.values()])),
         "devices": [str(d) for d in jax.devices()],
     }
+    if not writer:
+        return FlatOutcome(repertoires=flat, summary=summary)
     save_flat(out / "repertoires.npz", flat, {"training": summary})
     io.write_json(out / "summary.json", summary)
     if plots:

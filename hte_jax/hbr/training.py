@@ -18,6 +18,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import jax
+from jax.sharding import Mesh
 
 from hte_jax.errors import ConfigError, config_dict, config_from_dict, inline, require_choice, require_int, require_number
 from hte_jax.errors import with_overrides as _with_overrides
@@ -202,27 +203,29 @@ def preset(name: str) -> HBRConfig:
     return PRESETS[name]
 
 
-def layer_algorithms(config: HBRConfig, robot: Robot, start, lower: dict) -> dict[str, Callable[[], MapElites]]:
-    """Factories of each layer's MapElites; `lower` holds the already trained layers' repertoires."""
+def layer_algorithms(config: HBRConfig, robot: Robot, start, lower: dict,
+                     mesh: Mesh | None = None) -> dict[str, Callable[[], MapElites]]:
+    """Factories of each layer's MapElites; `lower` holds the already trained layers' repertoires.
+    mesh: the devices each generation's batch is spread over (`sharding.batch_mesh`; None: all)."""
 
     def bottom() -> MapElites:
         task = config.bottom_task
         spec = bottom_spec(config.bottom.capacity, config.bottom_l,
                            evaluate=lambda key, genes: evaluate_bottom(robot, start, task, key, genes))
-        return MapElites.from_spec(spec, config.bottom.map_elites_config(qd_offset=spec.qd_offset))
+        return MapElites.from_spec(spec, config.bottom.map_elites_config(qd_offset=spec.qd_offset), mesh=mesh)
 
     def middle() -> MapElites:
         task, repertoire = config.middle_task, lower["bottom"]
         spec = middle_spec(config.middle.capacity, config.middle_l,
                            evaluate=lambda key, genes: evaluate_middle(robot, start, task, repertoire, key, genes))
-        return MapElites.from_spec(spec, config.middle.map_elites_config(qd_offset=spec.qd_offset))
+        return MapElites.from_spec(spec, config.middle.map_elites_config(qd_offset=spec.qd_offset), mesh=mesh)
 
     def top() -> MapElites:
         task = config.top_task
         empty_top = top_spec(task).empty()
         hbr = HBR.build(lower["bottom"], lower["middle"], empty_top, config.middle_task, top_task=task)
         spec = top_spec(task, evaluate=lambda key, genes: evaluate_top(robot, start, task, hbr, key, genes))
-        return MapElites.from_spec(spec, config.top.map_elites_config(qd_offset=spec.qd_offset))
+        return MapElites.from_spec(spec, config.top.map_elites_config(qd_offset=spec.qd_offset), mesh=mesh)
 
     return {"bottom": bottom, "middle": middle, "top": top}
 
@@ -241,17 +244,22 @@ def train_hbr(
     progress: bool = True,
     on_block: Callable[[str, int, QDState, dict], None] | None = None,
     plots: bool = True,
+    mesh: Mesh | None = None,
 ) -> TrainingOutcome:
-    """Train (or finish training) the three layers; see the module docstring for the outputs."""
+    """Train (or finish training) the three layers; see the module docstring for the outputs.
+    mesh: the devices every generation is spread over (None: all visible); the repertoires do not
+    depend on it. In a multi-process run only process 0 writes files."""
     out = Path(out_dir)
-    io.prepare_run_dir(out, config.to_dict(), resume_run, normalise=normalised_config)
+    writer = jax.process_index() == 0
+    if writer:
+        io.prepare_run_dir(out, config.to_dict(), resume_run, normalise=normalised_config)
     robot = load_robot(config.robot)
     start = standing_state(robot)
     keys = dict(zip(LAYERS, jax.random.split(jax.random.PRNGKey(config.seed), len(LAYERS))))
     lower: dict = {}
     summary: dict = {"config": config.to_dict(), "layers": {}}
     for layer in LAYERS:
-        algo = layer_algorithms(config, robot, start, lower)[layer]()
+        algo = layer_algorithms(config, robot, start, lower, mesh)[layer]()
         schedule: LayerSchedule = getattr(config, layer)
         checkpoint = out / layer / "checkpoint.npz"
         began = time.perf_counter()
@@ -268,7 +276,7 @@ def train_hbr(
             on_block=hook,
             description=layer,
         )
-        if not checkpoint.exists():  # no block ran (generations = 0)
+        if writer and not checkpoint.exists():  # no block ran (generations = 0)
             io.save_checkpoint(checkpoint, state, algo.checkpoint_metadata())
         metrics = jax.device_get(algo.metrics(state))
         lower[layer] = state.repertoire
@@ -291,6 +299,8 @@ def train_hbr(
         summary["step_model"] = {"starts": config.step_starts, "wall_time_s": time.perf_counter() - began}
     summary["statistics"] = hbr_statistics(hbr, config.top_task)
     summary["devices"] = [str(d) for d in jax.devices()]
+    if not writer:
+        return TrainingOutcome(hbr=hbr, summary=summary)
     save_hbr(out / "hbr.npz", hbr, metadata={"training": summary})
     io.write_json(out / "summary.json", summary)
     if plots:

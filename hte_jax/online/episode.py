@@ -30,8 +30,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from flax import struct
+from jax.sharding import Mesh, PartitionSpec
 from tqdm.auto import tqdm
 
+from hte_jax import sharding
 from hte_jax.errors import ConfigError, require_int
 from hte_jax.hbr.execution import STEPS_PER_SKILL, state_pose
 from hte_jax.online.actions import OUTCOME_DIM, displacement_of, predict
@@ -377,6 +379,35 @@ class RunTimings:
     total: float = 0.0
 
 
+def pad_episodes(episodes: Episodes, size: int) -> Episodes:
+    """The batch grown to `size` rows with copies of its last episode marked ended (`broken`), so
+    that the steps leave them as they are (`record_action`); `run_episodes` drops them at the end."""
+    batch = episodes.taken.shape[0]
+    padded = sharding.pad_rows(episodes, size)
+    return padded.replace(broken=padded.broken | (jnp.arange(size) >= batch))
+
+
+@functools.lru_cache(maxsize=32)
+def sharded_steps(maze: Maze, config: AdaptationConfig, mesh: Mesh, record_every: int, rules: tuple[str, ...]):
+    """(plan, act): `plan_step` and `act_step` with the episode axis split over `mesh` and the skills,
+    robot and distance field replicated: every device runs its episodes' planner and rollouts on its
+    own, no collective inside. plan(skills, field, episodes) -> Decision; act(robot, skills, episodes,
+    decision) -> (episodes, states)."""
+    rows, whole = PartitionSpec(sharding.BATCH_AXIS), PartitionSpec()
+
+    def plan(skills, field, episodes):
+        return plan_step(maze, config, skills, field, episodes)
+
+    def act(robot, skills, episodes, decision):
+        return act_step(maze, config, robot, skills, episodes, decision, record_every=record_every, rules=rules)
+
+    if mesh.devices.size == 1:  # one device: the step functions themselves
+        return plan, act
+    split = functools.partial(jax.shard_map, mesh=mesh, out_specs=rows, check_vma=False)
+    return (jax.jit(split(plan, in_specs=(whole, whole, rows))),
+            jax.jit(split(act, in_specs=(whole, whole, rows, rows))))
+
+
 def run_episodes(
     maze: Maze,
     config: AdaptationConfig,
@@ -387,15 +418,21 @@ def run_episodes(
     description: str = "episodes",
     max_steps: int | None = None,
     recorder: Recorder | None = None,
+    mesh: Mesh | None = None,
 ) -> tuple[Episodes, RunTimings]:
     """Run the batch until every episode has ended (or for `max_steps` actions); returns the
     episodes and timings. recorder: collects the states of its rows during every action (the
-    step program then also returns states; without a recorder it is the one without recording)."""
-    # Commit every input to the default device: jit keys its cache on committed-ness, so uncommitted
-    # first inputs would compile each step function twice.
-    device = jax.devices()[0]
-    field = jax.device_put(distance_field(maze, config.grid), device)
-    skills, robot, episodes = jax.device_put((skills, robot, episodes), device)
+    step program then also returns states; without a recorder it is the one without recording).
+    mesh: the devices the episodes are spread over (`sharding.batch_mesh`; None: all visible), the
+    batch padded to a multiple of their count (`pad_episodes`); episodes do not depend on it."""
+    mesh = sharding.batch_mesh() if mesh is None else mesh
+    batch = episodes.taken.shape[0]
+    # Commit every input to the mesh: jit keys its cache on committed-ness, so uncommitted first
+    # inputs would compile each step function twice.
+    field = sharding.put_replicated(distance_field(maze, config.grid), mesh)
+    skills, robot = sharding.put_replicated((skills, robot), mesh)
+    episodes = sharding.put_batch(pad_episodes(episodes, sharding.padded_size(batch, mesh)), mesh)
+    plan, act = sharded_steps(maze, config, mesh, 0 if recorder is None else recorder.every, rule_names())
     timings = RunTimings()
     begin = time.perf_counter()
     bar = tqdm(total=config.max_actions, desc=description, unit="action", disable=not progress)
@@ -403,23 +440,18 @@ def run_episodes(
         if bool(episodes.done.all()):
             break
         tick = time.perf_counter()
-        decision = plan_step(maze, config, skills, field, episodes)
+        decision = plan(skills, field, episodes)
         jax.block_until_ready(decision)
         timings.plan.append(time.perf_counter() - tick)
+        active = np.asarray(~episodes.done)[:batch]
         tick = time.perf_counter()
-        if recorder is None:
-            episodes, _ = act_step(maze, config, robot, skills, episodes, decision, rules=rule_names())
-            jax.block_until_ready(episodes)
-            timings.act.append(time.perf_counter() - tick)
-        else:
-            active = np.asarray(~episodes.done)
-            episodes, states = act_step(maze, config, robot, skills, episodes, decision, record_every=recorder.every,
-                                        rules=rule_names())
-            jax.block_until_ready(episodes)
-            timings.act.append(time.perf_counter() - tick)
+        episodes, states = act(robot, skills, episodes, decision)
+        jax.block_until_ready(episodes)
+        timings.act.append(time.perf_counter() - tick)
+        if recorder is not None:
             recorder.add(states, active)
         bar.update(1)
         bar.set_postfix(reached=int(episodes.reached.sum()), running=int((~episodes.done).sum()))
     bar.close()
     timings.total = time.perf_counter() - begin
-    return episodes, timings
+    return jax.tree.map(lambda x: x[:batch], episodes), timings

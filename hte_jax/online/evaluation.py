@@ -19,6 +19,7 @@ from pathlib import Path
 
 import jax
 import numpy as np
+from jax.sharding import Mesh
 
 from hte_jax.errors import ConfigError, config_dict, config_from_dict, inline, require_choice, require_int, require_number
 from hte_jax.errors import with_overrides as _with_overrides
@@ -266,10 +267,11 @@ def batch_labels(config: EvalConfig, variants: list[str]) -> list[tuple[str, str
 
 def run_batch(config: EvalConfig, path: str | None, variants: list[str], maze: Maze = PAPER_MAZE,
               progress: bool = True, key: jax.Array | None = None, seed: int = 0,
-              record: tuple[int, ...] = (), record_every: int = 4) -> BatchResult:
+              record: tuple[int, ...] = (), record_every: int = 4, mesh: Mesh | None = None) -> BatchResult:
     """Every (variant, damage, replicate) of `variants` on one repertoire (of seed `seed`), as one
     batch of episodes. record: batch rows whose states are recorded every `record_every` control
-    steps (`BatchResult.replays`); none by default, and then nothing is recorded."""
+    steps (`BatchResult.replays`); none by default, and then nothing is recorded. mesh: the devices
+    the episodes are spread over (`episode.run_episodes`; None: all visible)."""
     maps = len(variants) == 1 and variant_named(variants[0]).repertoire == "aprol"
     labels = batch_labels(config, variants)
     sparing = np.array([SPARING.index(variant_named(v).sparing) for v, _, _ in labels], np.int32)
@@ -295,7 +297,7 @@ def run_batch(config: EvalConfig, path: str | None, variants: list[str], maze: M
     robot = maze_robot(maze, config.robot)
     recorder = Recorder(tuple(record), record_every) if record else None
     episodes, timings = run_episodes(maze, adaptation, robot, skills, episodes, progress=progress,
-                                     description="/".join(variants), recorder=recorder)
+                                     description="/".join(variants), recorder=recorder, mesh=mesh)
     replays = [replay_of(recorder, episodes, row, {
         "variant": labels[row][0], "damage": labels[row][1], "replicate": labels[row][2], "seed": seed,
         "repertoire": info["path"], "hierarchical": skills.hierarchical, "damage_model": config.damage_model,

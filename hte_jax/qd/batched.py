@@ -19,6 +19,9 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
+from jax.sharding import Mesh
+
+from hte_jax import sharding
 from hte_jax.errors import ConfigError
 from hte_jax.qd.loop import MapElites, MapElitesConfig, QDState
 from hte_jax.qd.metrics import RepertoireMetrics, repertoire_metrics
@@ -40,6 +43,7 @@ class BatchedMapElites:
     evaluate: (key, genotypes, condition) -> Evaluation.
     conditions: pytree of (R, ...) arrays, row r is run r's condition.
     names: R labels of the runs (stored in checkpoints; a resume must use the same runs).
+    mesh: as in `MapElites`: every run's batch is spread over it (None: all visible devices).
     """
 
     container: Any
@@ -50,6 +54,7 @@ class BatchedMapElites:
     config: MapElitesConfig = MapElitesConfig()
     extras: Any = None
     emitter: Any = None
+    mesh: Mesh | None = None
 
     def __post_init__(self):
         sizes = {int(x.shape[0]) for x in jax.tree.leaves(self.conditions)}
@@ -59,7 +64,7 @@ class BatchedMapElites:
     @classmethod
     def from_spec(
         cls, spec: TaskSpec, conditions: Any, names: tuple[str, ...], config: MapElitesConfig = MapElitesConfig(),
-        emitter: Any = None,
+        emitter: Any = None, mesh: Mesh | None = None,
     ) -> BatchedMapElites:
         """R runs of a task spec whose evaluation takes the run's condition, `evaluate(key, genotypes,
         condition)`; `config` gets the spec's qd_offset (when the spec has one), as in `MapElites.from_spec`."""
@@ -68,7 +73,16 @@ class BatchedMapElites:
         if spec.qd_offset is not None:
             config = dataclasses.replace(config, qd_offset=spec.qd_offset)
         return cls(spec.container, spec.evaluate, spec.genotype_dim, conditions, tuple(names), config,
-                   spec.extras_example(), emitter)
+                   spec.extras_example(), emitter, mesh)
+
+    @functools.cached_property
+    def active_mesh(self) -> Mesh:
+        """`mesh`, or one over all visible devices."""
+        return sharding.batch_mesh() if self.mesh is None else self.mesh
+
+    def place(self, state: QDState) -> QDState:
+        """`state` replicated on the mesh's devices."""
+        return sharding.put_replicated(state, self.active_mesh)
 
     @property
     def num_runs(self) -> int:
@@ -82,6 +96,7 @@ class BatchedMapElites:
             config=self.config,
             extras=self.extras,
             emitter=self.emitter,
+            mesh=self.active_mesh,
         )
 
     def single(self, run: int) -> MapElites:
@@ -108,7 +123,8 @@ class BatchedMapElites:
         def one(run_key, condition):
             return self._algo(condition).init(run_key)
 
-        return jax.vmap(one, out_axes=_STATE_AXES)(self.run_keys(key), self.conditions)
+        state = jax.vmap(one, out_axes=_STATE_AXES)(self.run_keys(key), self.conditions)
+        return sharding.replicate(state, self.active_mesh)
 
     def generation_step(self, state: QDState) -> tuple[QDState, jax.Array]:
         def one(run_state, condition):
@@ -120,7 +136,7 @@ class BatchedMapElites:
     @functools.partial(jax.jit, static_argnums=(0, 2))
     def run_block(self, state: QDState, generations: int) -> tuple[QDState, jax.Array]:
         state, accepted = jax.lax.scan(lambda s, _: self.generation_step(s), state, None, length=generations)
-        return state, accepted.sum()
+        return sharding.replicate((state, accepted.sum()), self.active_mesh)
 
     @functools.partial(jax.jit, static_argnums=0)
     def metrics(self, state: QDState) -> RepertoireMetrics:

@@ -19,8 +19,10 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 from flax import struct
+from jax.sharding import Mesh
 from tqdm.auto import tqdm
 
+from hte_jax import sharding
 from hte_jax.errors import ConfigError, config_dict, inline, require_int, require_number
 from hte_jax.qd import io
 from hte_jax.qd.emitters import Emitter, config_emitter
@@ -91,6 +93,8 @@ class MapElites:
     genotype_dim: genes per individual, each in [0, 1].
     extras: example pytree of per-individual extras the evaluation returns (shapes without B).
     emitter: makes the offspring (`qd.emitters`); None: the one `config` describes.
+    mesh: the devices every batch is evaluated on, its rows spread over them and everything else
+      replicated (`sharding.batch_mesh`); None: all visible devices. Results do not depend on it.
     """
 
     container: Any
@@ -99,16 +103,32 @@ class MapElites:
     config: MapElitesConfig = MapElitesConfig()
     extras: Any = None
     emitter: Emitter | None = None
+    mesh: Mesh | None = None
 
     @classmethod
-    def from_spec(cls, spec: TaskSpec, config: MapElitesConfig = MapElitesConfig(), emitter: Emitter | None = None) -> MapElites:
+    def from_spec(cls, spec: TaskSpec, config: MapElitesConfig = MapElitesConfig(), emitter: Emitter | None = None,
+                  mesh: Mesh | None = None) -> MapElites:
         """The MAP-Elites of a task spec: its container, evaluation, genotype size and extras, and
         `config` with the spec's qd_offset (when the spec has one)."""
         if spec.evaluate is None:
             raise ConfigError(f"task {spec.name!r} has no evaluation; give it one with spec.with_evaluate(...)")
         if spec.qd_offset is not None:
             config = dataclasses.replace(config, qd_offset=spec.qd_offset)
-        return cls(spec.container, spec.evaluate, spec.genotype_dim, config, spec.extras_example(), emitter)
+        return cls(spec.container, spec.evaluate, spec.genotype_dim, config, spec.extras_example(), emitter, mesh)
+
+    @functools.cached_property
+    def active_mesh(self) -> Mesh:
+        """`mesh`, or one over all visible devices."""
+        return sharding.batch_mesh() if self.mesh is None else self.mesh
+
+    def place(self, state: QDState) -> QDState:
+        """`state` (from `init`, a checkpoint, another run) replicated on the mesh's devices."""
+        return sharding.put_replicated(state, self.active_mesh)
+
+    def evaluate_batch(self, key: jax.Array, genotypes: jax.Array) -> Evaluation:
+        """`evaluate`, its rollouts' rows spread over the mesh (`sharding.spread_over`)."""
+        with sharding.spread_over(self.active_mesh):
+            return self.evaluate(key, genotypes)
 
     @functools.cached_property
     def active_emitter(self) -> Emitter:
@@ -139,13 +159,13 @@ class MapElites:
         def insert(repertoire, batch_key):
             key_genes, key_eval = jax.random.split(batch_key)
             genotypes = jax.random.uniform(key_genes, (self.config.batch_size, self.genotype_dim))
-            repertoire, _ = self.container.add(repertoire, genotypes, self.evaluate(key_eval, genotypes))
+            repertoire, _ = self.container.add(repertoire, genotypes, self.evaluate_batch(key_eval, genotypes))
             return repertoire, None
 
         repertoire, _ = jax.lax.scan(insert, state.repertoire, jax.random.split(key_init, batches))
         key_emitter = jax.random.fold_in(key_init, 0)  # a key of its own: the batches' keys stay as they were
         emitter_state = self.active_emitter.init(repertoire, key_emitter)
-        return state.replace(repertoire=repertoire, emitter_state=emitter_state)
+        return sharding.replicate(state.replace(repertoire=repertoire, emitter_state=emitter_state), self.active_mesh)
 
     def select(self, repertoire: Repertoire, key: jax.Array) -> jax.Array:
         """(batch_size,) parent slots, by the emitter's selection (emitters that select parents)."""
@@ -171,7 +191,7 @@ class MapElites:
         """One generation; returns the new state and the number of accepted offspring."""
         key, key_ask, key_eval = jax.random.split(state.key, 3)
         genotypes, emitter_state = self.ask(state.repertoire, state.emitter_state, key_ask)
-        evaluation = self.evaluate(key_eval, genotypes)
+        evaluation = self.evaluate_batch(key_eval, genotypes)
         repertoire, emitter_state, insertion = self.tell(state.repertoire, emitter_state, genotypes, evaluation)
         new = QDState(repertoire=repertoire, key=key, generation=state.generation + 1, emitter_state=emitter_state)
         return new, insertion.accepted.sum(dtype=jnp.int32)
@@ -180,7 +200,7 @@ class MapElites:
     def run_block(self, state: QDState, generations: int) -> tuple[QDState, jax.Array]:
         """`generations` generations under lax.scan; returns the state and the accepted count."""
         state, accepted = jax.lax.scan(lambda s, _: self.generation_step(s), state, None, length=generations)
-        return state, accepted.sum()
+        return sharding.replicate((state, accepted.sum()), self.active_mesh)
 
     @functools.partial(jax.jit, static_argnums=0)
     def metrics(self, state: QDState) -> RepertoireMetrics:
@@ -217,12 +237,13 @@ def run(
 ) -> QDState:
     """Run until `state.generation == generations`, one jitted block of generations at a time.
 
-    After every block: one CSV row (if log_path), an atomic checkpoint (if checkpoint_path),
-    the progress bar, and `on_block(block, state, row)`. Starting from a resumed state runs
+    After every block: a replica-consistency check (every device holds the same state, else
+    `sharding.ReplicaMismatchError`), one CSV row (if log_path), an atomic checkpoint (if
+    checkpoint_path, written by process 0 only), the progress bar, and `on_block(block, state, row)`. Starting from a resumed state runs
     only the remaining generations; block boundaries stay at multiples of block_size.
     """
     require_int("block_size", block_size)
-    log = MetricsLog(log_path) if log_path is not None else None
+    log = MetricsLog(log_path) if log_path is not None and jax.process_index() == 0 else None
     done = int(state.generation)
     if log is not None:  # drop rows written after the checkpoint we start from
         log.truncate_after(done // block_size - 1 if done else -2)
@@ -248,15 +269,17 @@ def run(
             log.append(row)
         return metrics, row
 
+    state = algo.place(state)
     if done == 0:
         record(-1, None)  # the initial random batch, as block -1
     while done < generations:
         block = done // block_size
         count = min(block_size * (block + 1), generations) - done
         state, accepted = algo.run_block(state, count)
+        sharding.check_replicas(state, what=f"block {block}: state")
         done = int(state.generation)
         metrics, row = record(block, accepted)
-        if checkpoint_path is not None:
+        if checkpoint_path is not None and jax.process_index() == 0:
             io.save_checkpoint(checkpoint_path, state, algo.checkpoint_metadata())
         bar.update(1)
         bar.set_postfix(filled=int(metrics.filled), qd=f"{float(metrics.qd_score):.4g}", max=f"{float(metrics.max_fitness):.3g}")

@@ -21,6 +21,7 @@ import numpy as np
 from flax import struct
 from hte_jax.sim.mjx_import import mjx
 
+from hte_jax import sharding
 from hte_jax.errors import ConfigError
 from hte_jax.sim.controller import NUM_PARAMS, SAMPLES_PER_PERIOD, servo_command, target_table
 from hte_jax.sim.damage import apply_damage, damaged_joint_mask, damaged_pose
@@ -315,8 +316,11 @@ def rollout(
         init = _broadcast(init, batch)
     tables = jax.vmap(jax.vmap(target_table))(params.astype(jnp.float32))  # (B, S, 100, 18)
     template = mjx.make_data(robot.model)
-    run = functools.partial(_rollout_one, robot, spec, template)
-    return jax.vmap(run)(tables, damage, init)
+
+    def run(shared, rows):
+        return jax.vmap(functools.partial(_rollout_one, shared[0], spec, shared[1]))(*rows)
+
+    return sharding.map_rows(run, (robot, template), (tables, damage, init))
 
 
 def standing_state(robot: Robot, damage: jax.Array | None = None, settle_steps: int = 100) -> SimState:
