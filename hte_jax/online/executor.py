@@ -47,7 +47,7 @@ from hte_jax.online.variants import rule_names
 from hte_jax.sim.controller import NUM_PARAMS, SAMPLES_PER_PERIOD, SERVO_TIME_CONSTANT, target_table
 from hte_jax.sim.damage import damaged_pose
 from hte_jax.sim.robot import FOOT_RADIUS, JOINTS_PER_LEG, NUM_LEGS, RobotConfig, mj_model, robot_info
-from hte_jax.sim.rollout import RolloutSpec, SimState, ValidityLimits, check_state
+from hte_jax.sim.rollout import RolloutSpec, SimState, ValidityLimits, check_state, up_z
 
 
 @struct.dataclass
@@ -274,7 +274,7 @@ class MujocoExecutor:
         braced, upright = False, math.cos(self.config.reflex_tilt)
         for k in range(steps):
             if self.config.reflex_tilt > 0.0:  # the tilt reflex, as `rollout` runs it
-                braced = braced or 1.0 - 2.0 * (data.qpos[4] ** 2 + data.qpos[5] ** 2) < upright
+                braced = braced or up_z(data.qpos) < upright
             row = self.neutral[k % SAMPLES_PER_PERIOD] if braced else table[k % SAMPLES_PER_PERIOD]
             target = np.where(self.damaged, self.damaged_pose, row)
             error = target - data.qpos[self.joints]

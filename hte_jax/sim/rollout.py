@@ -171,8 +171,9 @@ def _world_z_of(qpos: jax.Array, points: np.ndarray) -> jax.Array:
     return qpos[2] + points @ row_z
 
 
-def _up_z(qpos: jax.Array) -> jax.Array:
-    """World z of the body's z axis (cosine of its tilt) for a base pose qpos[:7] (unit quaternion)."""
+def up_z(qpos):
+    """World z of the body's z axis (cosine of its tilt) for a base pose qpos[:7] (unit quaternion; a
+    jax or NumPy array)."""
     return 1.0 - 2.0 * (qpos[4] ** 2 + qpos[5] ** 2)
 
 
@@ -180,7 +181,7 @@ def check_state(qpos: jax.Array, qvel: jax.Array, limits: ValidityLimits) -> jax
     """InvalidReason bits (int32 scalar, 0 = valid) of one state: qpos (25,), qvel (24,)."""
     finite = jnp.isfinite(qpos).all() & jnp.isfinite(qvel).all()
     exploded = jnp.abs(qvel).max() > limits.max_speed
-    flipped = _up_z(qpos) < math.cos(limits.max_tilt)
+    flipped = up_z(qpos) < math.cos(limits.max_tilt)
     height = (qpos[2] < limits.min_base_height) | (qpos[2] > limits.max_base_height)
     on_floor = (_world_z_of(qpos, _BODY_BOTTOM).min() < 0.0) & limits.body_on_floor
     return (
@@ -221,7 +222,7 @@ def _rollout_one(
         gait = tables[step // segment_steps, row]
         if reflex:  # tilted past the reflex angle: the neutral pose until this controller's segment ends
             fresh = step % segment_steps == 0
-            braced = (braced & ~fresh) | (_up_z(data.qpos) < math.cos(config.reflex_tilt))
+            braced = (braced & ~fresh) | (up_z(data.qpos) < math.cos(config.reflex_tilt))
             gait = jnp.where(braced, neutral[row], gait)
         target = apply_damage(gait, damage, damaged_pose(config.damage_model))
         command = servo_command(target, data.qpos[joint_qpos], config.max_joint_velocity)
