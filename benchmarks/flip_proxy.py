@@ -15,13 +15,13 @@ robot flips:
   feet pass through the floor (support lost, mass where the controller holds it);
 - intact: the intact robot running the damage's gaits.
 
-Prints, per damage, way, robot and tilt-reflex angle (`--reflex-tilt`), the share of robots
+Prints, per damage, way, robot and tilt reflex (`--reflex-tilt`), the share of robots
 flipped after the first action and after all of them, in which phase the flips began (step 1, 2,
 3 of the skill or the neutral second), and the median distance between a whole skill's end and
 its stored end point (what a reflex that fires in a stable gait costs); writes JSON to
 benchmarks/results/.
 Usage: python benchmarks/flip_proxy.py [--damages leg0,leg2,leg3,leg5] [--robots 64] [--actions 3]
-       [--ways rte,pattern,sparing] [--models raised,light,touchless,locked,intact] [--reflex-tilt 0,0.5]
+       [--ways rte,pattern,sparing] [--models raised,light,touchless,locked,intact] [--reflex-tilt 0,0.5,0.3/0.15,0.3/0/1]
 """
 
 from __future__ import annotations
@@ -73,6 +73,19 @@ def skill_miss_median(misses: list[np.ndarray]) -> float:
     return float(np.median(runs)) if runs.size else float("nan")
 
 
+def parse_reflex(item: str) -> tuple[float, float, float]:
+    """'TILT[/RELEASE[/RATE]]' -> (reflex_tilt, reflex_release, reflex_rate), the missing ones 0."""
+    values = [float(v) for v in item.split("/")]
+    if not 1 <= len(values) <= 3:
+        raise ValueError(f"{item!r} is not TILT[/RELEASE[/RATE]]")
+    return tuple(values + [0.0] * (3 - len(values)))
+
+
+def reflex_options(reflex: tuple[float, float, float]) -> dict:
+    """RobotConfig's reflex fields of a `parse_reflex` triple."""
+    return dict(zip(("reflex_tilt", "reflex_release", "reflex_rate"), reflex))
+
+
 def altered_robot(config: RobotConfig, legs, lighter: float = 1.0, touchless: bool = False) -> Robot:
     """The hexapod of `config` with the links of `legs` made `lighter` times as heavy (mass and
     inertia) and, if `touchless`, their links and feet unable to touch the floor."""
@@ -98,7 +111,8 @@ def main(argv=None) -> int:
     parser.add_argument("--ways", default=",".join(WAYS), help=f"ways of executing a skill, of {', '.join(WAYS)}")
     parser.add_argument("--models", default=",".join(ROBOTS), help=f"robot models to run, of {', '.join(ROBOTS)}")
     parser.add_argument("--reflex-tilt", default="0",
-                        help="comma-separated tilt-reflex angles (rad, RobotConfig.reflex_tilt; 0 = off), each run")
+                        help="comma-separated tilt reflexes, each run: TILT[/RELEASE[/RATE]] (RobotConfig.reflex_tilt, "
+                             "reflex_release rad, reflex_rate rad/s; 0 = off)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--label", default="")
     args = parser.parse_args(argv)
@@ -114,10 +128,10 @@ def main(argv=None) -> int:
         hbr = load_spare(spare, hbr)
     tables = {"pattern": planning_table(hbr), "sparing": sparing_table(hbr)}
     try:
-        reflexes = [float(angle) for angle in args.reflex_tilt.split(",")]
-        configs = {(name, reflex): RobotConfig(damage_model=name, body_floor_contact=True, reflex_tilt=reflex)
+        reflexes = [parse_reflex(item) for item in args.reflex_tilt.split(",")]
+        configs = {(name, reflex): RobotConfig(damage_model=name, body_floor_contact=True, **reflex_options(reflex))
                    for reflex in reflexes for name in ("raised", "locked")}
-    except (ValueError, ConfigError) as error:
+    except (ValueError, TypeError, ConfigError) as error:
         parser.error(f"--reflex-tilt: {error}")
     models = {key: load_robot(config) for key, config in configs.items()}
     top = np.flatnonzero(np.asarray(hbr.top.filled))
@@ -134,7 +148,7 @@ def main(argv=None) -> int:
 
     rows = []
     names = args.damages.split(",")
-    print(f"{'damage':8s} {'way':8s} {'robot':9s} reflex flipped after 1 / {args.actions} actions   flips began in "
+    print(f"{'damage':8s} {'way':8s} {'robot':9s} {'reflex':>11s} flipped after 1 / {args.actions} actions   flips began in "
           + " / ".join(PHASES) + "   end miss (m)", flush=True)
     for (name, mask), reflex in itertools.product(zip(names, damage_masks(names)), reflexes):
         batch = args.robots
@@ -167,14 +181,14 @@ def main(argv=None) -> int:
                     began_in += np.bincount(phase[newly], minlength=len(PHASES))
                     alive &= ~newly
                     flipped_after.append(float(1 - alive.mean()))
-                row = {"damage": name, "way": way, "robot": robot_name, "reflex_tilt": reflex,
+                row = {"damage": name, "way": way, "robot": robot_name, **reflex_options(reflex),
                        "flipped_after_action": flipped_after,
                        "flips_began_in": dict(zip(PHASES, began_in.tolist())),
                        "end_miss_median_m": skill_miss_median(misses),
                        "seconds": time.perf_counter() - began}
                 rows.append(row)
-                print(f"{name:8s} {way:8s} {robot_name:9s} {reflex:6.2f} {flipped_after[0]:.2f} / {flipped_after[-1]:.2f}"
-                      f"                     " + " / ".join(str(n) for n in began_in.tolist())
+                print(f"{name:8s} {way:8s} {robot_name:9s} {'/'.join(f'{v:g}' for v in reflex):>11s} "
+                      f"{flipped_after[0]:.2f} / {flipped_after[-1]:.2f}                     " + " / ".join(str(n) for n in began_in.tolist())
                       + f"   {row['end_miss_median_m']:.3f}", flush=True)
     env = environment()
     out = result_path(f"flip_proxy{args.label}", env)

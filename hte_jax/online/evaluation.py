@@ -71,7 +71,8 @@ class EvalConfig:
     solver: the physics' Newton solver (`SolverConfig`, inlined: settings solver_iterations,
     ls_iterations, solver_tolerance). reflex_tilt: the robot's tilt reflex (`RobotConfig.reflex_tilt`,
     rad): past this tilt a skill's gait gives way to the neutral pose for the rest of its second; 0
-    (default, the paper's robot): off.
+    (default, the paper's robot): off. reflex_release, reflex_rate: when the reflex lets go and
+    when it fires (`RobotConfig.reflex_release`, `reflex_rate`; 0: as above).
     """
 
     variants: str = "hte"
@@ -89,6 +90,8 @@ class EvalConfig:
     seed: int = 0
     solver: SolverConfig = inline(SolverConfig())
     reflex_tilt: float = RobotConfig.reflex_tilt
+    reflex_release: float = RobotConfig.reflex_release
+    reflex_rate: float = RobotConfig.reflex_rate
 
     def __post_init__(self):
         require_int("replicates", self.replicates)
@@ -137,7 +140,8 @@ class EvalConfig:
     @property
     def robot(self) -> RobotConfig:
         """The simulated robot's options (before the maze's walls are added)."""
-        return self.solver.robot(damage_model=self.damage_model, reflex_tilt=self.reflex_tilt)
+        return self.solver.robot(damage_model=self.damage_model, reflex_tilt=self.reflex_tilt,
+                                 reflex_release=self.reflex_release, reflex_rate=self.reflex_rate)
 
     def to_dict(self) -> dict:
         """The stored layout (`errors.config_dict`: inlined settings among the others)."""

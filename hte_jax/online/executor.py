@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import math
 from typing import Protocol
 
 import jax
@@ -47,7 +46,7 @@ from hte_jax.online.variants import rule_names
 from hte_jax.sim.controller import NUM_PARAMS, SAMPLES_PER_PERIOD, SERVO_TIME_CONSTANT, target_table
 from hte_jax.sim.damage import damaged_pose
 from hte_jax.sim.robot import FOOT_RADIUS, JOINTS_PER_LEG, NUM_LEGS, RobotConfig, mj_model, robot_info
-from hte_jax.sim.rollout import RolloutSpec, SimState, ValidityLimits, check_state, up_z
+from hte_jax.sim.rollout import RolloutSpec, SimState, ValidityLimits, check_state, reflex_braced
 
 
 @struct.dataclass
@@ -201,8 +200,8 @@ class MujocoExecutor:
     (damaged legs in their pose), the velocity servo command, `mj_step`; a foot touches the floor
     when its sphere is within `RolloutSpec.contact_tolerance` of it. Every state is checked as the
     rollout checks it (`rollout.check_state`); at the first invalid one the robot is put back to the
-    state before it and stops. The tilt reflex of `config` (`RobotConfig.reflex_tilt`) runs as in
-    the rollout, for the rest of the second.
+    state before it and stops. The tilt reflex of `config` (`RobotConfig.reflex_tilt`, `reflex_release`,
+    `reflex_rate`) runs as in the rollout (`rollout.reflex_braced`), within the second.
     """
 
     def __init__(self, config: RobotConfig, damage: np.ndarray, start: SimState,
@@ -271,10 +270,10 @@ class MujocoExecutor:
         warm = np.zeros((steps, model.nv))
         touching = np.zeros((steps, NUM_LEGS), bool)
         tolerance = RolloutSpec.contact_tolerance
-        braced, upright = False, math.cos(self.config.reflex_tilt)
+        braced = np.False_
         for k in range(steps):
             if self.config.reflex_tilt > 0.0:  # the tilt reflex, as `rollout` runs it
-                braced = braced or up_z(data.qpos) < upright
+                braced = reflex_braced(braced, np.False_, data.qpos, data.qvel, self.config)
             row = self.neutral[k % SAMPLES_PER_PERIOD] if braced else table[k % SAMPLES_PER_PERIOD]
             target = np.where(self.damaged, self.damaged_pose, row)
             error = target - data.qpos[self.joints]

@@ -75,6 +75,10 @@ class RobotConfig:
       from upright, the gait is dropped and the neutral pose (the all-zero controller) is held until
       the running controller's time is up (a 1 s step; a segment of `rollout`'s params). 0 (default,
       the paper's robot) never fires.
+    reflex_release: 0 (default) holds the neutral pose until the segment ends; > 0 (below
+      reflex_tilt): the gait resumes as soon as the tilt is back below this angle (rad).
+    reflex_rate: 0 (default): the reflex fires on the angle alone; > 0: only while the body also
+      tilts further at more than this rate (rad/s; a fall, not a steep but steady gait).
     """
 
     timestep: float = 0.01
@@ -93,6 +97,8 @@ class RobotConfig:
     body_floor_contact: bool = False
     damage_model: str = "raised"
     reflex_tilt: float = 0.0
+    reflex_release: float = 0.0
+    reflex_rate: float = 0.0
 
     def __post_init__(self):
         for name in ("timestep", "control_dt", "servo_gain", "max_torque", "max_joint_velocity"):
@@ -109,6 +115,12 @@ class RobotConfig:
         require_choice("wall_contact", self.wall_contact, WALL_CONTACTS)
         require_number("bumper_radius", self.bumper_radius, 0.0, open_low=True)
         require_number("reflex_tilt", self.reflex_tilt, 0.0, math.pi)
+        require_number("reflex_release", self.reflex_release, 0.0)
+        require_number("reflex_rate", self.reflex_rate, 0.0)
+        if (self.reflex_release or self.reflex_rate) and not self.reflex_tilt:
+            raise ConfigError("reflex_release and reflex_rate shape the tilt reflex: set reflex_tilt > 0 too")
+        if self.reflex_release >= self.reflex_tilt > 0.0:
+            raise ConfigError(f"reflex_release={self.reflex_release} must be below reflex_tilt={self.reflex_tilt}")
         require_choice("damage_model", self.damage_model, DAMAGE_MODELS)
         for wall in self.walls:
             if len(wall) != 4 or not (wall[0] < wall[2] and wall[1] < wall[3]):

@@ -177,6 +177,31 @@ def up_z(qpos):
     return 1.0 - 2.0 * (qpos[4] ** 2 + qpos[5] ** 2)
 
 
+def up_z_drop_rate(qpos, qvel):
+    """How fast `up_z` falls (1/s; positive while the body tilts further) for a base pose qpos[:7]
+    and velocity qvel[:6] (the free joint's angular velocity qvel[3:6] is in the body frame): the
+    world z of omega x z_body. d(tilt)/dt = this / sin(tilt). A jax or NumPy array."""
+    w, x, y, z = qpos[3], qpos[4], qpos[5], qpos[6]
+    r20, r21 = 2.0 * (x * z - w * y), 2.0 * (y * z + w * x)  # world z of the body's x and y axes
+    return r21 * qvel[3] - r20 * qvel[4]
+
+
+def reflex_braced(braced, fresh, qpos, qvel, config):
+    """The tilt reflex's state after one control step's check (`RobotConfig.reflex_tilt`,
+    `reflex_release`, `reflex_rate`): `braced` (bool) whether the neutral pose was held, `fresh`
+    whether a new controller segment starts now (the reflex lets go), qpos / qvel the state now.
+    Operators only, so jax arrays and NumPy scalars (np.bool_, not Python bool) both work."""
+    cos_tilt = up_z(qpos)
+    braced = braced & ~fresh
+    if config.reflex_release > 0.0:  # back below the release angle: the gait resumes
+        braced = braced & (cos_tilt < math.cos(config.reflex_release))
+    fires = cos_tilt < math.cos(config.reflex_tilt)
+    if config.reflex_rate > 0.0:  # only while tilting further faster than the rate: rate * sin(tilt) < drop
+        drop = up_z_drop_rate(qpos, qvel)
+        fires = fires & (drop > 0.0) & (drop * drop > config.reflex_rate**2 * (1.0 - cos_tilt * cos_tilt))
+    return braced | fires
+
+
 def check_state(qpos: jax.Array, qvel: jax.Array, limits: ValidityLimits) -> jax.Array:
     """InvalidReason bits (int32 scalar, 0 = valid) of one state: qpos (25,), qvel (24,)."""
     finite = jnp.isfinite(qpos).all() & jnp.isfinite(qvel).all()
@@ -220,9 +245,8 @@ def _rollout_one(
         poses = record_pose(poses, data.qpos, step)
         row = (step % segment_steps) % SAMPLES_PER_PERIOD
         gait = tables[step // segment_steps, row]
-        if reflex:  # tilted past the reflex angle: the neutral pose until this controller's segment ends
-            fresh = step % segment_steps == 0
-            braced = (braced & ~fresh) | (up_z(data.qpos) < math.cos(config.reflex_tilt))
+        if reflex:  # tilted past the reflex angle: the neutral pose (until the segment ends or the release)
+            braced = reflex_braced(braced, step % segment_steps == 0, data.qpos, data.qvel, config)
             gait = jnp.where(braced, neutral[row], gait)
         target = apply_damage(gait, damage, damaged_pose(config.damage_model))
         command = servo_command(target, data.qpos[joint_qpos], config.max_joint_velocity)
