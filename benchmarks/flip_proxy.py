@@ -122,17 +122,17 @@ def main(argv=None) -> int:
         if unknown:
             parser.error(f"{option}: unknown {', '.join(unknown)}; choose from {', '.join(known)}")
 
-    hbr, task, _ = load_hbr(args.hbr)
-    spare = args.spare or spare_beside(args.hbr)
-    if spare:
-        hbr = load_spare(spare, hbr)
-    tables = {"pattern": planning_table(hbr), "sparing": sparing_table(hbr)}
     try:
         reflexes = [parse_reflex(item) for item in args.reflex_tilt.split(",")]
         configs = {(name, reflex): RobotConfig(damage_model=name, body_floor_contact=True, **reflex_options(reflex))
                    for reflex in reflexes for name in ("raised", "locked")}
     except (ValueError, TypeError, ConfigError) as error:
         parser.error(f"--reflex-tilt: {error}")
+    hbr, task, _ = load_hbr(args.hbr)
+    spare = args.spare or spare_beside(args.hbr)
+    if spare:
+        hbr = load_spare(spare, hbr)
+    tables = {"pattern": planning_table(hbr), "sparing": sparing_table(hbr)}
     models = {key: load_robot(config) for key, config in configs.items()}
     top = np.flatnonzero(np.asarray(hbr.top.filled))
     ends_all = np.asarray(skill_ends(hbr.top.descriptors, hbr.top.extras["arrival_yaw"], task.extent))

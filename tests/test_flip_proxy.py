@@ -42,3 +42,13 @@ def test_skill_miss_median_pools_the_whole_skills_of_every_action():
     assert flip_proxy.skill_miss_median(misses) == pytest.approx(0.2)
     assert np.isnan(flip_proxy.skill_miss_median([np.array([])]))
     assert np.isnan(flip_proxy.skill_miss_median([]))
+
+
+def test_reflex_specs_parse_into_robot_options():
+    assert flip_proxy.parse_reflex("0.3") == (0.3, 0.0, 0.0)
+    assert flip_proxy.reflex_options(flip_proxy.parse_reflex("0.3/0.15/1")) == {
+        "reflex_tilt": 0.3, "reflex_release": 0.15, "reflex_rate": 1.0}
+    with pytest.raises(ValueError, match="TILT"):
+        flip_proxy.parse_reflex("0.3/0.1/1/2")
+    with pytest.raises(SystemExit):
+        flip_proxy.main(["--reflex-tilt", "0.3/0.4"])  # release above the angle: a parser error (exit 2)
