@@ -9,6 +9,7 @@
     python -m experiments.maze_eval --protocol paper --damage-model locked
     python -m experiments.maze_eval --protocol paper --preset gpu --repertoire-dir runs/seeds  # R seeds
     python -m experiments.maze_eval --variant hte --damage leg1 --video 1   # and a video of the episode
+    python -m experiments.maze_eval --maze two_rooms --variant hte,rte   # another world (assets/mazes/ or a JSON file)
     python -m experiments.maze_eval --set planner.iterations=50 --set solver.ls_iterations=8  # dotted keys
 
 Variants: hte, perfect-hte, random-hte, rte (on an HBR: the shipped one or --repertoire; rte
@@ -63,7 +64,6 @@ from hte_jax.online.evaluation import (
     with_overrides,
 )
 from hte_jax.online.recording import replay_path, save_replay
-from hte_jax.online.maze import PAPER_MAZE
 from hte_jax.online.plots import (
     episode_track,
     plot_actions,
@@ -136,7 +136,7 @@ def main(argv=None) -> int:
                 continue
             _save_batch(out / f"episodes_{k}.npz", result)
             recorded += _save_replays(out, result, numbers, k)
-            _plot_batch(out / "plots", result, curves, tracks)
+            _plot_batch(out / "plots", result, curves, tracks, config.maze_task)
             print(f"batch {k} ({'/'.join(variants)} on seed {seed}: {result.repertoire['path']}, "
                   f"{result.repertoire['actions']} actions): "
                   f"{len(rows)} episodes in {result.timings.total:.1f} s, "
@@ -162,7 +162,7 @@ def main(argv=None) -> int:
     plot_actions(out / "plots" / "actions.png", records, config.max_actions)
     plot_protocol_box(out / "plots" / "fig6_actions.png", statistics, config.max_actions, PAPER_QUARTILES)
     plot_failures(out / "plots" / "fig7_failures.png", statistics)
-    plot_variant_mazes(out / "plots" / "maze_variants.png", PAPER_MAZE, tracks)
+    plot_variant_mazes(out / "plots" / "maze_variants.png", config.maze_task, tracks)
     failed = _write_videos(out, recorded, progress=not args.no_progress)
     print(f"{'variant':<12} {'damage':<8} {'rep':>3} {'actions':>7}  result")
     for r in records:
@@ -245,7 +245,7 @@ def _save_batch(path: Path, result) -> None:
     save_checkpoint(path, arrays, labels, compress=True)
 
 
-def _plot_batch(plot_dir: Path, result, curves: dict, tracks: dict) -> None:
+def _plot_batch(plot_dir: Path, result, curves: dict, tracks: dict, maze) -> None:
     ep = result.episodes
     errors = prediction_errors(ep)
     taken = np.asarray(ep.taken)
@@ -254,7 +254,7 @@ def _plot_batch(plot_dir: Path, result, curves: dict, tracks: dict) -> None:
         first = [i for i in rows if result.replicates[i] == 0]  # one episode per damage
         labels = [f"{result.damages[i]}: {'goal' if bool(ep.reached[i]) else 'failed'} in {int(taken[i])}" for i in first]
         if result.seed == 0:  # trajectories of the first repertoire seed
-            plot_episodes(plot_dir / f"maze_{variant}.png", PAPER_MAZE, ep, first, labels,
+            plot_episodes(plot_dir / f"maze_{variant}.png", maze, ep, first, labels,
                           f"{variant}: first replicate per damage", plan_of=first[0])
             tracks[variant] = [(label, episode_track(ep, i)) for label, i in zip(labels, first)]
         masked = np.full((len(rows), errors.shape[1]), np.nan)

@@ -84,3 +84,42 @@ def test_distance_field_matches_numpy_bfs(cell):
     start = tuple(np.asarray(grid.node_of(PAPER_MAZE, jnp.asarray(PAPER_MAZE.start[:2]))))
     assert got[start] > 0  # the start reaches the goal around the boxes
     assert (got >= -1).all() and (got == -1).any()  # nodes inside boxes are unreachable
+
+
+def test_shipped_mazes_load_by_name_or_file_and_bad_files_are_refused(tmp_path, capsys):
+    """`load_maze`: "" and "paper" are the paper's maze; every shipped maze has free start and goal
+    joined by the distance field; a JSON file round-trips; bad files fail with one line naming them."""
+    import json
+
+    from experiments.maze_eval import main as maze_main
+    from hte_jax.online.maze import load_maze, maze_to_dict, shipped_mazes
+
+    assert load_maze("") == PAPER_MAZE == load_maze("paper")
+    assert {"paper", "two_rooms"} <= set(shipped_mazes())
+    for name in shipped_mazes():
+        maze = load_maze(name)
+        start, goal = jnp.asarray(maze.start[:2]), jnp.asarray(maze.goal)
+        assert not bool(point_collides(maze, start)) and not bool(point_collides(maze, goal))
+        node = GridSpec().node_of(maze, start)
+        assert int(distance_field(maze)[node[0], node[1]]) > 0  # reachable, and not already there
+    two = load_maze("two_rooms")
+    assert two != PAPER_MAZE and bool(move_collides(two, jnp.asarray(two.start[:2]), jnp.asarray(two.goal)))
+    path = tmp_path / "mine.json"
+    path.write_text(json.dumps(maze_to_dict(two)))
+    assert load_maze(str(path)) == two
+    bad = {"nowhere": "no such file, and no shipped maze", "{": "cannot read", "[1]": "must hold a JSON object",
+           '{"doors": 1}': "unknown maze field", '{"start": [9.0, 1.0, 0.0]}': "must lie within its bounds",
+           '{"goal": [1.0]}': "goal \\(x, y\\)", '{"obstacles": [[1, 1, 0, 0]]}': "must be \\(x1, y1, x2, y2\\)"}
+    for text, message in bad.items():
+        spec = text
+        if text != "nowhere":
+            spec = str(tmp_path / "bad.json")
+            (tmp_path / "bad.json").write_text(text)
+        with pytest.raises(ConfigError, match=message):
+            load_maze(spec)
+    # the CLI: the maze is a setting (config.json), checked before anything runs
+    assert maze_main(["--maze", "two_rooms", "--show-config"]) == 0
+    assert json.loads(capsys.readouterr().out)["maze"] == "two_rooms"
+    assert maze_main(["--maze", "nowhere", "--show-config"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: maze 'nowhere': no such file") and err.count("\n") == 1

@@ -32,9 +32,9 @@ from hte_jax.online.variants import SPARING
 from hte_jax.online.variants import variant as variant_named
 from hte_jax.hbr.composition import COMPOSITIONS
 from hte_jax.online.execute import Skills, flat_skill_maps, flat_skills, hbr_skills
-from hte_jax.online.maze import PAPER_MAZE, Maze
+from hte_jax.online.maze import Maze, load_maze, maze_to_dict
 from hte_jax.online.mcts import PlannerConfig
-from hte_jax.online.recording import Recorder, Replay, maze_to_dict, replay_of
+from hte_jax.online.recording import Recorder, Replay, replay_of
 from hte_jax.qd.io import CheckpointError, read_checkpoint
 from hte_jax.sim.damage import PAPER_DAMAGES, parse_damage
 from hte_jax.sim.robot import RobotConfig, SolverConfig
@@ -72,7 +72,9 @@ class EvalConfig:
     ls_iterations, solver_tolerance). reflex_tilt: the robot's tilt reflex (`RobotConfig.reflex_tilt`,
     rad): past this tilt a skill's gait gives way to the neutral pose for the rest of its second; 0
     (default, the paper's robot): off. reflex_release, reflex_rate: when the reflex lets go and
-    when it fires (`RobotConfig.reflex_release`, `reflex_rate`; 0: as above).
+    when it fires (`RobotConfig.reflex_release`, `reflex_rate`; 0: as above). maze: the world, a
+    shipped maze's name (assets/mazes/: "paper", "two_rooms") or a JSON file of `Maze`'s fields
+    (`maze.load_maze`); "" (default): the paper's maze.
     """
 
     variants: str = "hte"
@@ -92,6 +94,7 @@ class EvalConfig:
     reflex_tilt: float = RobotConfig.reflex_tilt
     reflex_release: float = RobotConfig.reflex_release
     reflex_rate: float = RobotConfig.reflex_rate
+    maze: str = ""
 
     def __post_init__(self):
         require_int("replicates", self.replicates)
@@ -105,6 +108,7 @@ class EvalConfig:
             raise ConfigError("give either repertoire (one HBR file) or repertoire_dir (seed folders), not both")
         self.robot  # noqa: B018 (RobotConfig validates the damage model)
         self.adaptation  # noqa: B018 (validates max_actions)
+        self.maze_task  # noqa: B018 (reads and validates the maze)
 
     @property
     def variant_list(self) -> tuple[str, ...]:
@@ -132,6 +136,11 @@ class EvalConfig:
         if not names:
             raise ConfigError("damages: give 'all' or at least one damage")
         return tuple(names)
+
+    @property
+    def maze_task(self) -> Maze:
+        """The world the episodes run in (`maze.load_maze(self.maze)`)."""
+        return load_maze(self.maze)
 
     @property
     def adaptation(self) -> AdaptationConfig:
@@ -269,13 +278,15 @@ def batch_labels(config: EvalConfig, variants: list[str]) -> list[tuple[str, str
     return [(v, d, r) for v in variants for d in config.damage_list for r in range(config.replicates)]
 
 
-def run_batch(config: EvalConfig, path: str | None, variants: list[str], maze: Maze = PAPER_MAZE,
+def run_batch(config: EvalConfig, path: str | None, variants: list[str], maze: Maze | None = None,
               progress: bool = True, key: jax.Array | None = None, seed: int = 0,
               record: tuple[int, ...] = (), record_every: int = 4, mesh: Mesh | None = None) -> BatchResult:
     """Every (variant, damage, replicate) of `variants` on one repertoire (of seed `seed`), as one
     batch of episodes. record: batch rows whose states are recorded every `record_every` control
     steps (`BatchResult.replays`); none by default, and then nothing is recorded. mesh: the devices
-    the episodes are spread over (`episode.run_episodes`; None: all visible)."""
+    the episodes are spread over (`episode.run_episodes`; None: all visible). maze: the world
+    (None: the configuration's, `EvalConfig.maze_task`)."""
+    maze = config.maze_task if maze is None else maze
     maps = len(variants) == 1 and variant_named(variants[0]).repertoire == "aprol"
     labels = batch_labels(config, variants)
     sparing = np.array([SPARING.index(variant_named(v).sparing) for v, _, _ in labels], np.int32)

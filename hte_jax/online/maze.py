@@ -1,6 +1,7 @@
 """The maze of the paper's experiment (facts section 9) and the planner's 2-D geometry.
 
-Obstacles are axis-aligned boxes (x1, y1, x2, y2). The robot is a disc for the planner: a point
+Obstacles are axis-aligned boxes (x1, y1, x2, y2). `load_maze` reads a maze from a JSON file (`maze_to_dict`'s layout) or by the name of one shipped in
+assets/mazes/ ("paper", "two_rooms"). The robot is a disc for the planner: a point
 collides when the disc of radius r overlaps a box; a move collides when the disc swept along the
 segment does (exact test). `distance_field` is the breadth-first distance, in grid steps, from
 every cell of a grid to the goal's cell through free cells (8-connected, every step costs 1, as
@@ -10,6 +11,8 @@ the original's A*), the guide of the planner's expansion.
 from __future__ import annotations
 
 import dataclasses
+import json
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -63,6 +66,62 @@ class Maze:
 
 
 PAPER_MAZE = Maze()
+MAZE_FIELDS = tuple(field.name for field in dataclasses.fields(Maze))
+
+
+def maze_to_dict(maze: Maze) -> dict:
+    """The JSON layout of a maze (boxes as lists)."""
+    return dataclasses.asdict(maze)
+
+
+def maze_from_dict(data: dict) -> Maze:
+    """The maze of `maze_to_dict`'s layout (JSON lists back to tuples); missing fields take the
+    paper maze's values."""
+    unknown = sorted(set(data) - set(MAZE_FIELDS))
+    if unknown:
+        raise ConfigError(f"unknown maze field(s) {', '.join(unknown)}; the fields are {', '.join(MAZE_FIELDS)}")
+    try:
+        fields = {key: tuple(tuple(float(v) for v in box) for box in value) if key == "obstacles"
+                  else tuple(float(v) for v in value) if key in ("bounds", "start", "goal") else value
+                  for key, value in data.items()}
+        maze = Maze(**fields)
+    except (TypeError, ValueError) as error:
+        raise ConfigError(f"bad maze: {error}") from None
+    if len(maze.start) != 3 or len(maze.goal) != 2:
+        raise ConfigError(f"maze start must be (x, y, yaw) and goal (x, y), got {maze.start} and {maze.goal}")
+    return maze
+
+
+def shipped_mazes() -> dict[str, Path]:
+    """The mazes shipped in assets/mazes/, by name."""
+    from hte_jax.sim.robot import assets_dir
+
+    return {path.stem: path for path in sorted((assets_dir() / "mazes").glob("*.json"))}
+
+
+def load_maze(spec: str) -> Maze:
+    """The maze `spec` names: "" (the paper's), a shipped maze's name or a JSON file."""
+    if not spec:
+        return PAPER_MAZE
+    shipped = shipped_mazes()
+    path = shipped.get(spec, Path(spec))
+    if not path.is_file():
+        raise ConfigError(f"maze {spec!r}: no such file, and no shipped maze of that name ({', '.join(shipped)})")
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
+        raise ConfigError(f"maze {spec!r}: cannot read {path}: {error}") from None
+    if not isinstance(data, dict):
+        raise ConfigError(f"maze {spec!r}: {path} must hold a JSON object of maze fields")
+    try:
+        maze = maze_from_dict(data)
+    except ConfigError as error:
+        raise ConfigError(f"maze {spec!r}: {error}") from None
+    inside = maze.bounds[0] <= maze.start[0] <= maze.bounds[2] and maze.bounds[1] <= maze.start[1] <= maze.bounds[3]
+    inside &= maze.bounds[0] <= maze.goal[0] <= maze.bounds[2] and maze.bounds[1] <= maze.goal[1] <= maze.bounds[3]
+    if not inside:
+        raise ConfigError(f"maze {spec!r}: start and goal must lie within its bounds {maze.bounds}")
+    return maze
 
 
 def point_box_distance(points: jax.Array, boxes: np.ndarray) -> jax.Array:

@@ -21,7 +21,7 @@ import numpy as np
 from hte_jax.errors import ConfigError, require_int
 from hte_jax.online.episode import Episodes
 from hte_jax.online.execute import SECONDS_PER_ACTION, STEP_CONTROL_STEPS
-from hte_jax.online.maze import Maze
+from hte_jax.online.maze import Maze, maze_from_dict
 from hte_jax.qd.io import CheckpointError, read_checkpoint, save_checkpoint
 
 KIND = "hte_jax.replay"
@@ -96,17 +96,6 @@ class Replay:
     @property
     def maze(self) -> Maze:
         return maze_from_dict(self.info["maze"])
-
-
-def maze_to_dict(maze: Maze) -> dict:
-    return dataclasses.asdict(maze)
-
-
-def maze_from_dict(data: dict) -> Maze:
-    """The maze stored by `maze_to_dict` (JSON lists back to tuples)."""
-    return Maze(obstacles=tuple(tuple(box) for box in data["obstacles"]), bounds=tuple(data["bounds"]),
-                start=tuple(data["start"]), goal=tuple(data["goal"]), goal_radius=data["goal_radius"],
-                robot_radius=data["robot_radius"])
 
 
 def replay_of(recorder: Recorder, episodes: Episodes, row: int, info: dict) -> Replay:
