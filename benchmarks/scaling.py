@@ -1,7 +1,9 @@
 """Throughput on 1, 2, 4, ... devices: a top-layer MAP-Elites generation and a maze_eval episode
 batch, each spread over N devices by `hte_jax.sharding`, with parallel efficiency against 1 device.
 
-Every device count runs in its own subprocess (a fresh backend per N). Per N: compile time,
+Every device count runs in its own subprocess (a fresh backend per N). Per N: the bare MJX rollout
+of `benchmarks/batch_size.py` at --batch (simulated steps/s; one device runs batch_size.py's very
+program), and compile time,
 median of --repeats timed runs, evaluations/s and simulated control steps/s of a top-layer
 generation (--batch skills of 3 s on the shipped HBR's lower layers), and episodes/s and simulated
 control steps/s of one action of an episode batch (--episodes episodes of HTE on the shipped HBR,
@@ -62,18 +64,36 @@ def _worker(args) -> dict:
     import dataclasses
 
     import jax
+    import jax.numpy as jnp
     import numpy as np
 
     from hte_jax import sharding
     from hte_jax.hbr.store import load_hbr
     from hte_jax.hbr.training import PRESETS, layer_algorithms
     from hte_jax.online.evaluation import EvalConfig, run_batch
-    from hte_jax.sim.robot import load_robot
-    from hte_jax.sim.rollout import standing_state
+    from hte_jax.sim.robot import RobotConfig, load_robot
+    from hte_jax.sim.rollout import RolloutSpec, rollout, standing_state
 
     devices = args.worker
     mesh = sharding.batch_mesh(devices)
     row = {"devices": devices, "batch": args.batch, "episodes": args.episodes}
+
+    # the bare MJX rollout of benchmarks/batch_size.py (3 s, random controllers) through the sharded
+    # path: on one device the same program, so its steps/s is batch_size.py's
+    rollout_robot = load_robot(RobotConfig())
+    params = jnp.asarray(np.random.default_rng(0).uniform(size=(args.batch, 36)).astype(np.float32))
+    steps = SECONDS_PER_SKILL * CONTROL_STEPS_PER_S
+    spec = RolloutSpec(num_steps=steps, pose_steps=(0, steps), record_contacts=True)
+    init, damage = standing_state(rollout_robot), jnp.zeros(6, bool)
+    rollout_robot, init, damage, params = sharding.put_replicated((rollout_robot, init, damage, params), mesh)
+
+    def bare():
+        with sharding.spread_over(mesh):
+            return rollout(rollout_robot, params, damage, init, spec)
+
+    first, run_s = _timed(bare, args.repeats)
+    row |= {"rollout_compile_s": first - run_s, "rollout_s": run_s,
+            "rollout_steps_per_s": args.batch * steps * rollout_robot.config.substeps / run_s}
 
     hbr, _, _ = load_hbr(None)
     base = PRESETS["tiny"]
@@ -128,16 +148,17 @@ def main(argv=None):
         print(json.dumps(rows[-1]), flush=True)
     ones = next((r for r in rows if r["devices"] == 1 and "error" not in r), None)
     for row in rows:
-        for key in ("evaluations_per_s", "episodes_per_s"):
+        for key in ("rollout_steps_per_s", "evaluations_per_s", "episodes_per_s"):
             if ones is not None and "error" not in row and key in row:
                 row[key.replace("_per_s", "_efficiency")] = row[key] / (row["devices"] * ones[key])
-    print(f"\n{'devices':>7} {'gen s':>8} {'evals/s':>10} {'steps/s':>12} {'eff':>5}   {'action s':>8} "
+    print(f"\n{'devices':>7} {'rollout steps/s':>15} {'eff':>5}  {'gen s':>8} {'evals/s':>10} {'steps/s':>12} {'eff':>5}   {'action s':>8} "
           f"{'episodes/s':>10} {'steps/s':>10} {'eff':>5}")
     for r in rows:
         if "error" in r:
             print(f"{r['devices']:>7} error: {r['error']}")
             continue
-        line = (f"{r['devices']:>7} {r['generation_s']:>8.3f} {r['evaluations_per_s']:>10,.0f} "
+        line = (f"{r['devices']:>7} {r['rollout_steps_per_s']:>15,.0f} {r.get('rollout_steps_efficiency', float('nan')):>5.2f}  "
+                f"{r['generation_s']:>8.3f} {r['evaluations_per_s']:>10,.0f} "
                 f"{r['generation_steps_per_s']:>12,.0f} {r.get('evaluations_efficiency', float('nan')):>5.2f}")
         if "action_s" in r:
             line += (f"   {r['action_s']:>8.3f} {r['episodes_per_s']:>10,.1f} {r['episode_steps_per_s']:>10,.0f} "
