@@ -71,6 +71,7 @@ def _worker(args) -> dict:
     from hte_jax.hbr.store import load_hbr
     from hte_jax.hbr.training import PRESETS, layer_algorithms
     from hte_jax.online.evaluation import EvalConfig, run_batch
+    from hte_jax.online.mcts import PlannerConfig
     from hte_jax.sim.robot import RobotConfig, load_robot
     from hte_jax.sim.rollout import RolloutSpec, rollout, standing_state
 
@@ -113,7 +114,7 @@ def _worker(args) -> dict:
         damages = ["none", "leg0", "leg1", "leg2", "leg3", "leg4", "legs1+4"]
         replicates = -(-args.episodes // len(damages))
         eval_config = EvalConfig(variants="hte", damages=",".join(damages), replicates=replicates, max_actions=1,
-                                 iterations=args.iterations, roots=4)
+                                 planner=PlannerConfig(iterations=args.iterations, roots=4))
         run_batch(eval_config, None, ["hte"], progress=False, mesh=mesh)  # compiles
         times = []
         for _ in range(args.repeats):
