@@ -16,7 +16,7 @@ import pytest
 from hte_jax.errors import ConfigError
 from hte_jax.sim.controller import target_table, servo_command
 from hte_jax.sim.damage import DAMAGED_POSE, paper_damage_masks
-from hte_jax.sim.robot import RobotConfig, load_robot, mj_model
+from hte_jax.sim.robot import RobotConfig, load_robot, mj_model, without_idle_springs
 from hte_jax.sim.rollout import (InvalidReason, RolloutSpec, initial_state, reflex_braced, rollout, standing_state,
                                  up_z_drop_rate)
 
@@ -329,3 +329,26 @@ def test_reflex_tilt_is_validated():
         RobotConfig(reflex_rate=1.0)
     with pytest.raises(ConfigError, match="reflex_rate"):
         RobotConfig(reflex_tilt=0.3, reflex_rate=-1.0)
+
+
+def test_spring_term_is_off_only_where_it_changes_no_force():
+    """`mj_model` switches MuJoCo's spring term off for a model without springs (it kept XLA from
+    compiling a rollout spread over several devices with jax 0.11): the hexapod's native steps
+    are bit-identical with the term on and off; a model with a joint spring keeps it."""
+    model = mj_model(RobotConfig())
+    assert model.opt.disableflags & mujoco.mjtDisableBit.mjDSBL_SPRING
+    with_term = mj_model(RobotConfig())
+    with_term.opt.disableflags &= ~int(mujoco.mjtDisableBit.mjDSBL_SPRING)
+    runs = []
+    for m in (model, with_term):
+        data = mujoco.MjData(m)
+        data.qpos[2] = 0.2
+        data.ctrl[:] = np.sin(np.arange(m.nu))
+        for _ in range(200):
+            mujoco.mj_step(m, data)
+        runs.append(data.qpos.copy())
+    np.testing.assert_array_equal(runs[0], runs[1])
+    assert np.abs(runs[0][:3] - [0.0, 0.0, 0.2]).max() > 0.01  # the robot did move
+    sprung = mujoco.MjModel.from_xml_string(
+        "<mujoco><worldbody><body><joint type='hinge' stiffness='2'/><geom size='0.1'/></body></worldbody></mujoco>")
+    assert not without_idle_springs(sprung).opt.disableflags & mujoco.mjtDisableBit.mjDSBL_SPRING

@@ -247,8 +247,19 @@ def stored_solver(stored: dict) -> dict:
 
 @functools.lru_cache(maxsize=16)
 def mj_model(config: RobotConfig = RobotConfig()) -> mujoco.MjModel:
-    """The compiled native MuJoCo model for `config` (cached)."""
-    return build_spec(config).compile()
+    """The compiled native MuJoCo model for `config`. A model without springs (no joint
+    stiffness, no tendons: the hexapod) gets MuJoCo's spring term switched off, which changes no
+    force; MJX then traces no spring computation, whose presence made XLA crash (SIGSEGV) while
+    compiling a rollout spread over 2+ devices with `jax.shard_map` (jax 0.11.2, CPU and GPU)."""
+    return without_idle_springs(build_spec(config).compile())
+
+
+def without_idle_springs(model: mujoco.MjModel) -> mujoco.MjModel:
+    """`model` with MuJoCo's spring term switched off if it has no spring (no joint stiffness, no
+    tendons), in place; a model with springs is returned unchanged."""
+    if not model.jnt_stiffness.any() and model.ntendon == 0:
+        model.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_SPRING)
+    return model
 
 
 def robot_info(model: mujoco.MjModel, config: RobotConfig) -> RobotInfo:
