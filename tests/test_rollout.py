@@ -16,7 +16,7 @@ import pytest
 from hte_jax.errors import ConfigError
 from hte_jax.sim.controller import target_table, servo_command
 from hte_jax.sim.damage import DAMAGED_POSE, paper_damage_masks
-from hte_jax.sim.robot import RobotConfig, load_robot, mj_model, without_idle_springs
+from hte_jax.sim.robot import RobotConfig, build_spec, load_robot, mj_model, without_idle_springs
 from hte_jax.sim.rollout import (InvalidReason, RolloutSpec, initial_state, reflex_braced, rollout, standing_state,
                                  up_z_drop_rate)
 
@@ -337,8 +337,8 @@ def test_spring_term_is_off_only_where_it_changes_no_force():
     are bit-identical with the term on and off; a model with a joint spring keeps it."""
     model = mj_model(RobotConfig())
     assert model.opt.disableflags & mujoco.mjtDisableBit.mjDSBL_SPRING
-    with_term = mj_model(RobotConfig())
-    with_term.opt.disableflags &= ~int(mujoco.mjtDisableBit.mjDSBL_SPRING)
+    with_term = build_spec(RobotConfig()).compile()  # a fresh model (mj_model's is cached): the term on
+    assert not with_term.opt.disableflags & mujoco.mjtDisableBit.mjDSBL_SPRING
     runs = []
     for m in (model, with_term):
         data = mujoco.MjData(m)
