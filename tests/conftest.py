@@ -1,6 +1,7 @@
 """Session-wide settings: a persistent XLA compilation cache shared by all tests of a session (and
-by pytest-xdist workers), in-memory compiled programs released after each test module, and the
-benchmark-script tests run last.
+by pytest-xdist workers), in-memory compiled programs released after each test module, the
+controllers of an HBR's middle elites computed once per test process, and the benchmark-script
+tests run last.
 
 MJX programs take 15-30 s to compile on a CPU; tests that build the same program again (a
 resumed training run, a re-simulation, a benchmark script re-running a training preset) then
@@ -8,11 +9,13 @@ load it from the cache instead of recompiling.
 """
 
 import gc
+import hashlib
 import os
 import shutil
 import tempfile
 
 import jax
+import numpy as np
 import pytest
 
 # The controller process makes the folder; xdist workers inherit it through the environment.
@@ -59,3 +62,36 @@ def _free_compiled_programs():
     yield
     jax.clear_caches()
     gc.collect()
+
+
+@pytest.fixture(autouse=True, scope="session")
+def _leg_controllers_once_per_process():
+    """`HBR.build` (every `load_hbr`) and a spare archive's `with_spare` look up each middle elite's
+    6 bottom elites by brute force: for the shipped HBR (65536 x 6 queries against 16384 bottom
+    cells) about 30 s of CPU, paid again by every test that loads it (a `maze_eval` run, a
+    re-execution, ...). Within a test process the same bottom layer and middle genotypes give the
+    same controllers, so they are computed once: the result is keyed by the bytes of every input,
+    and traced inputs (inside a jit) are always computed."""
+    from hte_jax.hbr import execution, middle, sparing, store
+
+    compute = middle.leg_controllers
+    known: dict[str, jax.Array] = {}
+
+    def leg_controllers(bottom, targets):
+        inputs = (bottom.descriptors, bottom.filled, bottom.genotypes, targets)
+        if any(isinstance(x, jax.core.Tracer) for x in inputs):
+            return compute(bottom, targets)
+        digest = hashlib.sha256()
+        for x in inputs:
+            x = np.asarray(x)
+            digest.update(f"{x.dtype}{x.shape}".encode())
+            digest.update(np.ascontiguousarray(x).tobytes())
+        key = digest.hexdigest()
+        if key not in known:
+            known[key] = compute(bottom, targets)
+        return known[key]
+
+    with pytest.MonkeyPatch.context() as patch:
+        for module in (execution, sparing, store):  # HBR.build, with_spare, load_spare
+            patch.setattr(module, "leg_controllers", leg_controllers)
+        yield
