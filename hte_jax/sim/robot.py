@@ -247,7 +247,8 @@ def stored_solver(stored: dict) -> dict:
 
 @functools.lru_cache(maxsize=16)
 def mj_model(config: RobotConfig = RobotConfig()) -> mujoco.MjModel:
-    """The compiled native MuJoCo model for `config`. A model without springs (no joint
+    """The compiled native MuJoCo model for `config` (cached and shared: to alter one, compile your
+    own, `without_idle_springs(build_spec(config).compile())`). A model without springs (no joint
     stiffness, no tendons: the hexapod) gets MuJoCo's spring term switched off, which changes no
     force; MJX then traces no spring computation, whose presence made XLA crash (SIGSEGV) while
     compiling a rollout spread over 2+ devices with `jax.shard_map` (jax 0.11.2, CPU and GPU)."""
