@@ -28,7 +28,7 @@ import sys
 import time
 from pathlib import Path
 
-from common import earlier_result, environment, parse_setting, result_path, run_worker, setting_label
+from common import earlier_result, environment, parse_setting, random_params, result_path, run_worker, setting_label
 
 CONTROL_DT = 0.01
 
@@ -71,12 +71,6 @@ def _robot_config(args, setting: str | None = None):
     return RobotConfig(**overrides)
 
 
-def _random_params(batch: int, seed: int = 0):
-    import numpy as np
-
-    return np.random.default_rng(seed).uniform(size=(batch, 36)).astype(np.float32)
-
-
 def _worker(args) -> dict:
     """Time the MJX rollout at one batch size (runs in a subprocess)."""
     import jax
@@ -88,7 +82,7 @@ def _worker(args) -> dict:
     batch = args.worker
     robot = load_robot(_robot_config(args, args.worker_setting))
     init = standing_state(robot)
-    params = jnp.asarray(_random_params(batch))
+    params = jnp.asarray(random_params(batch))
     damage = jnp.zeros(6, bool)
     spec = RolloutSpec(num_steps=args.steps, pose_steps=(0, args.steps), record_contacts=True)
 
@@ -159,7 +153,7 @@ def _native_worker(args) -> dict:
     state0 = np.empty(size)
     mujoco.mj_getState(model, data, state0, mujoco.mjtState.mjSTATE_FULLPHYSICS)
     initial = np.tile(state0, (batch, 1))
-    tables = np.asarray(jnp.stack([target_table(jnp.asarray(p)) for p in _random_params(min(batch, 64))]))
+    tables = np.asarray(jnp.stack([target_table(jnp.asarray(p)) for p in random_params(min(batch, 64))]))
     tables = np.resize(tables, (batch, *tables.shape[1:]))  # (B, 100, 18), repeated
     rows = np.arange(args.steps) % tables.shape[1]
     control = np.repeat(tables[:, rows, :], config.substeps, axis=1).astype(np.float64)

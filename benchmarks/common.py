@@ -1,5 +1,5 @@
 """Shared pieces of the benchmark scripts: the machine description, result paths, worker
-subprocesses and earlier results."""
+subprocesses, earlier results and the random controllers the throughput benchmarks simulate."""
 
 from __future__ import annotations
 
@@ -87,3 +87,10 @@ def setting_label(config) -> str:
         if getattr(config, name) != getattr(RobotConfig, name):
             label += f"@{key}={getattr(config, name):g}"
     return label
+
+
+def random_params(batch: int, seed: int = 0):
+    """(batch, 36) float32 controllers drawn uniformly: what batch_size.py and scaling.py simulate."""
+    import numpy as np
+
+    return np.random.default_rng(seed).uniform(size=(batch, 36)).astype(np.float32)

@@ -48,8 +48,7 @@ from hte_jax.hbr.store import load_hbr, load_spare, spare_beside  # noqa: E402
 from hte_jax.online.execute import ONLINE_LIMITS, neutral_second  # noqa: E402
 from hte_jax.online.secondary import oracle_pattern  # noqa: E402
 from hte_jax.sim.damage import NUM_LEGS, damage_masks  # noqa: E402
-from hte_jax.sim.robot import (FLOOR_BIT, Robot, RobotConfig, build_spec, load_robot, robot_info,  # noqa: E402
-                               without_idle_springs)
+from hte_jax.sim.robot import FLOOR_BIT, Robot, RobotConfig, compile_model, load_robot, robot_info  # noqa: E402
 from hte_jax.sim.mjx_import import mjx  # noqa: E402
 from hte_jax.sim.rollout import standing_state  # noqa: E402
 
@@ -90,7 +89,7 @@ def reflex_options(reflex: tuple[float, float, float]) -> dict:
 def altered_robot(config: RobotConfig, legs, lighter: float = 1.0, touchless: bool = False) -> Robot:
     """The hexapod of `config` with the links of `legs` made `lighter` times as heavy (mass and
     inertia) and, if `touchless`, their links and feet unable to touch the floor."""
-    model = without_idle_springs(build_spec(config).compile())  # a fresh model (mj_model's is cached)
+    model = compile_model(config)
     for leg in legs:
         for part in (1, 2, 3):
             body = model.body(f"leg_{leg}_{part}").id

@@ -65,7 +65,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from common import earlier_result, environment, parse_setting, result_path, run_worker, setting_label
+from common import earlier_result, environment, parse_setting, random_params, result_path, run_worker, setting_label
 from hte_jax.flat.store import load_flat, shipped_flat_path
 from hte_jax.flat.task import evaluate_flat
 from hte_jax.hbr.execution import execute_skill
@@ -167,7 +167,7 @@ def _speed(config, args) -> dict:
     """Compile and time the batch_size.py rollout at --batch."""
     robot = load_robot(config)
     init = standing_state(robot)
-    params = jnp.asarray(np.random.default_rng(0).uniform(size=(args.batch, 36)).astype(np.float32))
+    params = jnp.asarray(random_params(args.batch))
     damage = jnp.zeros(6, bool)
     spec = RolloutSpec(num_steps=args.steps, pose_steps=(0, args.steps), record_contacts=True)
     began = time.perf_counter()

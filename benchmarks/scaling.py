@@ -25,7 +25,7 @@ import sys
 import time
 from pathlib import Path
 
-from common import environment, result_path, run_worker
+from common import environment, random_params, result_path, run_worker
 
 SECONDS_PER_SKILL = 3
 CONTROL_STEPS_PER_S = 100
@@ -82,7 +82,7 @@ def _worker(args) -> dict:
     # the bare MJX rollout of benchmarks/batch_size.py (3 s, random controllers) through the sharded
     # path: on one device the same program, so its steps/s is batch_size.py's
     rollout_robot = load_robot(RobotConfig())
-    params = jnp.asarray(np.random.default_rng(0).uniform(size=(args.batch, 36)).astype(np.float32))
+    params = jnp.asarray(random_params(args.batch))
     steps = SECONDS_PER_SKILL * CONTROL_STEPS_PER_S
     spec = RolloutSpec(num_steps=steps, pose_steps=(0, steps), record_contacts=True)
     init, damage = standing_state(rollout_robot), jnp.zeros(6, bool)

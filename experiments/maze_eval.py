@@ -122,11 +122,12 @@ def main(argv=None) -> int:
         if writer:
             out.mkdir(parents=True, exist_ok=True)
             write_json(out / "config.json", {"preset": args.preset, "protocol": args.protocol, **config.to_dict()})
+        maze = config.maze_task  # read once for every batch and plot
         records, curves, tracks = [], {}, {}
         earlier, recorded = {}, []  # episodes of each variant in earlier batches; (variant, episode) recorded
         for k, (seed, path, variants) in enumerate(batches(config)):
             labels = [v for v, _, _ in batch_labels(config, variants)]
-            result = run_batch(config, path, variants, progress=not args.no_progress, seed=seed,
+            result = run_batch(config, path, variants, maze, progress=not args.no_progress, seed=seed,
                                record=rows_to_record(labels, videos, earlier), record_every=RECORD_EVERY, mesh=mesh)
             rows = episode_records(result, config.max_actions)
             records += rows
@@ -136,7 +137,7 @@ def main(argv=None) -> int:
                 continue
             _save_batch(out / f"episodes_{k}.npz", result)
             recorded += _save_replays(out, result, numbers, k)
-            _plot_batch(out / "plots", result, curves, tracks, config.maze_task)
+            _plot_batch(out / "plots", result, curves, tracks, maze)
             print(f"batch {k} ({'/'.join(variants)} on seed {seed}: {result.repertoire['path']}, "
                   f"{result.repertoire['actions']} actions): "
                   f"{len(rows)} episodes in {result.timings.total:.1f} s, "
@@ -162,7 +163,7 @@ def main(argv=None) -> int:
     plot_actions(out / "plots" / "actions.png", records, config.max_actions)
     plot_protocol_box(out / "plots" / "fig6_actions.png", statistics, config.max_actions, PAPER_QUARTILES)
     plot_failures(out / "plots" / "fig7_failures.png", statistics)
-    plot_variant_mazes(out / "plots" / "maze_variants.png", config.maze_task, tracks)
+    plot_variant_mazes(out / "plots" / "maze_variants.png", maze, tracks)
     failed = _write_videos(out, recorded, progress=not args.no_progress)
     print(f"{'variant':<12} {'damage':<8} {'rep':>3} {'actions':>7}  result")
     for r in records:

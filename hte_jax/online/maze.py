@@ -1,7 +1,8 @@
 """The maze of the paper's experiment (facts section 9) and the planner's 2-D geometry.
 
-Obstacles are axis-aligned boxes (x1, y1, x2, y2). `load_maze` reads a maze from a JSON file (`maze_to_dict`'s layout) or by the name of one shipped in
-assets/mazes/ ("paper", "two_rooms"). The robot is a disc for the planner: a point
+Obstacles are axis-aligned boxes (x1, y1, x2, y2). `load_maze` reads a maze from a JSON file
+(`maze_to_dict`'s layout) or by the name of one shipped in assets/mazes/ ("paper", "two_rooms").
+The robot is a disc for the planner: a point
 collides when the disc of radius r overlaps a box; a move collides when the disc swept along the
 segment does (exact test). `distance_field` is the breadth-first distance, in grid steps, from
 every cell of a grid to the goal's cell through free cells (8-connected, every step costs 1, as
@@ -117,9 +118,7 @@ def load_maze(spec: str) -> Maze:
         maze = maze_from_dict(data)
     except ConfigError as error:
         raise ConfigError(f"maze {spec!r}: {error}") from None
-    inside = maze.bounds[0] <= maze.start[0] <= maze.bounds[2] and maze.bounds[1] <= maze.start[1] <= maze.bounds[3]
-    inside &= maze.bounds[0] <= maze.goal[0] <= maze.bounds[2] and maze.bounds[1] <= maze.goal[1] <= maze.bounds[3]
-    if not inside:
+    if not in_bounds(maze, np.array([maze.start[:2], maze.goal])).all():  # the episodes' own rule
         raise ConfigError(f"maze {spec!r}: start and goal must lie within its bounds {maze.bounds}")
     return maze
 

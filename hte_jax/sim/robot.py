@@ -245,14 +245,19 @@ def stored_solver(stored: dict) -> dict:
     return {name: stored.get(name, legacy) for name, legacy in zip(SOLVER_FIELDS, LEGACY_SOLVER)}
 
 
+def compile_model(config: RobotConfig = RobotConfig()) -> mujoco.MjModel:
+    """A newly compiled native MuJoCo model for `config`, the caller's own to alter. A model without
+    springs (no joint stiffness, no tendons: the hexapod) gets MuJoCo's spring term switched off,
+    which changes no force; MJX then traces no spring computation, whose presence made XLA crash
+    (SIGSEGV) while compiling a rollout spread over 2+ devices with `jax.shard_map` (jax 0.11.2,
+    CPU and GPU)."""
+    return without_idle_springs(build_spec(config).compile())
+
+
 @functools.lru_cache(maxsize=16)
 def mj_model(config: RobotConfig = RobotConfig()) -> mujoco.MjModel:
-    """The compiled native MuJoCo model for `config` (cached and shared: to alter one, compile your
-    own, `without_idle_springs(build_spec(config).compile())`). A model without springs (no joint
-    stiffness, no tendons: the hexapod) gets MuJoCo's spring term switched off, which changes no
-    force; MJX then traces no spring computation, whose presence made XLA crash (SIGSEGV) while
-    compiling a rollout spread over 2+ devices with `jax.shard_map` (jax 0.11.2, CPU and GPU)."""
-    return without_idle_springs(build_spec(config).compile())
+    """`compile_model(config)`, cached and shared: never alter it (use `compile_model`)."""
+    return compile_model(config)
 
 
 def without_idle_springs(model: mujoco.MjModel) -> mujoco.MjModel:
