@@ -7,6 +7,7 @@
     python -m experiments.maze_eval --repertoire runs/hbr-gpu/hbr.npz --damage none,0,6
     python -m experiments.maze_eval --protocol paper --preset gpu    # the paper's Fig. 6 / 7 experiment
     python -m experiments.maze_eval --protocol paper --damage-model locked
+    python -m experiments.maze_eval --protocol hte-jax --preset gpu  # our HTE (hte-spare) against RTE and 2D-RTE
     python -m experiments.maze_eval --protocol paper --preset gpu --repertoire-dir runs/seeds  # R seeds
     python -m experiments.maze_eval --variant hte --damage leg1 --video 1   # and a video of the episode
     python -m experiments.maze_eval --maze two_rooms --variant hte,rte   # another world (assets/mazes/ or a JSON file)
@@ -14,7 +15,9 @@
 
 Variants: hte, perfect-hte, random-hte, rte (on an HBR: the shipped one or --repertoire; rte
 also on a flat file), 2d-rte, 8d-rte (shipped flat repertoires), aprol (shipped 21 damaged
-repertoires). --protocol paper: the paper's six variants on all 7 damages. Damages: all (the
+repertoires). --protocol paper: the paper's six variants on all 7 damages; --protocol hte-jax:
+hte-spare, perfect-spare, perfect-hte, hte, rte and 2d-rte on all 7, with --reflex-tilt 0.3
+--reflex-release 0.15 (the sets of docs/results.md, lever 22). Damages: all (the
 paper's 7), or names / indices (none, leg0..leg5 = 0..5, legs1+4 = 6, any legs<i>+<j>).
 --damage-model: raised (the damaged leg blocked in the air, default) or locked (standing pose).
 --repertoire-dir: one subfolder per repertoire seed, each with hbr.npz, flat2d.npz, flat8d.npz,
@@ -91,7 +94,8 @@ ALIASES = {"variants": "--variant", "damages": "--damage"}
 def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--preset", default="cpu", help=f"one of {', '.join(PRESETS)} (default cpu)")
-    p.add_argument("--protocol", default=None, help=f"one of {', '.join(PROTOCOLS)}: its variants on every damage")
+    p.add_argument("--protocol", default=None, help=f"one of {', '.join(PROTOCOLS)}: its variants on every damage (hte-jax: "
+                   "ours against the baselines, with the tilt reflex); other flags override it")
     p.add_argument("--out", default="runs/maze-eval", help="output folder (default runs/maze-eval)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--show-config", action="store_true", help="print the resolved configuration and exit")

@@ -20,13 +20,10 @@ import os
 import tempfile
 import time
 
-os.environ["XLA_FLAGS"] = os.environ.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=4"
-os.environ.setdefault("JAX_PLATFORMS", "cpu")
+import jax
+import numpy as np
 
-import jax  # noqa: E402
-import numpy as np  # noqa: E402
-
-from hte_jax import sharding  # noqa: E402
+from hte_jax import sharding
 
 PARTS = ("hbr", "flat", "batched", "episodes", "hlo", "replica")
 BATCHED_DAMAGES = ("leg1", "legs1+4")  # an APROL-style BatchedMapElites of two damages
@@ -98,13 +95,20 @@ def run_batched(devices: int) -> dict:
     return tree_arrays(f"batched/{devices}", state.repertoire), (algo, state)
 
 
+def episode_config():
+    """HTE on the shipped HBR, 3 damages x 2 replicates, 2 actions, a tiny planner."""
+    from hte_jax.online.evaluation import EvalConfig
+    from hte_jax.online.mcts import PlannerConfig
+
+    return EvalConfig(variants="hte", damages="none,leg1,legs1+4", replicates=2, max_actions=2,
+                      planner=PlannerConfig(iterations=8, roots=2, candidates=8, depth=2))
+
+
 def run_episodes(devices: int) -> dict:
     """6 episodes (3 damages x 2 replicates of HTE on the shipped HBR): 4 devices pad them to 8."""
-    from hte_jax.online.evaluation import EvalConfig, run_batch
+    from hte_jax.online.evaluation import run_batch
 
-    config = EvalConfig(variants="hte", damages="none,leg1,legs1+4", replicates=2, max_actions=2, iterations=8,
-                        roots=2, candidates=8, depth=2)
-    result = run_batch(config, None, ["hte"], progress=False, mesh=sharding.batch_mesh(devices))
+    result = run_batch(episode_config(), None, ["hte"], progress=False, mesh=sharding.batch_mesh(devices))
     episodes = result.episodes
     return tree_arrays(f"episodes/{devices}", {"history": episodes.history, "trajectory": episodes.trajectory,
                                                 "taken": episodes.taken, "reached": episodes.reached,
@@ -175,4 +179,8 @@ def main():
 
 
 if __name__ == "__main__":
+    # before jax starts its backend: 4 forced CPU devices (set here, so importing this module for its
+    # configurations changes nothing)
+    os.environ["XLA_FLAGS"] = os.environ.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=4"
+    os.environ.setdefault("JAX_PLATFORMS", "cpu")
     main()

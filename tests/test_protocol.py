@@ -59,3 +59,16 @@ def test_protocol_sets_the_papers_variants_and_damages(capsys):
     config = json.loads(capsys.readouterr().out)
     assert config["variants"] == "perfect-hte,hte,2d-rte,8d-rte,aprol,random-hte"
     assert config["damages"] == "all" and config["damage_model"] == "locked"
+    assert config["reflex_tilt"] == 0 and config["reflex_release"] == 0  # the paper's robot
+
+
+def test_hte_jax_protocol_fixes_the_reflex_and_flags_override_it(capsys):
+    assert maze_main(["--protocol", "hte-jax", "--seed", "27", "--show-config"]) == 0
+    config = json.loads(capsys.readouterr().out)
+    assert config["variants"] == "perfect-hte,hte-spare,perfect-spare,hte,rte,2d-rte"
+    assert config["damages"] == "all" and config["seed"] == 27
+    assert config["reflex_tilt"] == 0.3 and config["reflex_release"] == 0.15
+    assert maze_main(["--protocol", "hte-jax", "--reflex-release", "0", "--variant", "hte-spare,rte",
+                      "--show-config"]) == 0
+    config = json.loads(capsys.readouterr().out)
+    assert config["reflex_release"] == 0 and config["reflex_tilt"] == 0.3 and config["variants"] == "hte-spare,rte"

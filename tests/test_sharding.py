@@ -123,6 +123,20 @@ def test_device_counts_are_checked_against_the_visible_devices(capsys):
     assert "error: devices must be an integer from 1 to 1 (the visible devices), got 3" in capsys.readouterr().err
 
 
+def test_the_scripts_configurations_build(monkeypatch):
+    """The subprocess's configurations (its episode part runs only with HTE_SHARDING_FULL) are built
+    here too, so an API change cannot leave them broken unseen; importing the script sets no flag."""
+    flags = os.environ.get("XLA_FLAGS")
+    from tests import sharding_script
+
+    assert os.environ.get("XLA_FLAGS") == flags
+    episodes = sharding_script.episode_config()
+    assert episodes.variant_list == ("hte",) and episodes.planner.iterations == 8 and episodes.replicates == 2
+    hbr = sharding_script.hbr_config()
+    assert {hbr.bottom.batch_size, hbr.middle.batch_size, hbr.top.batch_size} == {sharding_script.BATCH}
+    assert sharding_script.flat_config("8d").batch_size == sharding_script.BATCH
+
+
 def test_padding_repeats_the_last_row():
     import jax.numpy as jnp
 

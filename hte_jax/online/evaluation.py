@@ -7,7 +7,9 @@ RTE on the shipped flat repertoires; "aprol" is APROL on the shipped 21 damaged 
 HBR variants share one batch (the secondary mode is per episode); each flat variant is its own batch.
 
 The paper's protocol (`PROTOCOLS["paper"]`): its six variants, the seven damages, R repertoire
-seeds and `replicates` episodes each. Seeds come from `repertoire_dir` (one subfolder per seed
+seeds and `replicates` episodes each. `PROTOCOLS["hte-jax"]`: the sets issue 17 closed with: our
+HTE (`hte-spare`) beside the paper's rule, RTE on the same HBR, 2D-RTE and both oracles, every
+variant on the robot with the releasing tilt reflex. Seeds come from `repertoire_dir` (one subfolder per seed
 holding `hbr.npz`, `flat2d.npz`, `flat8d.npz`, `aprol.npz`); without it, the shipped repertoires
 are the one seed.
 """
@@ -42,8 +44,14 @@ from hte_jax.sim.robot import RobotConfig, SolverConfig
 with_overrides = _with_overrides  # the configurations' one override rule, re-exported
 
 SEED_FILES = {"hbr": "hbr.npz", "2d": "flat2d.npz", "8d": "flat8d.npz", "aprol": "aprol.npz"}  # in a seed folder
-# The paper's Fig. 6 variants, in its order.
-PROTOCOLS = {"paper": ("perfect-hte", "hte", "2d-rte", "8d-rte", "aprol", "random-hte")}
+# Named protocols: the EvalConfig values each fixes. paper: the paper's Fig. 6 variants, in its order,
+# on the paper's robot; hte-jax: our HTE against the baselines, on the robot with the tilt reflex that
+# lets go (docs/results.md, levers 21 and 22).
+PROTOCOLS = {
+    "paper": {"variants": "perfect-hte,hte,2d-rte,8d-rte,aprol,random-hte", "damages": "all"},
+    "hte-jax": {"variants": "perfect-hte,hte-spare,perfect-spare,hte,rte,2d-rte", "damages": "all",
+                "reflex_tilt": 0.3, "reflex_release": 0.15},
+}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -164,10 +172,11 @@ class EvalConfig:
 
 
 def protocol_overrides(name: str) -> dict:
-    """The EvalConfig values a named protocol fixes (its variants, every damage)."""
+    """The EvalConfig values a named protocol fixes (its variants, every damage, its robot); a copy
+    the caller may update with its own overrides."""
     if name not in PROTOCOLS:
         raise ConfigError(f"unknown protocol {name!r}; choose one of {sorted(PROTOCOLS)}")
-    return {"variants": ",".join(PROTOCOLS[name]), "damages": "all"}
+    return dict(PROTOCOLS[name])
 
 
 # cpu: 7 episodes per variant, minutes on 2 cores; gpu: the paper's 30 replicates with RTE's
