@@ -94,3 +94,15 @@ def test_physics_frontier_benchmark(tmp_path):
         assert check[name]["trained"] == "4/8"  # both shipped sets predate the solver settings
         assert check[name]["elites"] == 2 and 0 <= check[name]["in_own_cell"] <= 1 and check[name]["max_cm"] >= 0
     assert "fastest_within_budget" in stdout and "own cell" in stdout
+
+
+def test_load_time_benchmark(tmp_path):
+    out = tmp_path / "load.json"
+    stdout = run_benchmark("load_time.py", "--repeats", "1", "--whole", "--out", str(out))
+    result = json.loads(out.read_text())
+    (row,) = result["rows"]
+    assert "error" not in row and row["whole_equal"] is True  # the filled-rows lookup equals the whole one
+    assert 0 < row["middle_filled"] < row["middle_capacity"] and 0 < row["bottom_filled"] < row["bottom_capacity"]
+    assert row["load_hbr_s"] > 0 and row["load_spare_s"] > 0 and row["whole_lookup_s"] > 0
+    assert set(result["medians"]) == {"load_hbr_s", "load_spare_s", "whole_lookup_s"}
+    assert "whole lookup equal bit for bit: True" in stdout

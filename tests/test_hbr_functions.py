@@ -21,7 +21,7 @@ from hte_jax.hbr.bottom import (
 from hte_jax.hbr.analysis import fitness_by_distance, speed_by_turn
 from hte_jax.hbr.execution import HBR, select_middle, skill_waypoints
 from hte_jax.geometry import angle_error, compose_pose, heading, medoid_index, planar_pose, relative_pose, wrap_angle
-from hte_jax.hbr.middle import MiddleTask, leg_controllers, nearest_index, pattern_bits, pattern_code
+from hte_jax.hbr.middle import MiddleTask, decode, elite_controllers, leg_controllers, nearest_index, pattern_bits, pattern_code
 from hte_jax.hbr.top import TopTask
 from hte_jax.qd.repertoire import Repertoire, empty_repertoire
 
@@ -150,6 +150,44 @@ def test_nearest_primitive_lookup_matches_numpy():
                         fitnesses=jnp.zeros(capacity), filled=jnp.asarray(mask))
     params = np.asarray(leg_controllers(bottom, jnp.asarray(queries)))
     np.testing.assert_array_equal(params, genes[expected].reshape(5, 36))
+
+
+def test_elite_controllers_equal_the_masked_lookup_of_every_row():
+    """The host-side lookup of filled rows among filled bottom elites gives, bit for bit, what the
+    whole-capacity lookup (the jitted path) gives; ties, empty rows and an empty bottom included."""
+    import jax
+
+    rng = np.random.default_rng(5)
+    cells, capacity = 400, 90
+    points = rng.uniform(size=(cells, 3)).astype(np.float32)
+    points[11] = points[4]  # duplicate filled descriptors: ties go to the lower slot
+    bottom_filled = rng.uniform(size=cells) < 0.6
+    bottom_filled[[4, 11]] = True
+    bottom_filled[:3] = False  # empty cells before the first filled one
+    bottom = Repertoire(genotypes=jnp.asarray(rng.uniform(size=(cells, 6)).astype(np.float32)),
+                        descriptors=jnp.asarray(points), fitnesses=jnp.zeros(cells), filled=jnp.asarray(bottom_filled))
+    genotypes = rng.uniform(size=(capacity, 18)).astype(np.float32)
+    genotypes[5, :3] = points[4]  # a leg target exactly on the duplicated descriptor
+    genotypes[6, :3] = points[0]  # ... and exactly on an empty cell's descriptor
+    filled = rng.uniform(size=capacity) < 0.4
+    filled[[5, 6]] = True
+
+    def masked(bottom, genotypes, filled):
+        return jnp.where(filled[:, None], leg_controllers(bottom, decode(genotypes)), 0.0)
+
+    expected = np.asarray(masked(bottom, jnp.asarray(genotypes), jnp.asarray(filled)))
+    got = np.asarray(elite_controllers(bottom, jnp.asarray(genotypes), jnp.asarray(filled)))
+    assert got.dtype == expected.dtype and got.shape == (capacity, 36)
+    np.testing.assert_array_equal(got, expected)
+    np.testing.assert_array_equal(got[5, :6], np.asarray(bottom.genotypes)[4])
+    assert (got[~filled] == 0).all() and (got[filled] != 0).any()
+    traced = jax.jit(elite_controllers)(bottom, jnp.asarray(genotypes), jnp.asarray(filled))  # the jitted path
+    np.testing.assert_array_equal(np.asarray(traced), expected)
+    nothing = elite_controllers(bottom, jnp.asarray(genotypes), jnp.zeros(capacity, bool))
+    assert (np.asarray(nothing) == 0).all()
+    empty = bottom.replace(filled=jnp.zeros(cells, bool))
+    np.testing.assert_array_equal(np.asarray(elite_controllers(empty, jnp.asarray(genotypes), jnp.asarray(filled))),
+                                  np.asarray(masked(empty, jnp.asarray(genotypes), jnp.asarray(filled))))
 
 
 def test_contact_pattern_codes():

@@ -21,7 +21,7 @@ from flax import struct
 
 from hte_jax.hbr.composition import PatternTable, StepModel, plan_batch
 from hte_jax.geometry import compose_pose, planar_pose, relative_pose
-from hte_jax.hbr.middle import PRIMARY, MiddleTask, decode, leg_controllers, pattern_code
+from hte_jax.hbr.middle import PRIMARY, MiddleTask, elite_controllers, pattern_code
 from hte_jax.hbr.skill_grid import TopTask
 from hte_jax.qd.archive import map_rows, squared_distance
 from hte_jax.qd.repertoire import Repertoire
@@ -64,7 +64,7 @@ class HBR:
     def build(cls, bottom: Repertoire, middle: Repertoire, top: Repertoire, middle_task: MiddleTask,
               step_model: StepModel | None = None, top_task: TopTask = TopTask()) -> HBR:
         """Assemble the layers and precompute the middle elites' controllers and patterns."""
-        params = jnp.where(middle.filled[:, None], leg_controllers(bottom, decode(middle.genotypes)), 0.0)
+        params = elite_controllers(bottom, middle.genotypes, middle.filled)
         patterns = jnp.where(middle.filled, pattern_code(middle.descriptors[:, PRIMARY:]), ANY_PATTERN)
         return cls(bottom, middle, top, params, patterns.astype(jnp.int32), middle_task, step_model, top_task)
 

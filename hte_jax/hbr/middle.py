@@ -27,6 +27,7 @@ import math
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from hte_jax.errors import require_int, require_number
 from hte_jax.geometry import angle_error, medoid_index, planar_pose, relative_pose
@@ -116,6 +117,26 @@ def leg_controllers(bottom: Repertoire, targets: jax.Array) -> jax.Array:
     index = nearest_index(bottom.descriptors, bottom.filled, targets)
     genes = bottom.genotypes[jnp.maximum(index, 0)]  # (..., 6, 6)
     return genes.reshape(*targets.shape[:-2], NUM_LEGS * 6)
+
+
+def elite_controllers(bottom: Repertoire, genotypes: jax.Array, filled: jax.Array) -> jax.Array:
+    """(C, 36) controllers of the `filled` rows of (C, 18) middle genotypes, zeros elsewhere: the
+    values of `where(filled, leg_controllers(bottom, decode(genotypes)), 0)`. Outside a jit only the
+    filled rows are looked up, among the filled bottom elites kept in their order (so ties still go
+    to the lowest index, and the same distances are compared): for the shipped HBR 23 641 of 65 536
+    rows against 11 088 of 16 384 cells, a quarter of the work, paid at every `load_hbr`."""
+    inputs = (bottom.descriptors, bottom.filled, bottom.genotypes, genotypes, filled)
+    if any(isinstance(x, jax.core.Tracer) for x in inputs) or not np.asarray(bottom.filled).any():
+        return jnp.where(filled[:, None], leg_controllers(bottom, decode(genotypes)), 0.0)
+    keep = np.flatnonzero(np.asarray(bottom.filled))
+    rows = np.flatnonzero(np.asarray(filled))
+    genes = np.asarray(bottom.genotypes)
+    out = np.zeros((genotypes.shape[0], NUM_LEGS * genes.shape[-1]), genes.dtype)
+    if rows.size:
+        points = jnp.asarray(np.asarray(bottom.descriptors)[keep])
+        index = nearest_index(points, jnp.ones(keep.size, bool), decode(jnp.asarray(np.asarray(genotypes)[rows])))
+        out[rows] = genes[keep[np.asarray(index)]].reshape(rows.size, -1)
+    return jnp.asarray(out)
 
 
 def decode(genotypes: jax.Array) -> jax.Array:

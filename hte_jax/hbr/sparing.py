@@ -25,7 +25,7 @@ import numpy as np
 
 from hte_jax.hbr.composition import PatternTable, StepModel, descriptor_steps, measure_steps
 from hte_jax.hbr.execution import ANY_PATTERN, HBR
-from hte_jax.hbr.middle import NUM_PATTERNS, PRIMARY, decode, leg_controllers, pattern_code
+from hte_jax.hbr.middle import NUM_PATTERNS, PRIMARY, elite_controllers, pattern_code
 from hte_jax.hbr.store import SPARE_FILE, bottom_fingerprint, save_spare
 from hte_jax.hbr.training import HBRConfig, layer_algorithms
 from hte_jax.qd import io
@@ -135,7 +135,7 @@ def train_spare(hbr: HBR, base: HBRConfig, out_dir: str | Path, *, threshold: fl
     spare = state.repertoire
     steps = None
     if config.step_starts:
-        params = jnp.where(spare.filled[:, None], leg_controllers(hbr.bottom, decode(spare.genotypes)), 0.0)
+        params = elite_controllers(hbr.bottom, spare.genotypes, spare.filled)
         steps = jax.device_get(measure_steps(robot, params, spare.filled, config.middle_task, start, step_key,
                                              starts=config.step_starts))
     filled = np.asarray(spare.filled)

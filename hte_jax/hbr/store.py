@@ -20,7 +20,7 @@ from hte_jax.errors import ConfigError
 from hte_jax.hbr.bottom import bottom_spec
 from hte_jax.hbr.composition import StepModel
 from hte_jax.hbr.execution import HBR
-from hte_jax.hbr.middle import MiddleTask, decode, leg_controllers, middle_spec
+from hte_jax.hbr.middle import MiddleTask, elite_controllers, middle_spec
 from hte_jax.hbr.top import TopTask, top_spec
 from hte_jax.qd.io import CheckpointError, elite_arrays, read_checkpoint, save_checkpoint
 from hte_jax.qd.repertoire import Repertoire
@@ -170,7 +170,7 @@ def load_spare(path: str | Path, hbr: HBR) -> HBR:
     spare = rebuild_elites(path, arrays, middle_spec(capacity, l), "spare_")
     count = int(spare.filled.sum())
     steps = _step_model(path, arrays, count, capacity, "spare_")
-    params = jnp.where(spare.filled[:, None], leg_controllers(hbr.bottom, decode(spare.genotypes)), 0.0)
+    params = elite_controllers(hbr.bottom, spare.genotypes, spare.filled)
     return with_spare(hbr, spare, params, steps)
 
 
