@@ -1,5 +1,7 @@
 """The online GPs: posterior against a float64 NumPy reference, masked = unpadded, no retracing."""
 
+import re
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -109,3 +111,42 @@ def test_kernel_settings_are_checked():
         Kernel("matern52", 0.0, 1.0, 0.0)
     with pytest.raises(ConfigError, match="GP capacity"):
         empty_gp(0, 2, 2)
+
+
+def _lapack_calls(compiled_text: str) -> list[tuple[str, str]]:
+    """(target, result shape) of every LAPACK custom call in a compiled CPU program."""
+    calls = []
+    for line in compiled_text.splitlines():
+        target = re.search(r'custom_call_target="(lapack_[a-z]+_ffi)"', line)
+        if target:
+            calls.append((target.group(1), line.split("=", 1)[1].split("custom-call")[0].strip()))
+    return calls
+
+
+@pytest.mark.skipif(jax.default_backend() != "cpu", reason="checks the CPU program")
+def test_batched_posteriors_factor_one_matrix_per_lapack_call_on_the_cpu():
+    """jaxlib's CPU LAPACK kernels split a batched call over the intra-op thread pool and wait for
+    it; two at once hung `maze_eval` on a 2-core machine. Batched GPs (episodes x repertoires, as
+    the planner's) must reach LAPACK one matrix at a time, and give the batched call's bits."""
+    rng = np.random.default_rng(1)
+    episodes, maps, capacity = 3, 2, 12
+    x = rng.uniform(0, 0.05, (episodes, maps, capacity, 2)).astype(np.float32)
+    y = rng.normal(0, 0.01, (episodes, maps, capacity, 4)).astype(np.float32)
+    data = jax.vmap(jax.vmap(lambda x, y: _fill(capacity, x[:7], y[:7])))(jnp.asarray(x), jnp.asarray(y))
+    queries = jnp.asarray(rng.uniform(0, 0.05, (5, 2)).astype(np.float32))
+
+    def batched(data):
+        return jax.vmap(jax.vmap(lambda d: posterior(RTE_KERNEL, d, queries, jnp.zeros((5, 4)))))(data)
+
+    calls = _lapack_calls(jax.jit(batched).lower(data).compile().as_text())
+    assert {target for target, _ in calls} == {"lapack_spotrf_ffi", "lapack_strsm_ffi"}
+    for target, shape in calls:
+        dims = re.search(r"f32\[([\d,]+)\]", shape).group(1).split(",")
+        assert len(dims) == 2, f"{target} runs a batch {shape}"
+    mean, variance = jax.jit(batched)(data)
+    for e in range(episodes):
+        for k in range(maps):
+            one = jax.tree.map(lambda a: a[e, k], data)
+            m, v = posterior(RTE_KERNEL, one, queries, jnp.zeros((5, 4)))
+            np.testing.assert_allclose(mean[e, k], m, rtol=0, atol=1e-6)
+            np.testing.assert_allclose(variance[e, k], v, rtol=0, atol=1e-7)

@@ -116,6 +116,36 @@ def data_mean(data: GPData) -> jax.Array:
     return jnp.sum(data.targets * weight, axis=0) / jnp.maximum(weight.sum(), 1.0)
 
 
+def _factor_and_solve(gram: jax.Array, rhs: jax.Array) -> jax.Array:
+    """L^-1 rhs (N, M) for the Cholesky factor L of gram (N, N)."""
+    return jax.scipy.linalg.solve_triangular(jnp.linalg.cholesky(gram), rhs, lower=True)
+
+
+@jax.custom_batching.custom_vmap
+def whitened(gram: jax.Array, rhs: jax.Array) -> jax.Array:
+    """L^-1 rhs (N, M) for the Cholesky factor L of the positive-definite gram (N, N).
+
+    Batched (under `vmap`), the CPU runs it one matrix at a time (`lax.map`), other platforms as
+    one batched call. jaxlib 0.10's CPU LAPACK kernels split a batch over XLA's intra-op thread
+    pool and block until it is done; two such kernels running at once (as the batched GPs of one
+    episode step do) can occupy every pool thread of a 2-core machine while they wait, and the
+    process hangs (`docs/design.md`, GPs). One matrix per call never uses the pool and computes
+    the same bits.
+    """
+    return _factor_and_solve(gram, rhs)
+
+
+@whitened.def_vmap
+def _whitened_batched(axis_size: int, in_batched: list[bool], gram: jax.Array, rhs: jax.Array):
+    gram, rhs = (x if batched else jnp.broadcast_to(x, (axis_size, *x.shape))
+                 for x, batched in zip((gram, rhs), in_batched))
+
+    def one_at_a_time(gram, rhs):
+        return jax.lax.map(lambda pair: whitened(*pair), (gram, rhs))
+
+    return jax.lax.platform_dependent(gram, rhs, cpu=one_at_a_time, default=jax.vmap(_factor_and_solve)), True
+
+
 def posterior(
     kernel: Kernel, data: GPData, queries: jax.Array, query_prior: jax.Array | None = None
 ) -> tuple[jax.Array, jax.Array]:
@@ -135,13 +165,10 @@ def posterior(
         pair = mask[:, None] & mask[None, :]
         gram = jnp.where(pair, kernel(data.inputs, data.inputs), 0.0)
         gram = gram + jnp.diag(jnp.where(mask, kernel.noise, 1.0))
-        chol = jnp.linalg.cholesky(gram)
         residual = jnp.where(mask[:, None], residual, 0.0)
         cross = jnp.where(mask[None, :], kernel(queries.astype(jnp.float32), data.inputs), 0.0)  # (Q, N)
-        # One triangular solve for both: with L L^T = K, the mean is prior + (L^-1 k)^T (L^-1 r) and
-        # the variance s^2 - |L^-1 k|^2. (Two independent solves could run concurrently on the CPU,
-        # where jaxlib's batched LAPACK kernels then deadlocked on a 2-thread pool; see design.md.)
-        solved = jax.scipy.linalg.solve_triangular(chol, jnp.concatenate([residual, cross.T], axis=1), lower=True)
+        # With L L^T = K, the mean is prior + (L^-1 k)^T (L^-1 r) and the variance s^2 - |L^-1 k|^2.
+        solved = whitened(gram, jnp.concatenate([residual, cross.T], axis=1))
         w, v = solved[:, : residual.shape[1]], solved[:, residual.shape[1]:]  # (N, O), (N, Q)
         mean = query_prior + v.T @ w
         variance = kernel.variance - jnp.sum(v * v, axis=0)
