@@ -68,7 +68,7 @@ import numpy as np
 from common import earlier_result, environment, parse_setting, random_params, result_path, run_worker, setting_label
 from hte_jax.flat.store import load_flat, shipped_flat_path
 from hte_jax.flat.task import evaluate_flat
-from hte_jax.hbr.execution import execute_skill
+from hte_jax.hbr.hierarchy import execute_skill
 from hte_jax.geometry import planar_pose, relative_pose
 from hte_jax.hbr.store import load_hbr
 from hte_jax.hbr.top import evaluate_top

@@ -32,7 +32,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.common import environment, result_path  # noqa: E402
 from hte_jax.hbr.composition import planning_table, skill_ends  # noqa: E402
-from hte_jax.hbr.execution import STEPS_PER_SKILL, execute_skill, state_pose  # noqa: E402
+from hte_jax.hbr.hierarchy import STEPS_PER_SKILL, execute_skill, state_pose  # noqa: E402
 from hte_jax.geometry import relative_pose  # noqa: E402
 from hte_jax.hbr.sparing import sparing_table  # noqa: E402
 from hte_jax.hbr.store import load_hbr, load_spare  # noqa: E402

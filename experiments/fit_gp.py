@@ -8,8 +8,8 @@ the repertoire's prior outcomes, from the HBR file the run used; the measured ou
 maximises the summed log marginal likelihood of all those GPs over the squared exponential
 kernel's length-scale, variance and noise with Adam, starting from the online loop's kernel
 (`gp.RTE_KERNEL`). Prints one line (the fitted kernel, the log-likelihood before and after) and
-writes fit.json (also the likelihood trace) into the run folder. Episodes on flat repertoires and
-of variants that plan with measured pattern ends (another prior) are left out. The online loop
+writes fit.json (also the likelihood trace) into the run folder. Episodes on flat repertoires are
+left out. The online loop
 keeps its kernel: nothing reads fit.json. Bad input gives a one-line error and exit status 2.
 """
 
@@ -27,7 +27,7 @@ import numpy as np
 from experiments.cli import fail, input_errors
 from hte_jax.errors import ConfigError, require_int, require_number
 from hte_jax.hbr.store import load_hbr
-from hte_jax.online.actions import ActionSet, action_set, replayed_models
+from hte_jax.online.skills import ActionSet, action_set, replayed_models
 from hte_jax.online.gp import RTE_KERNEL, GPData
 from hte_jax.online.gp_fit import fit_kernel
 from hte_jax.online.variants import variant as variant_named
@@ -59,7 +59,7 @@ def hbr_actions(repertoire: dict, cache: dict) -> ActionSet:
 def run_models(run: Path, variants: set[str] | None) -> tuple[GPData, dict]:
     """The rebuilt RTE GPs (E, L, ...) of the run's HBR episodes (of `variants`, None: all) with at
     least one action, and what was used and left out."""
-    models, used, skipped, cache = [], {}, {"flat repertoire": 0, "measured ends": 0, "not asked for": 0}, {}
+    models, used, skipped, cache = [], {}, {"flat repertoire": 0, "not asked for": 0}, {}
     for path in batch_files(run):
         arrays, header = read_checkpoint(path)
         labels = header.get("metadata", {})
@@ -75,8 +75,6 @@ def run_models(run: Path, variants: set[str] | None) -> tuple[GPData, dict]:
         for row, name in enumerate(names):
             if variants is not None and name not in variants:
                 skipped["not asked for"] += 1
-            elif variant_named(name).measured_ends:
-                skipped["measured ends"] += 1
             elif executed[row, 0] >= 0:
                 rows.append(row)
                 used[name] = used.get(name, 0) + 1

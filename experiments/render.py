@@ -48,7 +48,7 @@ from experiments.cli import input_errors  # noqa: E402
 from hte_jax.errors import ConfigError  # noqa: E402
 from hte_jax.flat.comparison import resolve  # noqa: E402
 from hte_jax.flat.store import load_flat, shipped_flat_path  # noqa: E402
-from hte_jax.hbr.execution import ANY_PATTERN, execute_skill  # noqa: E402
+from hte_jax.hbr.hierarchy import ANY_PATTERN, execute_skill  # noqa: E402
 from hte_jax.hbr.middle import NUM_PATTERNS  # noqa: E402
 from hte_jax.hbr.store import load_hbr  # noqa: E402
 from hte_jax.online.recording import REPLAY_DIR, Replay, load_replay, recorded_episodes, replay_path  # noqa: E402

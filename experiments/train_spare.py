@@ -1,4 +1,4 @@
-"""Train the sparing archive of an HBR: a second middle layer, on the HBR's own bottom layer, whose
+"""Train the spare archive of an HBR: a second middle layer, on the HBR's own bottom layer, whose
 contact threshold is strict (5 %), so that its steps keep their lifted legs really off the floor.
 
     python -m experiments.train_spare                                   # the shipped HBR, cpu preset
@@ -6,7 +6,7 @@ contact threshold is strict (5 %), so that its steps keep their lifted legs real
     python -m experiments.train_spare --out runs/spare --resume          # continue a killed run
     cp runs/spare-gpu/spare.npz runs/hbr-gpu/                            # used by default beside hbr.npz
 
-The variants that execute from sparing sets (`hte-spare`, `perfect-spare`, `hte_jax.hbr.sparing`)
+The variants that run steps from spare sets (`hte-spare`, `perfect-spare`, `hte_jax.hbr.spare`)
 plan a chosen pattern's steps among the elites, of the HBR and of this archive, with under 5 %
 contact on each leg the pattern lifts. Writes config.json, middle/ (checkpoint, metrics.csv),
 spare.npz and summary.json under --out. Bad values give a one-line error and exit status 2.
@@ -21,9 +21,9 @@ import sys
 from experiments.cli import input_errors
 from hte_jax.errors import ConfigError
 from hte_jax.flat.comparison import resolve
-from hte_jax.hbr.sparing import SPARE_L, STRICT_CONTACT, train_spare
+from hte_jax.hbr.spare import SPARE_L, STRICT_CONTACT
 from hte_jax.hbr.store import load_hbr, shipped_hbr_path
-from hte_jax.hbr.training import PRESETS, preset
+from hte_jax.hbr.training import PRESETS, preset, train_spare
 from hte_jax.sim.robot import SolverConfig, stored_solver
 
 

@@ -72,7 +72,7 @@ def _leg_controllers_once_per_process():
     by every test that loads it (a `maze_eval` run, a re-execution, ...). Within a test process the
     same inputs give the same controllers, so they are computed once: the result is keyed by the
     bytes of every input, and traced inputs (inside a jit) are always computed."""
-    from hte_jax.hbr import execution, middle, sparing, store
+    from hte_jax.hbr import hierarchy, middle, store, training
 
     compute = middle.elite_controllers
     known: dict[str, jax.Array] = {}
@@ -92,6 +92,6 @@ def _leg_controllers_once_per_process():
         return known[key]
 
     with pytest.MonkeyPatch.context() as patch:
-        for module in (execution, sparing, store):  # HBR.build, with_spare, load_spare
+        for module in (hierarchy, store, training):  # HBR.build, load_spare, train_spare
             patch.setattr(module, "elite_controllers", elite_controllers)
         yield

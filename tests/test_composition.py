@@ -19,7 +19,7 @@ from hte_jax.hbr.composition import (
     plan_step,
     planning_table,
 )
-from hte_jax.hbr.execution import execute_skill
+from hte_jax.hbr.hierarchy import execute_skill
 from hte_jax.geometry import planar_pose, relative_pose
 from hte_jax.hbr.middle import MiddleTask
 from hte_jax.hbr.store import load_hbr, save_hbr

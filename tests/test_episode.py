@@ -12,7 +12,7 @@ from experiments.maze_eval import main as maze_main
 from hte_jax.flat.store import shipped_flat_path
 from hte_jax.geometry import compose_pose, relative_pose
 from hte_jax.online.episode import SECONDS_PER_ACTION
-from hte_jax.online.variants import CANDIDATE_PATTERNS
+from hte_jax.online.rules import CANDIDATE_PATTERNS
 from hte_jax.online.maze import PAPER_MAZE
 from hte_jax.qd.io import read_checkpoint
 from tests.golden import MAZE_ARGS, check
@@ -101,16 +101,9 @@ def test_outputs_and_plots(run):
     (["--protocol", "nature"], "unknown protocol"),
     (["--damage-model", "floppy"], "damage_model"),
     (["--repertoire-dir", "/nowhere"], "not a folder"),
-    (["--variant", "hte-miss", "--optimism", "-1"], "optimism"),
-    (["--variant", "hte-drift", "--repertoire", str(shipped_flat_path("2d"))], "needs an HBR"),
+    (["--variant", "hte-spare", "--repertoire", str(shipped_flat_path("2d"))], "needs an HBR"),
+    (["--variant", "hte-miss"], "unknown variant"),
 ])
 def test_cli_errors_name_the_problem(args, message, tmp_path, capsys):
     assert maze_main([*args, "--out", str(tmp_path), "--no-progress"]) == 2
     assert message in capsys.readouterr().err
-
-
-def test_our_variants_have_their_own_modes():
-    from hte_jax.online.episode import variant_mode
-    from hte_jax.online.execute import DRIFT_MODE, MISS_MODE
-
-    assert variant_mode("hte-miss", True) == MISS_MODE and variant_mode("hte-drift", True) == DRIFT_MODE

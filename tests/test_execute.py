@@ -22,7 +22,7 @@ from hte_jax.online.execute import (
     execute_flat,
     flat_skills,
 )
-from hte_jax.hbr.execution import select_middle
+from hte_jax.hbr.hierarchy import select_middle
 from hte_jax.online.gp import add_observation, empty_gp
 from hte_jax.online.variants import ALL_PATTERNS, CANDIDATE_PATTERNS, candidate_elites
 from hte_jax.online.secondary import step_targets

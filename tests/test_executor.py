@@ -11,7 +11,7 @@ import pytest
 
 from hte_jax.errors import ConfigError
 from hte_jax.flat.store import load_flat, shipped_flat_path
-from hte_jax.hbr.execution import select_middle
+from hte_jax.hbr.hierarchy import select_middle
 from hte_jax.geometry import compose_pose, planar_pose
 from hte_jax.hbr.store import load_hbr
 from hte_jax.online.arena import maze_robot

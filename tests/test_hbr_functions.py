@@ -19,7 +19,7 @@ from hte_jax.hbr.bottom import (
     swing_distance,
 )
 from hte_jax.hbr.analysis import fitness_by_distance, speed_by_turn
-from hte_jax.hbr.execution import HBR, select_middle, skill_waypoints
+from hte_jax.hbr.hierarchy import HBR, select_middle, skill_waypoints
 from hte_jax.geometry import angle_error, compose_pose, heading, medoid_index, planar_pose, relative_pose, wrap_angle
 from hte_jax.hbr.middle import MiddleTask, decode, elite_controllers, leg_controllers, nearest_index, pattern_bits, pattern_code
 from hte_jax.hbr.top import TopTask

@@ -11,7 +11,7 @@ import pytest
 
 from experiments.train_hbr import main as train_main
 from hte_jax.hbr.bottom import BottomTask, evaluate_bottom
-from hte_jax.hbr.execution import execute_skill, execute_step
+from hte_jax.hbr.hierarchy import execute_skill, execute_step
 from hte_jax.geometry import compose_pose, planar_pose
 from hte_jax.hbr.middle import PRIMARY, evaluate_controllers
 from hte_jax.hbr.store import load_hbr

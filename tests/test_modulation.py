@@ -11,7 +11,7 @@ import pytest
 
 from experiments.modulation import main as modulation_main
 from hte_jax.hbr.composition import planning_table, skill_ends
-from hte_jax.hbr.execution import STEPS_PER_SKILL, execute_skill
+from hte_jax.hbr.hierarchy import STEPS_PER_SKILL, execute_skill
 from hte_jax.hbr.middle import pattern_code
 from hte_jax.hbr.modulation import Modulation
 from hte_jax.hbr.store import load_hbr

@@ -11,7 +11,7 @@ import pytest
 
 from hte_jax.errors import ConfigError
 from hte_jax.hbr.composition import plan_batch
-from hte_jax.hbr.execution import select_middle
+from hte_jax.hbr.hierarchy import select_middle
 from hte_jax.hbr.sparing import STRICT_CONTACT, lifted_legs, sparing_members, sparing_table, with_spare
 from hte_jax.online import variants
 from hte_jax.online.execute import hbr_skills

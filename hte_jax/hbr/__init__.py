@@ -2,7 +2,7 @@
 
 from hte_jax.hbr.analysis import hbr_statistics, pattern_histogram
 from hte_jax.hbr.bottom import BottomTask, bottom_spec, evaluate_bottom
-from hte_jax.hbr.execution import HBR, SkillResult, StepResult, execute_skill, execute_step, select_middle, skill_waypoints
+from hte_jax.hbr.hierarchy import HBR, SkillResult, StepResult, execute_skill, execute_step, select_middle, skill_waypoints
 from hte_jax.hbr.modulation import Modulation, modulate
 from hte_jax.hbr.middle import MiddleTask, evaluate_middle, leg_controllers, middle_spec, nearest_index, pattern_bits, pattern_code
 from hte_jax.hbr.store import load_hbr, save_hbr, shipped_hbr_path

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from hte_jax.hbr.execution import HBR
+from hte_jax.hbr.hierarchy import HBR
 from hte_jax.hbr.middle import NUM_PATTERNS
 from hte_jax.hbr.top import TopTask
 

@@ -1,7 +1,7 @@
 """Planned composition: a skill executed with a chosen contact pattern aims at the skill's own end.
 
 With a pattern other than its own, a skill cannot replay the middle elites it was trained with.
-The paper's execution (`execution.execute_skill`) then takes, for each 1 s step, the nearest
+The paper's execution (`hierarchy.execute_skill`) then takes, for each 1 s step, the nearest
 elite of the pattern to the next waypoint; the steps' mismatches add up and a skill re-executed
 this way ends a median 0.15 m from its own end. Here, before each step, the remaining steps are
 planned among the pattern's elites so that their composed steps, from the robot's measured pose,
@@ -88,7 +88,7 @@ def pattern_table(patterns: np.ndarray, model: StepModel, spread_weight: float =
 
 
 def planning_table(hbr) -> PatternTable:
-    """The table an `execution.HBR` plans with: its measured step model if it has one, else its descriptors."""
+    """The table an `hierarchy.HBR` plans with: its measured step model if it has one, else its descriptors."""
     model = hbr.step_model if hbr.step_model is not None else descriptor_steps(hbr.middle.descriptors)
     return pattern_table(np.asarray(hbr.middle_patterns), model)
 

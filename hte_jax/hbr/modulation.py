@@ -14,7 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from hte_jax.hbr.composition import PatternTable
-from hte_jax.hbr.execution import HBR
+from hte_jax.hbr.hierarchy import HBR
 from hte_jax.hbr.middle import pattern_code
 from hte_jax.hbr.reexecution import checked_pairs, execute_held, stored_ends
 from hte_jax.hbr.top import TopTask

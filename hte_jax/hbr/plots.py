@@ -11,7 +11,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from hte_jax.hbr.analysis import pattern_histogram  # noqa: E402
-from hte_jax.hbr.execution import HBR  # noqa: E402
+from hte_jax.hbr.hierarchy import HBR  # noqa: E402
 from hte_jax.hbr.top import TopTask  # noqa: E402
 from hte_jax.qd.plots import grid_projection, plot_metrics  # noqa: E402
 

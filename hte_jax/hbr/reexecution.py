@@ -16,7 +16,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from hte_jax.hbr.composition import PatternTable, skill_ends
-from hte_jax.hbr.execution import HBR, STEPS_PER_SKILL, SkillResult, execute_skill
+from hte_jax.hbr.hierarchy import HBR, STEPS_PER_SKILL, SkillResult, execute_skill
 from hte_jax.hbr.middle import NUM_PATTERNS
 from hte_jax.hbr.top import TopTask
 from hte_jax.sim.robot import Robot

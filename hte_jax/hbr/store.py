@@ -19,8 +19,9 @@ import numpy as np
 from hte_jax.errors import ConfigError
 from hte_jax.hbr.bottom import bottom_spec
 from hte_jax.hbr.composition import StepModel
-from hte_jax.hbr.execution import HBR
+from hte_jax.hbr.hierarchy import HBR
 from hte_jax.hbr.middle import MiddleTask, elite_controllers, middle_spec
+from hte_jax.hbr.spare import with_spare
 from hte_jax.hbr.top import TopTask, top_spec
 from hte_jax.qd.io import CheckpointError, elite_arrays, read_checkpoint, save_checkpoint
 from hte_jax.qd.repertoire import Repertoire
@@ -124,7 +125,7 @@ def _step_model(path, arrays, count: int, capacity: int, prefix: str = "middle_"
 
 
 SPARE_KIND = "hte_jax.hbr.spare"
-SPARE_FILE = "spare.npz"  # beside an hbr.npz: its sparing archive (`sparing.with_spare`), used when present
+SPARE_FILE = "spare.npz"  # beside an hbr.npz: its spare archive (`spare.with_spare`), used when present
 
 
 def bottom_fingerprint(hbr: HBR) -> str:
@@ -149,11 +150,9 @@ def save_spare(path: str | Path, hbr: HBR, spare: Repertoire, steps: StepModel |
 
 
 def load_spare(path: str | Path, hbr: HBR) -> HBR:
-    """`hbr` with the sparing archive of `path` appended (`sparing.with_spare`). The file is a spare
+    """`hbr` with the spare archive of `path` appended (`spare.with_spare`). The file is a spare
     file of `save_spare` trained on this HBR's bottom layer, or another HBR file (its middle layer
     joins with its own controllers)."""
-    from hte_jax.hbr.sparing import with_spare
-
     arrays, header = read_checkpoint(path)
     meta = header.get("metadata", {})
     if meta.get("kind") == KIND:

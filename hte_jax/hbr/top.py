@@ -1,7 +1,7 @@
 """Top layer: 3 s omnidirectional skills on a 100 x 100 grid (paper section 3; facts section 5).
 
 Genotype: three middle-layer primary descriptors (9 numbers), decoded and executed by
-`execution.execute_skill` from the standing state, choosing middle elites by primary descriptor
+`hierarchy.execute_skill` from the standing state, choosing middle elites by primary descriptor
 only (the secondary one is ignored during training, paper section 4).
 Descriptor: final (x, y) in the start frame, ((x + extent) / (2 extent), (y + extent) / (2 extent)),
 invalid outside [0, 1]. Fitness: the circular-trajectory angle error of the whole skill.
@@ -14,7 +14,7 @@ import math
 import jax
 import jax.numpy as jnp
 
-from hte_jax.hbr.execution import HBR, STEPS_PER_SKILL, execute_skill
+from hte_jax.hbr.hierarchy import HBR, STEPS_PER_SKILL, execute_skill
 from hte_jax.geometry import angle_error
 from hte_jax.hbr.skill_grid import TopTask as TopTask  # the top layer's grid, re-exported
 from hte_jax.qd.repertoire import Evaluation

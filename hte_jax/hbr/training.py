@@ -18,6 +18,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import jax
+import numpy as np
 from jax.sharding import Mesh
 
 from hte_jax.errors import ConfigError, config_dict, config_from_dict, inline, require_choice, require_int, require_number
@@ -27,10 +28,11 @@ from hte_jax.hbr import middle as middle_layer
 from hte_jax.hbr.analysis import hbr_statistics
 from hte_jax.hbr.bottom import BOTTOM_FITNESSES, BottomTask, bottom_spec, evaluate_bottom
 from hte_jax.hbr.composition import measure_steps
-from hte_jax.hbr.execution import HBR
-from hte_jax.hbr.middle import MiddleTask, evaluate_middle, middle_spec
+from hte_jax.hbr.hierarchy import HBR
+from hte_jax.hbr.middle import PRIMARY, MiddleTask, elite_controllers, evaluate_middle, middle_spec, pattern_code
 from hte_jax.hbr.plots import plot_hbr
-from hte_jax.hbr.store import save_hbr
+from hte_jax.hbr.spare import SPARE_L, SPARE_STREAM, STRICT_CONTACT
+from hte_jax.hbr.store import SPARE_FILE, bottom_fingerprint, save_hbr, save_spare
 from hte_jax.hbr.top import TopTask, evaluate_top, top_spec
 from hte_jax.qd import io
 from hte_jax.qd.loop import MapElites, MapElitesConfig, QDState, resume, run
@@ -306,3 +308,48 @@ def train_hbr(
     if plots:
         plot_hbr(hbr, config.top_task, out, out / "plots")
     return TrainingOutcome(hbr=hbr, summary=summary)
+
+
+def train_spare(hbr: HBR, base: HBRConfig, out_dir: str | Path, *, threshold: float = STRICT_CONTACT,
+                l: float = SPARE_L, resume_run: bool = False, progress: bool = True) -> dict:
+    """Train a second middle archive for `hbr`'s spare sets (`hbr.spare`): its middle layer's task and budget
+    (`base.middle`, samples, solver) at contact threshold `threshold` and distance threshold `l`, on
+    the HBR's own bottom layer; then measure its steps (`base.step_starts`). Writes the run folder
+    (config.json, middle/ checkpoint and metrics, spare.npz, summary.json; a killed run resumes)
+    and returns the summary."""
+    config = dataclasses.replace(base, contact_threshold=threshold, middle_l=l, contact_purity=0.0)
+    out = Path(out_dir)
+    io.prepare_run_dir(out, {"hbr_config": config.to_dict(), "bottom": bottom_fingerprint(hbr)}, resume_run)
+    robot = load_robot(config.robot)
+    start = standing_state(robot)
+    algo = layer_algorithms(config, robot, start, {"bottom": hbr.bottom})["middle"]()
+    key, step_key = jax.random.split(jax.random.fold_in(jax.random.PRNGKey(config.seed), SPARE_STREAM))
+    checkpoint = out / "middle" / "checkpoint.npz"
+    began = time.perf_counter()
+    state = resume(algo, checkpoint) if checkpoint.exists() else algo.init(key)
+    state = run(algo, state, config.middle.generations, block_size=config.middle.block_size,
+                log_path=out / "middle" / "metrics.csv", checkpoint_path=checkpoint, progress=progress,
+                description="spare")
+    if not checkpoint.exists():  # no block ran (generations = 0)
+        io.save_checkpoint(checkpoint, state, algo.checkpoint_metadata())
+    trained = time.perf_counter() - began
+    spare = state.repertoire
+    steps = None
+    if config.step_starts:
+        params = elite_controllers(hbr.bottom, spare.genotypes, spare.filled)
+        steps = jax.device_get(measure_steps(robot, params, spare.filled, config.middle_task, start, step_key,
+                                             starts=config.step_starts))
+    filled = np.asarray(spare.filled)
+    fraction = np.asarray(spare.extras["contact_fraction"])[filled]
+    own = np.asarray(hbr.middle.extras["contact_fraction"])[np.asarray(hbr.middle.filled)]
+    summary = {
+        "threshold": threshold, "l": l, "evaluations": algo.evaluations(state), "elites": int(filled.sum()),
+        "patterns": int(np.unique(np.asarray(pattern_code(spare.descriptors[:, PRIMARY:]))[filled]).size),
+        "lifting_each_leg": {"spare": (fraction < threshold).sum(axis=0).tolist(),
+                             "hbr": (own < threshold).sum(axis=0).tolist()},
+        "wall_time_s": {"training": trained, "steps": time.perf_counter() - began - trained},
+        "devices": [str(d) for d in jax.devices()],
+    }
+    save_spare(out / SPARE_FILE, hbr, spare, steps, l, metadata={"training": summary})
+    io.write_json(out / "summary.json", summary)
+    return summary

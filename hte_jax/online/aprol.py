@@ -29,7 +29,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from hte_jax.online.actions import outcome
+from hte_jax.online.skills import outcome
 
 EXPLORATION = 0.01  # c of the UCB term
 INITIAL_SCORE = 0.6  # m_k before any trial

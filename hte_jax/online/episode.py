@@ -1,8 +1,8 @@
-"""Reset-free adaptation episodes in the maze, B at once (paper section 4; facts sections 7 and 9).
+"""Reset-free adaptation episodes in the maze, B at once (paper section 4; `docs/original_code.md` §7, §9).
 
 Each action: the RTE GP predicts every action's outcome (repertoire prior + observed
 corrections), MCTS plans from the robot's measured pose on those predictions, the chosen skill
-runs on the simulated damaged robot from wherever it stands (`execute`), and the measured
+runs on the simulated damaged robot from wherever it stands (`action`), and the measured
 displacement (dx, dy, dyaw) in the pre-action frame is added to the RTE GP. An episode ends when
 the robot is within the goal radius after an action (success), after `max_actions` actions
 (failure) or when its simulation goes invalid (a flipped robot: failure). Wall contacts do not
@@ -15,8 +15,9 @@ repertoires' skills by `aprol.select_entry`.
 
 `plan_step` and `act_step` are jitted over the whole batch; `run_episodes` calls them once per
 action until every episode has ended, so planning latency can be measured on its own. `act_step`
-simulates the action (`execute`) and then calls `record_action`, the bookkeeping that an episode
-driven through an executor (`executor.py`, a robot simulated elsewhere) shares with it.
+runs the action on the MJX robots (`action.SimulatedRobots`) and then calls `record_action`, the
+bookkeeping that an episode driven through an executor (`external.py`, a robot simulated
+elsewhere or real) shares with it.
 """
 
 from __future__ import annotations
@@ -24,7 +25,6 @@ from __future__ import annotations
 import dataclasses
 import functools
 import time
-from typing import TYPE_CHECKING
 
 import jax
 import jax.numpy as jnp
@@ -35,32 +35,26 @@ from tqdm.auto import tqdm
 
 from hte_jax import sharding
 from hte_jax.errors import ConfigError, require_int
-from hte_jax.hbr.execution import STEPS_PER_SKILL, state_pose
-from hte_jax.online.actions import OUTCOME_DIM, displacement_of, predict
-from hte_jax.online.actions import outcome as outcome_of
-from hte_jax.online.aprol import MapBelief, closeness, initial_belief, select_entry, update_belief
-from hte_jax.online.execute import (
-    ERROR_DIM,
-    ActionOutcome,
-    SECONDARY_DIM,
-    SECONDARY_OUTPUTS,
+from hte_jax.hbr.hierarchy import STEPS_PER_SKILL, state_pose
+from hte_jax.online.action import (
     SECONDS_PER_ACTION,
     STEP_CONTROL_STEPS,
-    Skills,
-    execute_flat,
-    execute_hbr,
+    ActionOutcome,
+    SimulatedRobots,
+    flat_action,
+    hbr_action,
 )
+from hte_jax.online.aprol import MapBelief, closeness, initial_belief, select_entry, update_belief
 from hte_jax.online.gp import GPData, add_observation, empty_gp
 from hte_jax.online.maze import GridSpec, Maze, distance_field, planning_start, reached_goal
 from hte_jax.online.mcts import PlannerConfig, PlanResult, plan, world_of
-from hte_jax.online.secondary import oracle_pattern
-from hte_jax.online.variants import VARIANTS, PatternState, rule_index, rule_names, variant
-from hte_jax.sim.robot import NUM_LEGS, Robot
+from hte_jax.online.recording import Recorder
+from hte_jax.online.rules import PatternRule, RuleBatch, start_rules
+from hte_jax.online.secondary import ERROR_DIM
+from hte_jax.online.skills import OUTCOME_DIM, Skills, displacement_of, predict
+from hte_jax.online.skills import outcome as outcome_of
+from hte_jax.sim.robot import Robot
 from hte_jax.sim.rollout import SimState
-
-if TYPE_CHECKING:
-    from hte_jax.online.recording import Recorder
-
 
 
 @dataclasses.dataclass(frozen=True)
@@ -109,11 +103,11 @@ class History:
 class Episodes:
     """B adaptation episodes.
 
-    sim: SimState (B, ...) the simulated robots, or None when an executor drives them (`executor.py`).
-    damage: (B, 6) bool. rte: GPData (B, K, L, D, 4), the action
-    model of each of the K repertoires. belief: MapBelief (B, K), APROL's belief about them.
-    learnt: PatternState (B, ...), each episode's pattern rule and what it has learnt (HTE's
-    secondary GP, the sensed contacts). key: (B, 2) PRNG keys.
+    sim: SimState (B, ...) the simulated robots, or None when an executor drives them (`external.py`).
+    damage: (B, 6) bool, what the simulator does to each robot (no rule but an oracle's `init`
+    sees it). rte: GPData (B, K, L, D, 4), the action model of each of the K repertoires. belief:
+    MapBelief (B, K), APROL's belief about them. rules: RuleBatch, each episode's pattern rule and
+    what the rules have learnt (`rules`). key: (B, 2) PRNG keys.
     taken: (B,) int32 actions so far. reached: (B,) bool at the goal. broken: (B,) bool the
     simulation went invalid; reason: (B,) int32 its `InvalidReason` bits (0 if not broken). trajectory: (B, 4 L + 1, 3) world pose (x, y, yaw) every second,
     the last pose repeated after the end. history: History.
@@ -123,7 +117,7 @@ class Episodes:
     damage: jax.Array
     rte: GPData
     belief: MapBelief
-    learnt: PatternState
+    rules: RuleBatch
     key: jax.Array
     taken: jax.Array
     reached: jax.Array
@@ -144,26 +138,14 @@ class Episodes:
         return state_pose(self.sim)
 
 
-def variant_mode(name: str, hierarchical: bool) -> int:
-    """The integer of the rule variant `name` runs with on a repertoire (`variants.rule_index`)."""
-    if name not in VARIANTS:
-        raise ConfigError(f"unknown variant {name!r}; expected one of {sorted(VARIANTS)}")
-    rule = variant(name).rule
-    if not hierarchical and rule != "any":
-        raise ConfigError(f"variant {name!r} needs an HBR (a flat repertoire has no secondary descriptor)")
-    return rule_index(rule)
-
-
 def start_episodes(
-    config: AdaptationConfig, skills: Skills, start: SimState | jax.Array, damages: np.ndarray, modes: np.ndarray,
-    key: jax.Array, optimism: np.ndarray | None = None, sparing: np.ndarray | None = None,
-    measured: np.ndarray | None = None,
+    config: AdaptationConfig, skills: Skills, start: SimState | jax.Array, damages: np.ndarray,
+    rules: tuple[PatternRule, ...], which: np.ndarray, key: jax.Array,
 ) -> Episodes:
-    """B fresh episodes: robots `start` with `damages` (B, 6), secondary `modes` (B,) and `optimism`
-    (B,) (default 0), `sparing` (B,) int32 (default 0, never: `variants.SPARING`) and `measured` (B,) bool
-    (default False: `PatternState`). start:
-    SimState (B, ...) of simulated robots, or the world planar poses (B, 3)
-    of robots an executor drives (`executor.py`; `Episodes.sim` is then None).
+    """B fresh episodes: robots `start` with `damages` (B, 6), episode b running the pattern rule
+    `rules[which[b]]` (`variants.batch_rules`; flat skills ignore it). start: SimState (B, ...) of
+    simulated robots, or the world planar poses (B, 3) of robots an executor drives (`external.py`;
+    `Episodes.sim` is then None).
 
     With K > 1 repertoires each episode starts planning with a uniformly drawn one.
     """
@@ -197,17 +179,7 @@ def start_episodes(
         damage=jnp.asarray(damages),
         rte=stacked(empty_gp(length, skills.actions.inputs.shape[-1], OUTCOME_DIM), batch, maps),
         belief=jax.vmap(lambda k: initial_belief(maps, k))(first_map),
-        learnt=PatternState(
-            mode=jnp.asarray(modes, jnp.int32),
-            oracle=jnp.asarray([oracle_pattern(d) for d in damages], jnp.int32),
-            optimism=jnp.zeros(batch, jnp.float32) if optimism is None else jnp.asarray(optimism, jnp.float32),
-            secondary=stacked(empty_gp(STEPS_PER_SKILL * length, SECONDARY_DIM, SECONDARY_OUTPUTS), batch),
-            contacts=jnp.zeros((batch, 2, NUM_LEGS), jnp.float32),
-            motion=jnp.zeros((batch, 2, NUM_LEGS), jnp.float32),
-            sparing=jnp.zeros(batch, jnp.int32) if sparing is None else jnp.asarray(sparing, jnp.int32),
-            measured=jnp.zeros(batch, bool) if measured is None else jnp.asarray(measured, bool),
-            last=jnp.full(batch, -1, jnp.int32),
-        ),
+        rules=start_rules(rules, which, damages, length),
         key=jax.random.split(key, batch),
         taken=jnp.zeros(batch, jnp.int32),
         reached=jnp.zeros(batch, bool),
@@ -228,7 +200,7 @@ class Decision:
     the GP's predicted displacement of the executed skill. keys: (B, 3, 2) the keys the action
     drew: the episode's next key, the plan's and the execution's.
     prior: (B, 4) the GP's prior outcome of the executed skill (what its observation is learnt
-    against: the stored outcome, or the measured one, `Skills.planning_prior`).
+    against).
     """
 
     plan: PlanResult
@@ -246,14 +218,10 @@ def plan_step(maze: Maze, config: AdaptationConfig, skills: Skills, field: jax.A
     with the current one, then let APROL choose the skill to execute among all of them)."""
     maps = skills.map_actions
 
-    def predict_maps(gps, prior):
-        return jax.vmap(predict)(gps, maps.replace(prior=prior))  # (K, A, 4), (K, A)
+    def predict_maps(gps):
+        return jax.vmap(predict)(gps, maps)  # (K, A, 4), (K, A)
 
-    measured = skills.planning_prior(episodes.learnt)  # (B, A, 4) or None
-    if measured is None:  # every episode plans with the stored outcomes: one (K, A, 4) prior
-        mean, variance = jax.vmap(predict_maps, in_axes=(0, None))(episodes.rte, maps.prior)
-    else:
-        mean, variance = jax.vmap(predict_maps)(episodes.rte, measured[:, None])  # (B, K, A, 4), (B, K, A)
+    mean, variance = jax.vmap(predict_maps)(episodes.rte)  # (B, K, A, 4), (B, K, A)
     rows = jnp.arange(mean.shape[0])
     current = episodes.belief.current
     displacement = displacement_of(mean[rows, current])  # (B, A, 3)
@@ -275,16 +243,14 @@ def plan_step(maze: Maze, config: AdaptationConfig, skills: Skills, field: jax.A
         chosen_map, action = jnp.zeros_like(result.action), result.action
     predicted = displacement_of(mean[rows, chosen_map, action])
     return Decision(plan=result, map=chosen_map, action=action, start=start, predicted=predicted, keys=keys,
-                    prior=maps.prior[chosen_map, action] if measured is None else measured[rows, action])
+                    prior=maps.prior[chosen_map, action])
 
 
-@functools.partial(jax.jit, static_argnames=("maze", "config", "record_every", "rules"))
+@functools.partial(jax.jit, static_argnames=("maze", "config", "record_every"))
 def act_step(maze: Maze, config: AdaptationConfig, robot: Robot, skills: Skills, episodes: Episodes,
-             decision: Decision, record_every: int = 0, rules: tuple[str, ...] | None = None,
-             ) -> tuple[Episodes, jax.Array | None]:
-    """Execute every active episode's planned action, learn from it, and record it. rules: the
-    pattern rules' names in integer order (`variants.rule_names()`; static, so that a rule added
-    later compiles a program of its own).
+             decision: Decision, record_every: int = 0) -> tuple[Episodes, jax.Array | None]:
+    """Execute every active episode's planned action on its MJX robot (`action.SimulatedRobots`
+    with `robot`, the maze's `Robot`), learn from it, and record it.
 
     Returns the episodes and, when `record_every` = k > 0 (k divides 100), the state of every robot
     every k control steps of the action, (B, 400 / k, 25) from its start (None when k = 0: the
@@ -292,11 +258,12 @@ def act_step(maze: Maze, config: AdaptationConfig, robot: Robot, skills: Skills,
     """
     if record_every and (not isinstance(record_every, int) or STEP_CONTROL_STEPS % record_every):
         raise ConfigError(f"record_every must divide {STEP_CONTROL_STEPS}, got {record_every!r}")
+    robots = SimulatedRobots(robot, episodes.damage, record_every)
     if skills.hierarchical:
-        outcome = execute_hbr(robot, skills, episodes, decision, record_every=record_every, rules=rules or rule_names())
+        outcome = hbr_action(robots, skills, episodes.sim, episodes.rules, decision.action, episodes.taken,
+                             decision.keys[:, 2])
     else:
-        outcome = execute_flat(robot, skills.map_genotypes[decision.map, decision.action], episodes.sim, episodes.damage,
-                               episodes.learnt, record_every=record_every)
+        outcome = flat_action(robots, episodes.sim, skills.map_genotypes[decision.map, decision.action])
     return record_action(maze, config, skills, episodes, decision, outcome), outcome.qpos
 
 
@@ -306,7 +273,7 @@ def record_action(maze: Maze, config: AdaptationConfig, skills: Skills, episodes
     """Every active episode after its executed action `outcome` (B, ...): the chosen repertoire's RTE
     GP and APROL belief learn the displacement, the history and trajectory record it, and an episode
     ends at the goal, when its robot went invalid or at `max_actions`. Ended episodes are unchanged.
-    `act_step` calls it after simulating; an executor's episode (`executor.py`) after driving its robot.
+    `act_step` calls it after simulating; an executor's episode (`external.py`) after driving its robot.
     """
     active = ~episodes.done
     index, chosen_map = decision.action, decision.map
@@ -322,9 +289,7 @@ def record_action(maze: Maze, config: AdaptationConfig, skills: Skills, episodes
         return gps, update_belief(belief, k, closeness(chosen.prior[i], displacement))
 
     rte, belief = jax.vmap(learn)(episodes.rte, episodes.belief, chosen_map, index, outcome.displacement, decision.prior)
-    learnt = outcome.learnt
-    if learnt is not None:
-        learnt = learnt.replace(last=outcome.patterns[:, -1])
+    rules = episodes.rules if outcome.rules is None else outcome.rules
 
     def keep(new, old):
         """New values for active episodes, old ones for ended episodes."""
@@ -358,7 +323,7 @@ def record_action(maze: Maze, config: AdaptationConfig, skills: Skills, episodes
         sim=outcome.state,
         rte=rte,
         belief=belief,
-        learnt=learnt,
+        rules=rules,
         key=keys[:, 0],
         taken=episodes.taken + 1,
         reached=reached_goal(maze, end[:, :2]) & outcome.valid,
@@ -388,7 +353,7 @@ def pad_episodes(episodes: Episodes, size: int) -> Episodes:
 
 
 @functools.lru_cache(maxsize=32)
-def sharded_steps(maze: Maze, config: AdaptationConfig, mesh: Mesh, record_every: int, rules: tuple[str, ...]):
+def sharded_steps(maze: Maze, config: AdaptationConfig, mesh: Mesh, record_every: int):
     """(plan, act): `plan_step` and `act_step` with the episode axis split over `mesh` and the skills,
     robot and distance field replicated: every device runs its episodes' planner and rollouts on its
     own, no collective inside. plan(skills, field, episodes) -> Decision; act(robot, skills, episodes,
@@ -399,7 +364,7 @@ def sharded_steps(maze: Maze, config: AdaptationConfig, mesh: Mesh, record_every
         return plan_step(maze, config, skills, field, episodes)
 
     def act(robot, skills, episodes, decision):
-        return act_step(maze, config, robot, skills, episodes, decision, record_every=record_every, rules=rules)
+        return act_step(maze, config, robot, skills, episodes, decision, record_every=record_every)
 
     if mesh.devices.size == 1:  # one device: the step functions themselves
         return plan, act
@@ -432,7 +397,7 @@ def run_episodes(
     field = sharding.put_replicated(distance_field(maze, config.grid), mesh)
     skills, robot = sharding.put_replicated((skills, robot), mesh)
     episodes = sharding.put_batch(pad_episodes(episodes, sharding.padded_size(batch, mesh)), mesh)
-    plan, act = sharded_steps(maze, config, mesh, 0 if recorder is None else recorder.every, rule_names())
+    plan, act = sharded_steps(maze, config, mesh, 0 if recorder is None else recorder.every)
     timings = RunTimings()
     begin = time.perf_counter()
     bar = tqdm(total=config.max_actions, desc=description, unit="action", disable=not progress)

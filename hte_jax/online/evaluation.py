@@ -23,17 +23,16 @@ import jax
 import numpy as np
 from jax.sharding import Mesh
 
-from hte_jax.errors import ConfigError, config_dict, config_from_dict, inline, require_choice, require_int, require_number
+from hte_jax.errors import ConfigError, config_dict, config_from_dict, inline, require_choice, require_int
 from hte_jax.errors import with_overrides as _with_overrides
 from hte_jax.flat.store import load_flat, shipped_flat_path
-from hte_jax.hbr.pattern_ends import ends_file, load_pattern_ends
 from hte_jax.hbr.store import load_hbr, load_spare, shipped_hbr_path, spare_beside
 from hte_jax.online.arena import maze_robot, start_states
-from hte_jax.online.episode import AdaptationConfig, Episodes, RunTimings, run_episodes, start_episodes, variant_mode
-from hte_jax.online.variants import SPARING
-from hte_jax.online.variants import variant as variant_named
 from hte_jax.hbr.composition import COMPOSITIONS
-from hte_jax.online.execute import Skills, flat_skill_maps, flat_skills, hbr_skills
+from hte_jax.online.episode import AdaptationConfig, Episodes, RunTimings, run_episodes, start_episodes
+from hte_jax.online.skills import Skills, flat_skill_maps, flat_skills, hbr_skills
+from hte_jax.online.variants import batch_rules
+from hte_jax.online.variants import variant as variant_named
 from hte_jax.online.maze import Maze, load_maze, maze_to_dict
 from hte_jax.online.mcts import PlannerConfig
 from hte_jax.online.recording import Recorder, Replay, replay_of
@@ -43,6 +42,7 @@ from hte_jax.sim.robot import RobotConfig, SolverConfig
 
 with_overrides = _with_overrides  # the configurations' one override rule, re-exported
 
+RETIRED = {"optimism": 0.0, "pattern_ends": ""}  # settings of levers that left (docs/levers.md), at their neutral values
 SEED_FILES = {"hbr": "hbr.npz", "2d": "flat2d.npz", "8d": "flat8d.npz", "aprol": "aprol.npz"}  # in a seed folder
 # Named protocols: the EvalConfig values each fixes. paper: the paper's Fig. 6 variants, in its order,
 # on the paper's robot; hte-jax: our HTE against the baselines, on the robot with the tilt reflex that
@@ -66,16 +66,12 @@ class EvalConfig:
     damaged leg blocked in the air, the paper's words) or "locked" (in the standing pose, the
     original code's). max_actions: the failure cap. planner: the MCTS settings (`PlannerConfig`,
     inlined: settings iterations, roots, exploration, widening, gamma, depth, candidates,
-    collision_reward, goal_reward; 200 x 2 trees by default). optimism: how many
-    standard deviations "hte-miss" takes off each elite's predicted deviation (0: greedy).
-    composition: how an HBR step with a chosen contact pattern picks its elite: "planned" (ours,
+    collision_reward, goal_reward; 200 x 2 trees by default). composition: how an HBR step with a chosen contact pattern picks its elite: "planned" (ours,
     `hbr.composition`: a plan among the pattern's elites to the skill's end) or "waypoints" (the
     paper's nearest elite to the next waypoint); RTE's steps are the same in both. spare: the
-    sparing archive whose elites join the HBR's own in the sparing sets of the variants that
-    execute from them (`hbr.sparing`; a spare file of `experiments.train_spare` or another HBR
-    file; "" = the spare.npz beside the HBR file, if any). pattern_ends: the skills' ends measured
-    under each pattern (`hbr.pattern_ends`, `experiments.pattern_ends`) that the variants planning
-    with measured ends use ("" = the pattern_ends_<table>.npz beside the HBR file). seed: PRNG seed.
+    spare archive whose elites join the HBR's own in the spare sets of the variants that run
+    steps from them (`hbr.spare`; a spare file of `experiments.train_spare` or another HBR file;
+    "" = the spare.npz beside the HBR file, if any). seed: PRNG seed.
     solver: the physics' Newton solver (`SolverConfig`, inlined: settings solver_iterations,
     ls_iterations, solver_tolerance). reflex_tilt: the robot's tilt reflex (`RobotConfig.reflex_tilt`,
     rad): past this tilt a skill's gait gives way to the neutral pose for the rest of its second; 0
@@ -93,10 +89,8 @@ class EvalConfig:
     damage_model: str = "raised"
     max_actions: int = 80
     planner: PlannerConfig = inline(PlannerConfig(iterations=200, roots=2))
-    optimism: float = 0.0
     composition: str = "planned"
     spare: str = ""
-    pattern_ends: str = ""
     seed: int = 0
     solver: SolverConfig = inline(SolverConfig())
     reflex_tilt: float = RobotConfig.reflex_tilt
@@ -107,7 +101,6 @@ class EvalConfig:
     def __post_init__(self):
         require_int("replicates", self.replicates)
         require_int("seed", self.seed, 0)
-        require_number("optimism", self.optimism, 0.0)
         require_choice("composition", self.composition, COMPOSITIONS)
         for name in self.variant_list:
             variant_named(name)  # validates the name
@@ -167,7 +160,12 @@ class EvalConfig:
     @classmethod
     def from_dict(cls, data: dict) -> EvalConfig:
         """A configuration from `to_dict`'s output (a run's config.json without its preset and
-        protocol) or the nested layout of `dataclasses.asdict`."""
+        protocol) or the nested layout of `dataclasses.asdict`. Settings of retired levers
+        (`RETIRED`, docs/levers.md) are dropped where they hold their neutral value."""
+        data = dict(data)
+        for key, neutral in RETIRED.items():
+            if key in data and data.pop(key) != neutral:
+                raise ConfigError(f"setting {key!r} belongs to a variant that left hte-jax (docs/levers.md)")
         return config_from_dict(cls, data)
 
 
@@ -194,37 +192,24 @@ def preset(name: str) -> EvalConfig:
     return PRESETS[name]
 
 
-def load_skills(path: str | Path | None, maps: bool = False, composition: str = "planned", sparing: bool = False,
-                spare: str | Path | None = None, ends_table: str | None = None,
-                ends: str | Path | None = None) -> tuple[Skills, dict]:
+def load_skills(path: str | Path | None, maps: bool = False, composition: str = "planned", spare: bool = False,
+                spare_path: str | Path | None = None) -> tuple[Skills, dict]:
     """Actions of an HBR file (its top layer) or of a file holding one flat repertoire; None: the
     shipped HBR. maps: accept a flat file of several repertoires (APROL's set): actions (K, A).
-    composition, sparing: see `execute.hbr_skills`. spare: the sparing archive joined to the
-    HBR's own elites in the sparing sets (`store.load_spare`: a spare file or another HBR file;
-    default: the spare.npz beside the HBR file, if any). ends_table: load the skills' ends measured
-    with this planning table ("sparing" or "planned", `hbr.pattern_ends`) from `ends` (default:
-    the pattern_ends_<table>.npz beside the HBR file; an error if there is none); None: none."""
+    composition, spare: see `skills.hbr_skills`. spare_path: the spare archive joined to the HBR's
+    own elites in the spare sets (`store.load_spare`: a spare file or another HBR file; default:
+    the spare.npz beside the HBR file, if any)."""
     shipped = path is None or str(path) == ""
     header = {} if shipped else read_checkpoint(path)[1]
     kind = "hte_jax.hbr" if shipped else header.get("metadata", {}).get("kind")
     if kind == "hte_jax.hbr":
         hbr, task, _ = load_hbr(None if shipped else path)
-        spare = (spare or spare_beside(None if shipped else path)) if sparing else None
-        if spare:
-            hbr = load_spare(spare, hbr)
-        measured = None
-        if ends_table is not None:
-            ends = Path(ends) if ends else (shipped_hbr_path() if shipped else Path(path)).parent / ends_file(ends_table)
-            if not ends.is_file():
-                raise ConfigError(f"variants planning with measured ends need {ends}; measure them: "
-                                  f"python -m experiments.pattern_ends --table {ends_table}")
-            measured = load_pattern_ends(ends, hbr)
-            if measured.table != ends_table:
-                raise ConfigError(f"{ends}: ends measured with the {measured.table!r} table, not {ends_table!r}")
-        skills = hbr_skills(hbr, task, composition=composition, sparing=sparing, ends=measured)
+        archive = (spare_path or spare_beside(None if shipped else path)) if spare else None
+        if archive:
+            hbr = load_spare(archive, hbr)
+        skills = hbr_skills(hbr, task, composition=composition, spare=spare)
         return skills, {"kind": "hbr", "path": "shipped" if shipped else str(path),
-                        "actions": int(skills.actions.mask.sum()), **({"spare": str(spare)} if spare else {}),
-                        **({"pattern_ends": str(ends)} if measured is not None else {})}
+                        "actions": int(skills.actions.mask.sum()), **({"spare": str(archive)} if archive else {})}
     if kind == "hte_jax.flat":
         count = len(header["metadata"].get("damages", ()))
         if count != 1 and not maps:
@@ -298,26 +283,18 @@ def run_batch(config: EvalConfig, path: str | None, variants: list[str], maze: M
     maze = config.maze_task if maze is None else maze
     maps = len(variants) == 1 and variant_named(variants[0]).repertoire == "aprol"
     labels = batch_labels(config, variants)
-    sparing = np.array([SPARING.index(variant_named(v).sparing) for v, _, _ in labels], np.int32)
-    measured = np.array([variant_named(v).measured_ends for v, _, _ in labels])
-    tables = sorted({"sparing" if variant_named(v).spares else "planned" for v in variants
-                     if variant_named(v).measured_ends})
-    if len(tables) > 1:
-        raise ConfigError("variants planning with ends measured on different tables (sparing and planned) "
-                          "cannot share a batch; run them separately")
     skills, info = load_skills(path, maps=maps, composition=config.composition,
-                               sparing=any(variant_named(v).spares for v in variants),
-                               spare=config.spare or None, ends_table=tables[0] if tables else None,
-                               ends=config.pattern_ends or None)
-    modes = np.array([variant_mode(v, skills.hierarchical) for v, _, _ in labels])
+                               spare=any(variant_named(v).spares for v in variants), spare_path=config.spare or None)
+    for name in variants:
+        variant_named(name).check_skills(skills)
+    rules, which = batch_rules([v for v, _, _ in labels])
     damages = np.stack([parse_damage(d) for _, d, _ in labels])
     adaptation = config.adaptation
     start = start_states(maze, damages, config.robot)
     if key is None:
         key = jax.random.PRNGKey(config.seed)
         key = key if seed == 0 else jax.random.fold_in(key, seed)
-    optimism = np.full(len(labels), config.optimism, np.float32)
-    episodes = start_episodes(adaptation, skills, start, damages, modes, key, optimism, sparing, measured)
+    episodes = start_episodes(adaptation, skills, start, damages, rules, np.asarray(which), key)
     robot = maze_robot(maze, config.robot)
     recorder = Recorder(tuple(record), record_every) if record else None
     episodes, timings = run_episodes(maze, adaptation, robot, skills, episodes, progress=progress,

@@ -19,8 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from hte_jax.errors import ConfigError, require_int
-from hte_jax.online.episode import Episodes
-from hte_jax.online.execute import SECONDS_PER_ACTION, STEP_CONTROL_STEPS
+from hte_jax.online.action import SECONDS_PER_ACTION, STEP_CONTROL_STEPS
 from hte_jax.online.maze import Maze, maze_from_dict
 from hte_jax.qd.io import CheckpointError, read_checkpoint, save_checkpoint
 
@@ -98,8 +97,9 @@ class Replay:
         return maze_from_dict(self.info["maze"])
 
 
-def replay_of(recorder: Recorder, episodes: Episodes, row: int, info: dict) -> Replay:
-    """The recorded episode in batch `row` after `run_episodes` (with `recorder`) has ended."""
+def replay_of(recorder: Recorder, episodes, row: int, info: dict) -> Replay:
+    """The recorded episode in batch `row` of `episodes` (an `episode.Episodes` batch that
+    `run_episodes` ran with `recorder`) once it has ended."""
     taken = int(episodes.taken[row])
     frames = recorder.frames.get(row, [])
     if len(frames) != taken:

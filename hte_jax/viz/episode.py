@@ -15,7 +15,8 @@ import numpy as np
 
 from hte_jax.errors import ConfigError, require_choice, require_int
 from hte_jax.online.arena import maze_config
-from hte_jax.online.execute import SECONDS_PER_ACTION, STEPS_PER_SKILL
+from hte_jax.hbr.hierarchy import STEPS_PER_SKILL
+from hte_jax.online.action import SECONDS_PER_ACTION
 from hte_jax.online.recording import Replay
 from hte_jax.sim.robot import RobotConfig
 from hte_jax.viz.render import CAMERAS, Camera, label, open_renderer, render_frames, render_spec

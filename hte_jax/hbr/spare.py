@@ -1,11 +1,11 @@
-"""Sparing sets: the middle elites that really leave a set of legs alone.
+"""Spare sets: the middle elites that really spare a set of legs (leave them off the floor).
 
 A contact pattern of the middle layer sets a leg's bit to 0 when its foot is down for less than
 the layer's threshold of the second (the paper's 30 %): a "lifted" leg may still carry the robot
 for a quarter of every step, and a damage that takes the leg away spoils those steps. The
-sparing set of a pattern p holds every middle elite whose stored contact fraction is below a
+spare set of a pattern p holds every middle elite whose stored contact fraction is below a
 strict threshold (5 %) on each leg p lifts, whatever the other legs do. Planning a skill's steps
-among them (`composition.plan_step` on `sparing_table`) executes the skill without the lifted legs.
+among them (`composition.plan_step` on `spare_table`) executes the skill without the lifted legs.
 
 Elites may come from the HBR's own middle layer and from a second middle archive, trained on the
 same bottom layer at the strict threshold (`experiments.train_spare`), appended after the HBR's
@@ -15,24 +15,14 @@ HTE, training, modulation) never see them, since they are not `filled` in its mi
 
 from __future__ import annotations
 
-import dataclasses
-import time
-from pathlib import Path
-
-import jax
 import jax.numpy as jnp
 import numpy as np
 
-from hte_jax.hbr.composition import PatternTable, StepModel, descriptor_steps, measure_steps
-from hte_jax.hbr.execution import ANY_PATTERN, HBR
-from hte_jax.hbr.middle import NUM_PATTERNS, PRIMARY, elite_controllers, pattern_code
-from hte_jax.hbr.store import SPARE_FILE, bottom_fingerprint, save_spare
-from hte_jax.hbr.training import HBRConfig, layer_algorithms
-from hte_jax.qd import io
-from hte_jax.qd.loop import resume, run
+from hte_jax.hbr.composition import PatternTable, StepModel, descriptor_steps
+from hte_jax.hbr.hierarchy import ANY_PATTERN, HBR
+from hte_jax.hbr.middle import NUM_PATTERNS, PRIMARY
 from hte_jax.qd.repertoire import Repertoire
-from hte_jax.sim.robot import NUM_LEGS, load_robot
-from hte_jax.sim.rollout import standing_state
+from hte_jax.sim.robot import NUM_LEGS
 
 STRICT_CONTACT = 0.05  # a leg counts as lifted by a step that has its foot down less than this share
 SPARE_L = 0.035  # the spare archive's distance threshold (the HBR's middle layer: 0.05)
@@ -45,22 +35,22 @@ def lifted_legs(pattern: np.ndarray) -> np.ndarray:
     return bits == 0
 
 
-def sparing_members(contact_fraction: np.ndarray, present: np.ndarray, strict: float = STRICT_CONTACT) -> np.ndarray:
+def spare_members(contact_fraction: np.ndarray, present: np.ndarray, strict: float = STRICT_CONTACT) -> np.ndarray:
     """(Cm, 6) stored contact fractions and (Cm,) bool usable slots -> (64, Cm) bool: elite e is in
-    the sparing set of pattern p when its contact is below `strict` on every leg p lifts."""
+    the spare set of pattern p when its contact is below `strict` on every leg p lifts."""
     off = np.asarray(contact_fraction) < strict  # (Cm, 6)
     lifted = lifted_legs(np.arange(NUM_PATTERNS))  # (64, 6)
     return np.asarray(present)[None, :] & np.all(off[None, :, :] | ~lifted[:, None, :], axis=-1)
 
 
-def sparing_table(hbr: HBR, strict: float = STRICT_CONTACT) -> PatternTable:
-    """The sparing sets of every pattern as a planning table (host-side: widths are static): rows
+def spare_table(hbr: HBR, strict: float = STRICT_CONTACT) -> PatternTable:
+    """The spare sets of every pattern as a planning table (host-side: widths are static): rows
     are patterns, members every usable middle elite (the HBR's own and any appended by `with_spare`);
     the row of the pattern that lifts no leg holds that pattern's own elites."""
     present = np.asarray(hbr.middle_patterns) >= 0
     if hbr.spare_count:
         present = present | (np.arange(present.size) >= present.size - hbr.spare_count)
-    members = sparing_members(np.asarray(hbr.middle.extras["contact_fraction"]), present, strict)
+    members = spare_members(np.asarray(hbr.middle.extras["contact_fraction"]), present, strict)
     # a pattern that lifts no leg spares nothing: its set is its own elites, not the whole layer
     # (which would also make every row of the table as wide as the layer)
     members[NUM_PATTERNS - 1] = np.asarray(hbr.middle_patterns) == NUM_PATTERNS - 1
@@ -107,48 +97,3 @@ def with_spare(hbr: HBR, spare: Repertoire, spare_params: jnp.ndarray, spare_ste
     patterns = jnp.concatenate([hbr.middle_patterns, jnp.full(rows.size, ANY_PATTERN, jnp.int32)])
     return hbr.replace(middle=middle, middle_params=params, middle_patterns=patterns, step_model=steps,
                        spare_count=int(rows.size))
-
-
-def train_spare(hbr: HBR, base: HBRConfig, out_dir: str | Path, *, threshold: float = STRICT_CONTACT,
-                l: float = SPARE_L, resume_run: bool = False, progress: bool = True) -> dict:
-    """Train a second middle archive for `hbr`'s sparing sets: its middle layer's task and budget
-    (`base.middle`, samples, solver) at contact threshold `threshold` and distance threshold `l`, on
-    the HBR's own bottom layer; then measure its steps (`base.step_starts`). Writes the run folder
-    (config.json, middle/ checkpoint and metrics, spare.npz, summary.json; a killed run resumes)
-    and returns the summary."""
-    config = dataclasses.replace(base, contact_threshold=threshold, middle_l=l, contact_purity=0.0)
-    out = Path(out_dir)
-    io.prepare_run_dir(out, {"hbr_config": config.to_dict(), "bottom": bottom_fingerprint(hbr)}, resume_run)
-    robot = load_robot(config.robot)
-    start = standing_state(robot)
-    algo = layer_algorithms(config, robot, start, {"bottom": hbr.bottom})["middle"]()
-    key, step_key = jax.random.split(jax.random.fold_in(jax.random.PRNGKey(config.seed), SPARE_STREAM))
-    checkpoint = out / "middle" / "checkpoint.npz"
-    began = time.perf_counter()
-    state = resume(algo, checkpoint) if checkpoint.exists() else algo.init(key)
-    state = run(algo, state, config.middle.generations, block_size=config.middle.block_size,
-                log_path=out / "middle" / "metrics.csv", checkpoint_path=checkpoint, progress=progress,
-                description="spare")
-    if not checkpoint.exists():  # no block ran (generations = 0)
-        io.save_checkpoint(checkpoint, state, algo.checkpoint_metadata())
-    trained = time.perf_counter() - began
-    spare = state.repertoire
-    steps = None
-    if config.step_starts:
-        params = elite_controllers(hbr.bottom, spare.genotypes, spare.filled)
-        steps = jax.device_get(measure_steps(robot, params, spare.filled, config.middle_task, start, step_key,
-                                             starts=config.step_starts))
-    filled = np.asarray(spare.filled)
-    fraction = np.asarray(spare.extras["contact_fraction"])[filled]
-    own = np.asarray(hbr.middle.extras["contact_fraction"])[np.asarray(hbr.middle.filled)]
-    summary = {
-        "threshold": threshold, "l": l, "evaluations": algo.evaluations(state), "elites": int(filled.sum()),
-        "patterns": int(np.unique(np.asarray(pattern_code(spare.descriptors[:, PRIMARY:]))[filled]).size),
-        "lifting_each_leg": {"spare": (fraction < threshold).sum(axis=0).tolist(),
-                             "hbr": (own < threshold).sum(axis=0).tolist()},
-        "wall_time_s": {"training": trained, "steps": time.perf_counter() - began - trained},
-        "devices": [str(d) for d in jax.devices()],
-    }
-    save_spare(out / SPARE_FILE, hbr, spare, steps, l, metadata={"training": summary})
-    io.write_json(out / "summary.json", summary)
-    return summary

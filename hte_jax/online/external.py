@@ -4,10 +4,10 @@ An `Executor` is all the online loop needs from a robot, real or simulated elsew
 planar pose, and running 36-parameter controllers for one second each from wherever it stands,
 reporting its pose after each second, the fraction of each second every foot touched the floor,
 and whether it went invalid (flipped, non-finite). `run_episode` runs ONE episode (B = 1) of any
-variant with the jitted pieces of the batched MJX episodes: the planner (`episode.plan_step`), the
-pattern rules and elite choice (`execute.choose_step`), what the rules learn from a step
-(`execute.learn_step`) and the bookkeeping after an action (`episode.record_action`); the robot is
-driven only through the executor, one Python call per second of an HBR skill.
+variant with the code of the batched MJX episodes: the planner (`episode.plan_step`), the action
+and its steps (`action.hbr_action`, `action.flat_action`, run on an `ExecutorRobot`) and the
+bookkeeping after an action (`episode.record_action`); the robot is driven only through the
+executor, one Python call per second of an HBR skill.
 
 `MujocoExecutor` is native MuJoCo (C, `mujoco.mj_step`) as the stand-in for hardware: the same
 model, damage, controller tables, servo law, contact test and validity limits as the MJX rollout,
@@ -26,23 +26,20 @@ import mujoco
 import numpy as np
 from flax import struct
 
-from hte_jax.hbr.execution import STEPS_PER_SKILL
 from hte_jax.geometry import planar_pose, relative_pose
-from hte_jax.online.arena import maze_config, place
-from hte_jax.online.episode import AdaptationConfig, Decision, Episodes, plan_step, record_action, start_episodes, variant_mode
-from hte_jax.online.execute import (
-    ERROR_DIM,
+from hte_jax.online.action import (
     ONLINE_LIMITS,
     SECONDS_PER_ACTION,
     STEP_CONTROL_STEPS,
-    ActionOutcome,
-    Skills,
-    choose_step,
-    learn_step,
-    skill_targets,
+    Second,
+    flat_action,
+    hbr_action,
 )
+from hte_jax.online.arena import maze_config, place
+from hte_jax.online.episode import AdaptationConfig, Episodes, plan_step, record_action, start_episodes
 from hte_jax.online.maze import Maze, distance_field
-from hte_jax.online.variants import rule_names
+from hte_jax.online.skills import Skills
+from hte_jax.online.variants import variant as variant_named
 from hte_jax.sim.controller import NUM_PARAMS, SAMPLES_PER_PERIOD, SERVO_TIME_CONSTANT, target_table
 from hte_jax.sim.damage import damaged_pose
 from hte_jax.sim.robot import FOOT_RADIUS, JOINTS_PER_LEG, NUM_LEGS, RobotConfig, mj_model, robot_info
@@ -78,105 +75,98 @@ class Executor(Protocol):
         its clock restarted (`sim.controller`: joint targets, the velocity servo), and report."""
 
 
-@functools.partial(jax.jit, static_argnames=("rules",))
-def _choose(skills: Skills, learnt, here, target, goal, step, taken, keys, rules):
-    """`choose_step` for one robot, and the chosen elite's controller (1, 36)."""
-    pattern, index, found = choose_step(skills, learnt, here, target, goal, step, taken, keys, rules)
-    return pattern, index, skills.hbr.middle_params[index]
+class ExecutorRobot:
+    """One robot driven from the host through `executor`, as the robots of `action.hbr_action` and
+    `action.flat_action`: steps follow each other in a Python loop, the traceable parts of each
+    step run as jitted calls (`staged`), each second is one `executor.run` call. After a second
+    the robot went invalid in, it is not driven again: later seconds report its pose, no contact
+    and the same reason."""
 
+    def __init__(self, executor: Executor):
+        self.executor, self.reason = executor, 0
+        self._jitted = {}
 
-@jax.jit
-def _learn(skills: Skills, learnt, index, here, after, contacts, travel):
-    """`learn_step` for one robot that went from pose `here` (1, 3) to `after` (1, 3)."""
-    return learn_step(skills.hbr, learnt, index, relative_pose(here, after), contacts, travel)
+    def pose(self, state=None) -> jax.Array:
+        return jnp.asarray(self.executor.pose(), jnp.float32)[None]
 
+    def staged(self, fn):
+        if fn not in self._jitted:
+            self._jitted[fn] = jax.jit(fn)
+        return self._jitted[fn]
 
-@jax.jit
-def _skill_start(skills: Skills, action: jax.Array, origin: jax.Array, keys: jax.Array):
-    """`skill_targets` of one robot's skill `action` (1,) from `origin` (1, 3), and its step keys
-    (3, 1, 2) split from the action's keys (1, 2) as `execute.execute_hbr` splits them."""
-    targets, goal = skill_targets(skills, action, origin)
-    return targets, goal, jnp.swapaxes(jax.vmap(lambda k: jax.random.split(k, STEPS_PER_SKILL))(keys), 0, 1)
+    def steps(self, step, carry, xs):
+        records = []
+        for i in range(len(xs[1])):
+            carry, record = step(carry, jax.tree.map(lambda x: x[i], xs))
+            records.append(record)
+        return carry, jax.tree.map(lambda *r: jnp.stack(r), *records)
 
+    def _run(self, params: np.ndarray) -> Seconds:
+        """`executor.run(params)` (S, 36) unless the robot stopped; a stopped robot's report."""
+        count = params.shape[0]
+        if self.reason:
+            pose = np.asarray(self.executor.pose(), np.float32)
+            return Seconds(poses=np.repeat(pose[None], count, axis=0), contacts=np.zeros((count, NUM_LEGS), np.float32),
+                           invalid_reason=self.reason)
+        seconds = self.executor.run(params)
+        self.reason = int(seconds.invalid_reason)
+        return seconds
 
-def _seconds_of(poses: list[np.ndarray], reason: int) -> tuple[jax.Array, jax.Array, jax.Array]:
-    """(1, 4, 3) poses after each second of an action (the last repeated after a stop), valid (1,)
-    and invalid_reason (1,)."""
-    poses = poses + [poses[-1]] * (SECONDS_PER_ACTION - len(poses))
-    return jnp.asarray(np.stack(poses)[None], jnp.float32), jnp.asarray([reason == 0]), jnp.asarray([reason], jnp.int32)
+    def _second(self, params: np.ndarray) -> Second:
+        before = self.pose()
+        seconds = self._run(params)
+        after = jnp.asarray(seconds.poses[-1:], jnp.float32)
+        travel = np.zeros((1, NUM_LEGS), np.float32) if seconds.leg_travel is None else seconds.leg_travel[-1:]
+        reason = jnp.asarray([int(seconds.invalid_reason)], jnp.int32)
+        return Second(state=None, pose=after, displacement=relative_pose(before, after), valid=reason == 0,
+                      invalid_reason=reason, contact_fraction=jnp.asarray(seconds.contacts[-1:], jnp.float32),
+                      leg_travel=jnp.asarray(travel, jnp.float32))
 
+    def second(self, state, hbr, elite, found, alive) -> Second:
+        return self._second(np.asarray(hbr.middle_params[elite], np.float32))
 
-def _hbr_action(skills: Skills, executor: Executor, episodes: Episodes, decision: Decision,
-                rules: tuple[str, ...]) -> ActionOutcome:
-    """The chosen HBR skill, one step at a time on the executor, then the neutral second."""
-    learnt = episodes.learnt
-    origin = jnp.asarray(executor.pose(), jnp.float32)[None]
-    targets, goal, keys = _skill_start(skills, decision.action, origin, decision.keys[:, 2])
-    patterns = np.full(STEPS_PER_SKILL, -1, np.int32)
-    middle = np.full(STEPS_PER_SKILL, -1, np.int32)
-    errors = np.zeros((STEPS_PER_SKILL, ERROR_DIM), np.float32)
-    poses, reason = [], 0
-    for step in range(STEPS_PER_SKILL):
-        here = jnp.asarray(executor.pose(), jnp.float32)[None]
-        pattern, index, params = _choose(skills, learnt, here, targets[:, step], goal, step, episodes.taken, keys[step],
-                                         rules)
-        second = executor.run(np.asarray(params))
-        travel = np.zeros_like(second.contacts) if second.leg_travel is None else second.leg_travel
-        learnt, error = _learn(skills, learnt, index, here, jnp.asarray(second.poses, jnp.float32), second.contacts,
-                               travel)
-        patterns[step], middle[step], errors[step] = int(pattern[0]), int(index[0]), np.asarray(error[0])
-        poses.append(np.asarray(second.poses[0]))
-        reason = int(second.invalid_reason)
-        if reason:
-            break
-    if not reason:
-        neutral = executor.run(np.zeros((1, NUM_PARAMS), np.float32))
-        poses.append(np.asarray(neutral.poses[0]))
-        reason = int(neutral.invalid_reason)
-    poses, valid, reasons = _seconds_of(poses, reason)
-    return ActionOutcome(state=None, valid=valid, invalid_reason=reasons, poses=poses,
-                         displacement=relative_pose(origin, poses[:, -1]), patterns=jnp.asarray(patterns[None]),
-                         middle_index=jnp.asarray(middle[None]), errors=jnp.asarray(errors[None]), learnt=learnt)
+    def neutral(self, state) -> Second:
+        return self._second(np.zeros((1, NUM_PARAMS), np.float32))
 
-
-def _flat_action(skills: Skills, executor: Executor, episodes: Episodes, decision: Decision,
-                 rules: tuple[str, ...]) -> ActionOutcome:
-    """The chosen flat controller for 3 s, then the neutral second, in one call of the executor."""
-    origin = jnp.asarray(executor.pose(), jnp.float32)[None]
-    controller = np.asarray(skills.map_genotypes[decision.map[0], decision.action[0]], np.float32)
-    seconds = executor.run(np.stack([controller] * STEPS_PER_SKILL + [np.zeros(NUM_PARAMS, np.float32)]))
-    poses, valid, reasons = _seconds_of(list(np.asarray(seconds.poses)), int(seconds.invalid_reason))
-    return ActionOutcome(state=None, valid=valid, invalid_reason=reasons, poses=poses,
-                         displacement=relative_pose(origin, poses[:, -1]),
-                         patterns=jnp.full((1, STEPS_PER_SKILL), -1, jnp.int32),
-                         middle_index=jnp.full((1, STEPS_PER_SKILL), -1, jnp.int32),
-                         errors=jnp.zeros((1, STEPS_PER_SKILL, ERROR_DIM), jnp.float32), learnt=episodes.learnt)
+    def flat(self, state, params) -> tuple[Second, jax.Array]:
+        origin = self.pose()
+        controller = np.asarray(params[0], np.float32)
+        seconds = self._run(np.stack([controller] * (SECONDS_PER_ACTION - 1) + [np.zeros(NUM_PARAMS, np.float32)]))
+        poses = jnp.asarray(np.asarray(seconds.poses, np.float32)[None])  # (1, 4, 3)
+        reason = jnp.asarray([int(seconds.invalid_reason)], jnp.int32)
+        zeros = jnp.zeros((1, NUM_LEGS), jnp.float32)
+        last = Second(state=None, pose=poses[:, -1], displacement=relative_pose(origin, poses[:, -1]), valid=reason == 0,
+                      invalid_reason=reason, contact_fraction=zeros, leg_travel=zeros)
+        return last, poses
 
 
 def run_episode(maze: Maze, config: AdaptationConfig, skills: Skills, executor: Executor, variant: str = "hte",
-                key: jax.Array | None = None, damage: np.ndarray | None = None, optimism: float = 0.0) -> Episodes:
+                key: jax.Array | None = None, damage: np.ndarray | None = None) -> Episodes:
     """One adaptation episode of `variant` on the robot `executor` drives, from where it stands, until
     it reaches the goal, goes invalid or has taken `config.max_actions` actions.
 
     Returns the episode as `Episodes` with B = 1 (no `sim`; its trajectory holds the poses the
     executor reported). key: PRNG key (default PRNGKey(0)). damage: (6,) bool, the robot's true
-    damage, which only Perfect HTE's oracle reads (default: intact). optimism: see `start_episodes`.
+    damage, which only Perfect HTE's oracle reads (default: intact).
     """
-    mode = variant_mode(variant, skills.hierarchical)
+    chosen = variant_named(variant)
+    chosen.check_skills(skills)
     damage = np.zeros(NUM_LEGS, bool) if damage is None else np.asarray(damage, bool)
     key = jax.random.PRNGKey(0) if key is None else key
-    start = jnp.asarray(executor.pose(), jnp.float32)[None]
-    episodes = start_episodes(config, skills, start, damage[None], np.array([mode]), key,
-                              np.array([optimism], np.float32))
+    robot = ExecutorRobot(executor)
+    episodes = start_episodes(config, skills, robot.pose(), damage[None], (chosen.rule,), np.zeros(1, np.int32), key)
     # Committed inputs, as in `episode.run_episodes` (jit keys its cache on committed-ness).
     device = jax.devices()[0]
     field = jax.device_put(distance_field(maze, config.grid), device)
     skills, episodes = jax.device_put((skills, episodes), device)
-    rules = rule_names()
-    act = _hbr_action if skills.hierarchical else _flat_action
     while not bool(episodes.done[0]):
         decision = plan_step(maze, config, skills, field, episodes)
-        episodes = record_action(maze, config, skills, episodes, decision, act(skills, executor, episodes, decision, rules))
+        if skills.hierarchical:
+            outcome = hbr_action(robot, skills, None, episodes.rules, decision.action, episodes.taken,
+                                 decision.keys[:, 2])
+        else:
+            outcome = flat_action(robot, None, skills.map_genotypes[decision.map, decision.action])
+        episodes = record_action(maze, config, skills, episodes, decision, outcome)
     return episodes
 
 
@@ -194,7 +184,7 @@ class MujocoExecutor:
 
     config: the robot (`mj_model(config)`, e.g. `arena.maze_config(maze)` for the maze's walls).
     damage: (6,) bool legs held in the damaged pose. start: unbatched SimState to start from.
-    limits: when the robot is invalid (default: the online phase's, `execute.ONLINE_LIMITS`).
+    limits: when the robot is invalid (default: the online phase's, `action.ONLINE_LIMITS`).
 
     Each second is 100 control steps of the MJX rollout's loop: the controller's joint targets
     (damaged legs in their pose), the velocity servo command, `mj_step`; a foot touches the floor

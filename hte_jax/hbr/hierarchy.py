@@ -46,7 +46,7 @@ class HBR:
       (Cm, 3) and (Cm,)), or None when not measured.
     top_task: the grid the top layer was trained on (static; Ct = bins^2).
     spare_count: how many of the middle slots, at the end, are a second archive's elites appended
-      for sparing sets (`sparing.with_spare`; static, 0 for an HBR as trained). They are never
+      for spare sets (`spare.with_spare`; static, 0 for an HBR as trained). They are never
       `filled`, so no lookup of the HBR's own sees them.
     """
 

@@ -1,0 +1,245 @@
+"""One action of B robots: a 3 s skill, then 1 s of the neutral pose (all controller parameters 0).
+
+A flat repertoire's skill is its 36-parameter controller run for 3 s. An HBR's skill is a
+top-layer genotype run one 1 s step at a time by `hbr_step`: the episodes' pattern rules choose
+the step's contact pattern (`rules`), the middle elite is planned or looked up among that
+pattern's elites, the robot runs it for one second, and the rules learn from what it did.
+
+The robots are a strategy object, so that the same action and step code drives every robot:
+`SimulatedRobots` are B robots in MJX (the step runs inside the episode's jitted program, the
+steps in a `lax.scan`); `external.ExecutorRobot` is one robot driven from the host (a real robot,
+or native MuJoCo), whose traceable parts run as jitted calls around each second. A robot provides
+`pose(state)`, `second(state, hbr, elite, found, alive)` (one step's second), `neutral(state)`,
+`flat(state, params)` (a flat skill and the neutral second), `steps(step, carry, xs)` (how
+steps follow each other) and `staged(fn)` (how traceable code runs).
+
+Rollouts of the online phase use `ONLINE_LIMITS`: the robot of the online phase has its body
+collide with the floor, so a body on the floor is no longer an error, and only a robot tilted past
+90 degrees (on its side or back: it cannot get up), a non-finite or an exploding state ends an
+episode. After a step a robot went invalid in, its later steps choose no pattern and run nothing.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+from hte_jax.geometry import compose_pose, planar_pose, relative_pose
+from hte_jax.hbr.composition import plan_batch
+from hte_jax.hbr.hierarchy import ANY_PATTERN, HBR, STEPS_PER_SKILL, run_elite, skill_waypoints, state_pose, step_elite
+from hte_jax.online.rules import RuleBatch, StepContext, StepObservation, choose_patterns, learn_rules, relative_error_of
+from hte_jax.online.secondary import ERROR_DIM
+from hte_jax.online.skills import Skills, displacement_of
+from hte_jax.sim.controller import NUM_PARAMS
+from hte_jax.sim.robot import Robot
+from hte_jax.sim.rollout import RolloutSpec, SimState, ValidityLimits, rollout
+
+STEP_CONTROL_STEPS = 100  # one second
+SECONDS_PER_ACTION = STEPS_PER_SKILL + 1
+ONLINE_LIMITS = ValidityLimits(max_tilt=math.pi / 2, min_base_height=0.0, body_on_floor=False)
+
+
+@struct.dataclass
+class Second:
+    """What B robots did in one second.
+
+    state: SimState (B, ...) after it (None for a host-driven robot). pose: (B, 3) world planar pose
+    after it. displacement: (B, 3) (x, y, yaw) in the frame of the pose before it. valid: (B,) bool.
+    invalid_reason: (B,) int32 `InvalidReason` bits (0 if valid). contact_fraction: (B, 6) share of
+    the second each foot was on the floor. leg_travel: (B, 6) rad each leg's joints moved. qpos:
+    (B, F, 25) the state every k control steps (recording), or None.
+    """
+
+    state: SimState | None
+    pose: jax.Array
+    displacement: jax.Array
+    valid: jax.Array
+    invalid_reason: jax.Array
+    contact_fraction: jax.Array
+    leg_travel: jax.Array
+    qpos: jax.Array | None = None
+
+
+@struct.dataclass
+class ActionOutcome:
+    """B robots after one action (3 s skill + 1 s neutral).
+
+    state: SimState (B, ...) at the end (None for a host-driven robot). valid: (B,) bool, no second
+    of the action went invalid. invalid_reason: (B,) int32 `InvalidReason` bits of the action (0 if
+    valid). poses: (B, 4, 3) world planar pose after each second. displacement: (B, 3) (dx, dy, dyaw)
+    in the pre-action frame. patterns: (B, 3) int32 contact pattern asked for at each step (-1: any,
+    for flat skills, and for steps after the robot went invalid). middle_index: (B, 3) int32
+    executed middle elite (-1 for flat skills and steps not run). errors: (B, 3, 3) relative error
+    (x, y, yaw) of each step (0 for flat skills). rules: the rules after this action's
+    observations (None for flat skills). qpos: (B, F, 25) the state every k = `record_every`
+    control steps of the action from its start (F = 400 / k), or None (not recorded).
+    """
+
+    state: SimState | None
+    valid: jax.Array
+    invalid_reason: jax.Array
+    poses: jax.Array
+    displacement: jax.Array
+    patterns: jax.Array
+    middle_index: jax.Array
+    errors: jax.Array
+    rules: RuleBatch | None
+    qpos: jax.Array | None = None
+
+
+@dataclasses.dataclass(frozen=True)
+class SimulatedRobots:
+    """B damaged robots in MJX (`robot`, with the maze's walls; damage (B, 6) bool); record_every:
+    k > 0 also returns the state every k control steps (k divides 100)."""
+
+    robot: Robot
+    damage: jax.Array
+    record_every: int = 0
+
+    def pose(self, state: SimState) -> jax.Array:
+        return state_pose(state)
+
+    def staged(self, fn):
+        return fn  # already inside the episode's jitted program
+
+    def steps(self, step, carry, xs):
+        return jax.lax.scan(step, carry, xs)
+
+    def second(self, state: SimState, hbr: HBR, elite: jax.Array, found: jax.Array, alive: jax.Array) -> Second:
+        result = run_elite(self.robot, hbr, state, self.damage, elite, found, ONLINE_LIMITS, self.record_every)
+        return Second(state=result.state, pose=state_pose(result.state), displacement=result.displacement,
+                      valid=result.valid, invalid_reason=result.invalid_reason,
+                      contact_fraction=result.contact_fraction, leg_travel=result.leg_travel, qpos=result.qpos)
+
+    def neutral(self, state: SimState) -> Second:
+        spec = RolloutSpec(num_steps=STEP_CONTROL_STEPS, record_contacts=False, limits=ONLINE_LIMITS,
+                           record_qpos_every=self.record_every)
+        result = rollout(self.robot, jnp.zeros((state.qpos.shape[0], NUM_PARAMS)), self.damage, state, spec)
+        zeros = jnp.zeros_like(self.damage, jnp.float32)
+        return Second(state=result.final_state, pose=state_pose(result.final_state), displacement=jnp.zeros_like(
+            zeros[:, :3]), valid=result.valid, invalid_reason=result.invalid_reason, contact_fraction=zeros,
+            leg_travel=zeros, qpos=result.qpos)
+
+    def flat(self, state: SimState, params: jax.Array) -> tuple[Second, jax.Array]:
+        """The controllers `params` (B, 36) for 3 s, then the neutral second, in one rollout (a
+        controller's clock restarts each second; its period is 1 s, so 3 seconds are one 3 s run).
+        Returns the last second's `Second` (its displacement: the whole action's) and the poses
+        (B, 4, 3) after each second."""
+        segments = jnp.stack([params] * STEPS_PER_SKILL + [jnp.zeros_like(params)], axis=1)  # (B, 4, 36)
+        total = SECONDS_PER_ACTION * STEP_CONTROL_STEPS
+        spec = RolloutSpec(num_steps=total, pose_steps=tuple(range(0, total + 1, STEP_CONTROL_STEPS)),
+                           record_contacts=False, limits=ONLINE_LIMITS, record_qpos_every=self.record_every)
+        result = rollout(self.robot, segments, self.damage, state, spec)
+        poses = planar_pose(result.base_pos, result.base_quat)  # (B, 5, 3)
+        zeros = jnp.zeros_like(self.damage, jnp.float32)
+        last = Second(state=result.final_state, pose=poses[:, -1], displacement=relative_pose(poses[:, 0], poses[:, -1]),
+                      valid=result.valid, invalid_reason=result.invalid_reason, contact_fraction=zeros,
+                      leg_travel=zeros, qpos=result.qpos)
+        return last, poses[:, 1:]
+
+
+def skill_targets(skills: Skills, index: jax.Array, origin: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """HBR skills `index` (B,) started at world poses `origin` (B, 3): their world waypoints (B, 3, 3),
+    one per step, and their stored end poses (B, 3) (what a planned step plans towards)."""
+    targets = compose_pose(origin[:, None, :], skill_waypoints(skills.hbr.middle_task, skills.genotypes[index]))
+    goal = compose_pose(origin, displacement_of(skills.actions.prior[index]))
+    return targets, goal
+
+
+def choose_step(skills: Skills, rules: RuleBatch, here: jax.Array, target: jax.Array, goal: jax.Array,
+                step: jax.Array, taken: jax.Array, keys: jax.Array, alive: jax.Array):
+    """Before step `step` (0-2) of B HBR skills, robots at world poses `here` (B, 3) heading for the
+    step's waypoint `target` (B, 3) and the skill's end `goal` (B, 3): the contact pattern (B,) int32
+    each episode's rule picks (-1 where the robot is no longer `alive`), the middle elite (B,) to run
+    and whether it has that pattern (B,) bool. taken: (B,) actions already taken (GP-UCB's t =
+    1 + step + 3 taken). keys: (B, 2) this step's PRNG keys."""
+    hbr = skills.hbr
+    task = hbr.middle_task
+    desired = task.normalise(relative_pose(here, target))
+    context = StepContext(hbr=hbr, desired=desired, t=1 + step + STEPS_PER_SKILL * taken, keys=keys)
+    pattern, spare = choose_patterns(rules, context)
+    pattern = jnp.where(alive, pattern, ANY_PATTERN)
+    elite = None
+    if skills.table is not None:
+        elite = plan_batch(skills.table, task, here, goal, pattern, STEPS_PER_SKILL - step)
+    if skills.spare is not None:
+        spared = plan_batch(skills.spare, task, here, goal, pattern, STEPS_PER_SKILL - step)
+        elite = jnp.where(spare, spared, elite)
+    index, found = step_elite(hbr, here, target, pattern, elite=elite)
+    return pattern, index, found
+
+
+def learn_step(skills: Skills, rules: RuleBatch, elite: jax.Array, second: Second) -> tuple[RuleBatch, jax.Array]:
+    """The rules learn from the step the middle elites `elite` (B,) made (`second`); returns them
+    and the step's relative errors (B, 3) (`secondary.relative_error`)."""
+    observation = StepObservation(hbr=skills.hbr, elite=elite, observed=skills.hbr.middle_task.normalise(second.displacement),
+                                  contact_fraction=second.contact_fraction, leg_travel=second.leg_travel)
+    return learn_rules(rules, observation), relative_error_of(observation)
+
+
+def hbr_step(robots, skills: Skills, goal: jax.Array, taken: jax.Array, carry, xs):
+    """One 1 s step of B HBR skills on `robots`: choose (`choose_step`), run one second, learn
+    (`learn_step`). carry: (state, rules, alive (B,) bool); xs: (target (B, 3), step () int32,
+    keys (B, 2)). Returns the carry and the step's record (pattern, elite run or -1, relative
+    errors, invalid reason, pose after, qpos or None)."""
+    state, rules, alive = carry
+    target, step, keys = xs
+    pattern, elite, found = robots.staged(choose_step)(skills, rules, robots.pose(state), target, goal, step, taken,
+                                                       keys, alive)
+    second = robots.second(state, skills.hbr, elite, found, alive)
+    rules, error = robots.staged(learn_step)(skills, rules, elite, second)
+    record = (pattern, jnp.where(alive, elite, -1), error, second.invalid_reason, second.pose, second.qpos)
+    return (second.state, rules, alive & (second.invalid_reason == 0)), record
+
+
+def hbr_action(robots, skills: Skills, state: SimState | None, rules: RuleBatch, action: jax.Array, taken: jax.Array,
+               keys: jax.Array) -> ActionOutcome:
+    """Run the HBR skills `action` (B,) of B episodes step by step from their robots' `state`,
+    choosing each step's contact pattern by each episode's rule (`rules`: what they know so far;
+    GP-UCB's t = 1 + step + 3 x the actions `taken` (B,)), then 1 s neutral. keys: (B, 2) the
+    action's execution keys (each step's are split from them)."""
+    origin = robots.pose(state)
+    targets, goal = robots.staged(skill_targets)(skills, action, origin)  # (B, 3, 3), (B, 3)
+    step_keys = jnp.swapaxes(jax.vmap(lambda k: jax.random.split(k, STEPS_PER_SKILL))(keys), 0, 1)  # (3, B, 2)
+    xs = (jnp.swapaxes(targets, 0, 1), jnp.arange(STEPS_PER_SKILL, dtype=jnp.int32), step_keys)
+    alive = jnp.ones(action.shape[0], bool)
+    (state, rules, alive), (patterns, middle, errors, reasons, poses, qpos) = robots.steps(
+        lambda c, x: hbr_step(robots, skills, goal, taken, c, x), (state, rules, alive), xs)
+    rest = robots.neutral(state)
+    if qpos is not None:  # (3, B, F / 4, 25) steps and (B, F / 4, 25) neutral -> (B, F, 25)
+        steps = jnp.swapaxes(qpos, 0, 1)
+        qpos = jnp.concatenate([steps.reshape(steps.shape[0], -1, steps.shape[-1]), rest.qpos], axis=1)
+    return ActionOutcome(
+        state=rest.state,
+        valid=(reasons == 0).all(axis=0) & rest.valid,
+        invalid_reason=jnp.bitwise_or.reduce(reasons, axis=0) | rest.invalid_reason,
+        poses=jnp.concatenate([jnp.swapaxes(poses, 0, 1), rest.pose[:, None]], axis=1),
+        displacement=relative_pose(origin, rest.pose),
+        patterns=patterns.T,
+        middle_index=middle.T,
+        errors=jnp.swapaxes(errors, 0, 1),
+        rules=rules,
+        qpos=qpos,
+    )
+
+
+def flat_action(robots, state: SimState | None, params: jax.Array) -> ActionOutcome:
+    """Run flat controllers `params` (B, 36), each for 3 s, then 1 s neutral."""
+    last, poses = robots.flat(state, params)
+    batch = params.shape[0]
+    return ActionOutcome(
+        state=last.state,
+        valid=last.valid,
+        invalid_reason=last.invalid_reason,
+        poses=poses,
+        displacement=last.displacement,
+        patterns=jnp.full((batch, STEPS_PER_SKILL), ANY_PATTERN, jnp.int32),
+        middle_index=jnp.full((batch, STEPS_PER_SKILL), -1, jnp.int32),
+        errors=jnp.zeros((batch, STEPS_PER_SKILL, ERROR_DIM), jnp.float32),
+        rules=None,
+        qpos=last.qpos,
+    )

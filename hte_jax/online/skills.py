@@ -1,0 +1,193 @@
+"""The skills an episode plans with, and RTE's GP model of their outcome (`docs/original_code.md` §7.1).
+
+An action is one elite of a repertoire (a top-layer skill of an HBR, or a flat controller). Its
+GP input is the elite's normalised descriptor (2-D for the HBR top layer and Flat-2D, 8-D for
+Flat-8D); its outcome is (dx, dy, cos dtheta, sin dtheta) in the pre-action frame, and the GP's
+prior mean is the repertoire's own prediction: the stored final position and arrival heading.
+`Skills` holds the actions of one repertoire (or APROL's K) with what executing them needs;
+`replayed_models` rebuilds the GPs of finished episodes from what they recorded.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+from hte_jax.geometry import wrap_angle
+from hte_jax.errors import ConfigError
+from hte_jax.hbr.composition import COMPOSITIONS, PatternTable, planning_table
+from hte_jax.hbr.hierarchy import HBR
+from hte_jax.hbr.skill_grid import TopTask
+from hte_jax.hbr.spare import spare_table
+from hte_jax.online.gp import RTE_KERNEL, GPData, Kernel, posterior
+from hte_jax.qd.repertoire import Repertoire
+from hte_jax.sim.controller import NUM_PARAMS
+
+OUTCOME_DIM = 4  # dx, dy, cos dtheta, sin dtheta
+
+
+@struct.dataclass
+class ActionSet:
+    """A = number of actions (the filled elites, padded to a fixed size).
+
+    slots: (A,) int32 repertoire slot of each action. inputs: (A, D) GP inputs (descriptors).
+    prior: (A, 4) the repertoire's predicted outcome. mask: (A,) bool real actions.
+    """
+
+    slots: jax.Array
+    inputs: jax.Array
+    prior: jax.Array
+    mask: jax.Array
+
+    @property
+    def size(self) -> int:
+        return self.mask.shape[0]
+
+
+def action_set(repertoire: Repertoire, extent: float, pad_to: int | None = None) -> ActionSet:
+    """The filled elites of a repertoire whose descriptors start with normalised final (x, y) over
+    +-extent and whose extras hold "arrival_yaw"."""
+    filled = np.flatnonzero(np.asarray(repertoire.filled))
+    size = filled.size if pad_to is None else pad_to
+    if size < filled.size:
+        raise ValueError(f"pad_to={pad_to} is smaller than the {filled.size} elites")
+    descriptors = np.asarray(repertoire.descriptors)[filled]
+    xy = descriptors[:, :2] * 2 * extent - extent
+    yaw = np.asarray(repertoire.extras["arrival_yaw"])[filled]
+    prior = np.concatenate([xy, np.cos(yaw)[:, None], np.sin(yaw)[:, None]], axis=1)
+
+    def pad(values, fill=0):
+        out = np.full((size, *values.shape[1:]), fill, values.dtype)
+        out[: len(values)] = values
+        return jnp.asarray(out)
+
+    mask = np.zeros(size, bool)
+    mask[: filled.size] = True
+    return ActionSet(
+        slots=pad(filled.astype(np.int32), -1),
+        inputs=pad(descriptors.astype(np.float32)),
+        prior=pad(prior.astype(np.float32)),
+        mask=jnp.asarray(mask),
+    )
+
+
+def outcome(displacement: jax.Array) -> jax.Array:
+    """(..., 3) measured (dx, dy, dtheta) -> (..., 4) GP target."""
+    return jnp.concatenate(
+        [displacement[..., :2], jnp.cos(displacement[..., 2:3]), jnp.sin(displacement[..., 2:3])], axis=-1
+    )
+
+
+def displacement_of(prediction: jax.Array, extent: float = 1.5) -> jax.Array:
+    """(..., 4) predicted outcome -> (..., 3) (dx, dy, dtheta), dx and dy clipped to +-extent."""
+    xy = jnp.clip(prediction[..., :2], -extent, extent)
+    theta = jnp.arctan2(jnp.clip(prediction[..., 3], -1, 1), jnp.clip(prediction[..., 2], -1, 1))
+    return jnp.concatenate([xy, wrap_angle(theta)[..., None]], axis=-1)
+
+
+def predict(model: GPData, actions: ActionSet, kernel: Kernel = RTE_KERNEL) -> tuple[jax.Array, jax.Array]:
+    """Predicted outcome (A, 4) and variance (A,) of every action at once."""
+    return posterior(kernel, model, actions.inputs, actions.prior)
+
+
+@jax.jit
+def replayed_models(actions: ActionSet, executed: jax.Array, displacements: jax.Array) -> GPData:
+    """The RTE GPs (B, L) of B episodes that executed actions `executed` (B, L) (-1: none, after the
+    episode ended) and measured `displacements` (B, L, 3) (`episode.History.action` and `.observed`
+    of episodes planning on one repertoire with its stored prior), with room for L observations.
+    Actions whose displacement is not finite (a robot whose simulation failed) are left out."""
+    executed, displacements = jnp.asarray(executed), jnp.asarray(displacements, jnp.float32)
+    mask = (executed >= 0) & jnp.all(jnp.isfinite(displacements), axis=-1)
+    index = jnp.maximum(executed, 0)
+
+    def filled(values):
+        return jnp.where(mask[..., None], values, 0.0).astype(jnp.float32)
+
+    return GPData(
+        inputs=filled(actions.inputs[index]),
+        targets=filled(outcome(jnp.where(mask[..., None], displacements, 0.0))),
+        prior=filled(actions.prior[index]),
+        mask=mask,
+        count=mask.sum(axis=-1).astype(jnp.int32),
+    )
+
+
+@struct.dataclass
+class Skills:
+    """The A actions an episode batch plans with, from one repertoire or from K (APROL's set).
+
+    actions: ActionSet (A,) with the RTE GP's inputs and prior; (K, A) for K repertoires.
+    genotypes: (A, G) top-layer genotypes (G = 9) of an HBR, or controllers (G = 36) of a flat
+      repertoire; (K, A, 36) for K flat repertoires.
+    hbr: the HBR the top genotypes belong to, or None for flat repertoires.
+    table: the HBR's elites grouped by pattern when a step with a chosen contact pattern plans its
+      way to the skill's end (`composition="planned"`), or None for the paper's nearest elite to
+      the next waypoint.
+    spare: the HBR's spare sets (`hbr.spare.spare_table`) that rules with a spare flag plan their
+      patterns' steps among, or None (no such rule in the batch).
+    """
+
+    actions: ActionSet
+    genotypes: jax.Array
+    hbr: HBR | None = None
+    table: PatternTable | None = None
+    spare: PatternTable | None = None
+
+    @property
+    def hierarchical(self) -> bool:
+        return self.hbr is not None
+
+    @property
+    def num_maps(self) -> int:
+        """K, the number of repertoires (1 unless APROL's set)."""
+        return 1 if self.actions.mask.ndim == 1 else self.actions.mask.shape[0]
+
+    @property
+    def map_actions(self) -> ActionSet:
+        """The actions with a leading (K,) repertoire axis (K = 1 for one repertoire)."""
+        return self.actions if self.actions.mask.ndim == 2 else jax.tree.map(lambda x: x[None], self.actions)
+
+    @property
+    def map_genotypes(self) -> jax.Array:
+        """(K, A, G) genotypes with a leading repertoire axis."""
+        return self.genotypes if self.actions.mask.ndim == 2 else self.genotypes[None]
+
+
+def hbr_skills(hbr: HBR, top_task: TopTask, pad_to: int | None = None, composition: str = "planned",
+               spare: bool = False) -> Skills:
+    """The filled top-layer cells of an HBR as actions.
+
+    composition: how a step with a chosen contact pattern picks its elite: "waypoints" (the
+    paper's nearest elite to the next waypoint) or "planned" (`hbr.composition`: a plan among the
+    pattern's elites to the skill's end, with the HBR's measured step model when it has one).
+    spare: also build the spare sets (`hbr.spare`) for rules that run steps from them (planned
+    composition only).
+    """
+    if composition not in COMPOSITIONS:
+        raise ConfigError(f"unknown composition {composition!r}; choose from {', '.join(COMPOSITIONS)}")
+    if spare and composition != "planned":
+        raise ConfigError("variants that run steps from spare sets need --composition planned")
+    actions = action_set(hbr.top, top_task.extent, pad_to)
+    genotypes = hbr.top.genotypes[jnp.maximum(actions.slots, 0)]
+    table = planning_table(hbr) if composition == "planned" else None
+    return Skills(actions=actions, genotypes=genotypes, hbr=hbr, table=table, spare=spare_table(hbr) if spare else None)
+
+
+def flat_skills(repertoire: Repertoire, extent: float, pad_to: int | None = None) -> Skills:
+    """The elites of a flat repertoire (2-D or 8-D descriptors) as actions."""
+    actions = action_set(repertoire, extent, pad_to)
+    genotypes = repertoire.genotypes[jnp.maximum(actions.slots, 0)]
+    if genotypes.shape[-1] != NUM_PARAMS:
+        raise ValueError(f"a flat repertoire holds {NUM_PARAMS}-parameter controllers, got {genotypes.shape[-1]} genes")
+    return Skills(actions=actions, genotypes=genotypes)
+
+
+def flat_skill_maps(repertoires: Repertoire, extent: float) -> Skills:
+    """K flat repertoires (a `Repertoire` with a leading (K,) axis, e.g. APROL's 21) as actions with
+    a leading (K,) axis, each padded to the largest one's number of elites."""
+    count = int(jnp.asarray(repertoires.filled).sum(axis=-1).max())
+    maps = [flat_skills(jax.tree.map(lambda x, k=k: x[k], repertoires), extent, pad_to=count)
+            for k in range(repertoires.filled.shape[0])]
+    return jax.tree.map(lambda *xs: jnp.stack(xs), *maps)
