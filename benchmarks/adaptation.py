@@ -24,8 +24,9 @@ from common import environment, result_path
 
 from hte_jax.flat.store import shipped_flat_path
 from hte_jax.online.arena import maze_robot, start_states
-from hte_jax.online.episode import run_episodes, start_episodes, variant_mode
+from hte_jax.online.episode import run_episodes, start_episodes
 from hte_jax.online.evaluation import load_skills, preset, with_overrides
+from hte_jax.online.variants import batch_rules
 from hte_jax.online.variants import variant as variant_named
 from hte_jax.online.maze import PAPER_MAZE
 from hte_jax.sim.damage import paper_damage_masks
@@ -33,15 +34,17 @@ from hte_jax.sim.damage import paper_damage_masks
 
 def measure(config, skills, variant: str, batch: int, repeats: int, seed: int) -> dict:
     damages = paper_damage_masks()[(np.arange(batch) + 1) % 7]
-    modes = np.full(batch, variant_mode(variant, skills.hierarchical))
+    variant_named(variant).check_skills(skills)
+    rules, which = batch_rules([variant] * batch)
     adaptation = config.adaptation
     robot = maze_robot(PAPER_MAZE)
     start = start_states(PAPER_MAZE, damages)
-    warm = start_episodes(adaptation, skills, start, damages, modes, jax.random.PRNGKey(seed))
+    warm = start_episodes(adaptation, skills, start, damages, rules, np.asarray(which), jax.random.PRNGKey(seed))
     _, first = run_episodes(PAPER_MAZE, adaptation, robot, skills, warm, progress=False, max_steps=1)
     timed = []
     for r in range(repeats):
-        episodes = start_episodes(adaptation, skills, start, damages, modes, jax.random.PRNGKey(seed + 1 + r))
+        episodes = start_episodes(adaptation, skills, start, damages, rules, np.asarray(which),
+                                  jax.random.PRNGKey(seed + 1 + r))
         began = time.perf_counter()
         episodes, timings = run_episodes(PAPER_MAZE, adaptation, robot, skills, episodes, progress=False)
         timed.append({"wall_s": time.perf_counter() - began, "plan_s": timings.plan, "act_s": timings.act,
@@ -78,7 +81,8 @@ def main(argv=None) -> int:
     config = with_overrides(preset(args.preset), overrides)
     kind = variant_named(args.variant).repertoire
     path = shipped_flat_path(kind) if kind != "hbr" else None
-    skills, info = load_skills(path, maps=kind == "aprol", composition=config.composition)
+    skills, info = load_skills(path, maps=kind == "aprol", composition=config.composition,
+                               spare=variant_named(args.variant).spares)
     env = environment()
     rows = [measure(config, skills, args.variant, int(b), args.repeats, args.seed) for b in args.batch_sizes.split(",")]
     print(f"\n{args.variant} on {env['device']}, planner {config.planner.iterations} iterations x {config.planner.roots} trees, "

@@ -6,7 +6,8 @@ import math
 import jax.numpy as jnp
 import numpy as np
 
-from hte_jax.online.actions import ActionSet, displacement_of, empty_model, observe, predict
+from hte_jax.online.gp import add_observation, empty_gp
+from hte_jax.online.skills import OUTCOME_DIM, ActionSet, displacement_of, outcome, predict
 from hte_jax.online.aprol import (
     EXPLORATION,
     INITIAL_SCORE,
@@ -64,7 +65,7 @@ def _toy_maps():
 
 def test_toy_case_picks_the_repertoire_that_matches_the_observations():
     maps = _toy_maps()
-    models = [empty_model(m, 16) for m in maps]
+    models = [empty_gp(16, m.inputs.shape[1], OUTCOME_DIM) for m in maps]
     belief = initial_belief(2, start=0)
 
     def robot(k, a):
@@ -81,7 +82,7 @@ def test_toy_case_picks_the_repertoire_that_matches_the_observations():
         k, a = int(k), int(a)
         chosen.append(k)
         moved = jnp.asarray([*robot(k, a), 0.0], jnp.float32)
-        models[k] = observe(models[k], maps[k], jnp.int32(a), moved)
+        models[k] = add_observation(models[k], maps[k].inputs[a], outcome(moved), maps[k].prior[a])
         belief = update_belief(belief, jnp.int32(k), closeness(maps[k].prior[a], moved))
     # Map 0 is tried first (equal beliefs, lowest index), fails, and map 1 is used from then on.
     assert chosen[0] == 0 and all(k == 1 for k in chosen[1:]), chosen

@@ -15,9 +15,10 @@ from hte_jax.hbr.hierarchy import select_middle
 from hte_jax.geometry import compose_pose, planar_pose
 from hte_jax.hbr.store import load_hbr
 from hte_jax.online.arena import maze_robot
-from hte_jax.online.episode import SECONDS_PER_ACTION, AdaptationConfig
-from hte_jax.online.execute import ONLINE_LIMITS, flat_skills, hbr_skills
-from hte_jax.online.executor import MujocoExecutor, Seconds, run_episode
+from hte_jax.online.action import ONLINE_LIMITS, SECONDS_PER_ACTION
+from hte_jax.online.episode import AdaptationConfig
+from hte_jax.online.external import MujocoExecutor, Seconds, run_episode
+from hte_jax.online.skills import flat_skills, hbr_skills
 from hte_jax.online.maze import PAPER_MAZE
 from hte_jax.online.mcts import PlannerConfig
 from hte_jax.online.secondary import oracle_pattern

@@ -10,8 +10,9 @@ import pytest
 
 from hte_jax.errors import ConfigError
 from hte_jax.hbr.store import load_hbr
-from hte_jax.online.actions import action_set, displacement_of, empty_model, predict
-from hte_jax.online.maze import PAPER_MAZE, GridSpec, Maze
+from hte_jax.online.gp import empty_gp
+from hte_jax.online.skills import OUTCOME_DIM, action_set, displacement_of, predict
+from hte_jax.online.maze import PAPER_MAZE, GridSpec, Maze, distance_field
 from hte_jax.online.mcts import (
     Path,
     PlannerConfig,
@@ -21,18 +22,23 @@ from hte_jax.online.mcts import (
     expand,
     expansion_action,
     geodesic_cost,
-    make_world,
     plan,
     search,
     select,
     transition,
     uct_child,
+    world_of,
 )
 
 CONFIG = PlannerConfig(iterations=300, roots=2, candidates=32)
 OPEN = Maze(obstacles=(), bounds=(0.0, 0.0, 5.0, 3.0), start=(0.5, 1.5, 0.0), goal=(3.0, 1.5))
 OPEN_GRID = GridSpec(cell=0.25)
 
+
+
+def make_world(maze, grid, displacement, mask):
+    """A planner's world over the maze's distance field (what `episode.plan_step` builds)."""
+    return world_of(displacement, mask, distance_field(maze, grid))
 
 def _radial_actions():
     """80 actions: straight moves of 0.1 .. 0.5 m in 16 directions, no turn."""
@@ -75,7 +81,7 @@ def test_open_field_reaches_the_goal_in_the_fewest_actions():
 def test_maze_plans_never_hit_a_wall(start):
     hbr, task, _ = load_hbr()
     actions = action_set(hbr.top, task.extent)
-    mean, _ = predict(empty_model(actions, 8), actions)
+    mean, _ = predict(empty_gp(8, actions.inputs.shape[1], OUTCOME_DIM), actions)
     grid = GridSpec()
     world = make_world(PAPER_MAZE, grid, displacement_of(mean), actions.mask)
     state = jnp.asarray(start, jnp.float32)

@@ -1,28 +1,15 @@
-"""HTE's secondary-descriptor selection: candidate patterns, error measure, UCB (facts 7.3)."""
+"""HTE's secondary-descriptor selection (candidate patterns, error measure, UCB; docs/original_code.md
+§7.3) and the leg sensing of ours."""
 
 import jax.numpy as jnp
 import numpy as np
 
 from hte_jax.online.gp import HTE_KERNEL, add_observation, empty_gp, posterior
-from hte_jax.online.secondary import (
-    CONTACT_EVIDENCE,
-    CONTACT_RATIO,
-    acquisition,
-    allowed_patterns,
-    leg_effects,
-    leg_miss,
-    oracle_pattern,
-    predicted_landing_miss,
-    predicted_miss,
-    relative_error,
-    step_targets,
-    ucb_beta,
-    unusable_legs,
-    usable_pattern,
-)
+from hte_jax.online.secondary import acquisition, allowed_patterns, oracle_pattern, relative_error, ucb_beta
+from hte_jax.online.sensing import CONTACT_EVIDENCE, CONTACT_RATIO, unusable_legs, usable_pattern
 from hte_jax.sim.damage import paper_damage_masks
 
-# the 28 patterns the original excludes (facts 7.3)
+# the 28 patterns the original excludes (docs/original_code.md §7.3)
 EXCLUDED = {0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 12, 14, 16, 17, 18, 20, 24, 28, 32, 33, 34, 35, 36, 40, 48, 49, 56}
 
 
@@ -62,53 +49,6 @@ def test_ucb_prefers_patterns_that_worked_and_explores_the_unknown():
     scores = np.asarray(acquisition(mean, var, 0.0))
     assert scores[list(patterns).index(42)] > scores[list(patterns).index(63)]
     assert np.asarray(var)[list(patterns).index(42)] < np.asarray(var).max()
-
-
-def test_step_targets_and_predicted_miss_hand_values():
-    expected = jnp.asarray([0.9, 0.5, 0.25])
-    observed = jnp.asarray([0.7, 0.6, 0.25])
-    np.testing.assert_allclose(step_targets(expected, observed),
-                               [0.2 / 0.801, 0.1 / 0.001, 0.0, 0.2, 0.1, 0.0, -0.2, 0.1, 0.0], rtol=1e-5, atol=1e-7)
-    landing = predicted_landing_miss(jnp.asarray([0.7, 0.5, 0.5]), jnp.asarray([[0.8, 0.5, 0.5], [0.6, 0.6, 0.5]]),
-                                     jnp.asarray([[-0.1, 0.0, 0.0], [0.0, 0.0, 0.1]]))
-    np.testing.assert_allclose(landing, [0.0, np.sqrt(0.03)], atol=1e-6)
-    desired = jnp.asarray([0.7, 0.5, 0.5])
-    candidates = jnp.asarray([[0.7, 0.5, 0.5], [0.8, 0.5, 0.4]])
-    deviation = jnp.asarray([[0.3, 0.4, 0.0], [0.0, 0.0, 0.0]])
-    std = jnp.asarray([0.1, 0.2])
-    # greedy: candidate 0 is predicted 0.5 off, candidate 1 sqrt(0.02) off
-    np.testing.assert_allclose(predicted_miss(desired, candidates, deviation, std, 0.0), [0.5, np.sqrt(0.02)], rtol=1e-6)
-    # optimism takes 2 std off each predicted deviation, never below 0
-    np.testing.assert_allclose(predicted_miss(desired, candidates, deviation, std, 2.0),
-                               [np.hypot(0.1, 0.2), np.sqrt(0.02)], rtol=1e-6)
-
-
-def test_leg_effects_recover_a_damaged_leg_and_score_candidates():
-    """Deviations that grow only when leg 1 is down: the regression gives leg 1 a large weight and
-    the others about 0 (NumPy's least squares with the same ridge agrees); a candidate that lifts
-    leg 1 then beats a slightly nearer one that puts it down. No data: every weight is 0."""
-    assert np.all(np.asarray(leg_effects(empty_gp(8, 9, 9))) == 0.0)
-    rng = np.random.default_rng(0)
-    gp = empty_gp(40, 9, 9)
-    rows = []
-    for _ in range(30):
-        bits = rng.integers(0, 2, 6).astype(np.float32)
-        deviation = 0.03 + 0.12 * bits[1] + rng.normal(0, 0.005)
-        x = np.concatenate([rng.uniform(0.3, 0.7, 3), bits]).astype(np.float32)
-        y = np.concatenate([np.zeros(3), [deviation, 0.0, 0.0], np.zeros(3)]).astype(np.float32)
-        gp = add_observation(gp, jnp.asarray(x), jnp.asarray(y))
-        rows.append((bits, deviation))
-    effects = np.asarray(leg_effects(gp))
-    assert effects[1] > 0.1 and np.all(np.abs(np.delete(effects, 1)) < 0.02)
-    design = np.array([[1.0, *b] for b, _ in rows])
-    target = np.array([d for _, d in rows])
-    reference = np.linalg.solve(design.T @ design + np.diag([1e-6] + [1.0] * 6), design.T @ target)[1:]
-    np.testing.assert_allclose(effects, reference, atol=1e-4)
-    desired = jnp.asarray([0.6, 0.5, 0.5])
-    candidates = jnp.asarray([[0.61, 0.5, 0.5, 1, 1, 1, 1, 1, 1], [0.64, 0.5, 0.5, 1, 0, 1, 1, 1, 1]], jnp.float32)
-    miss = np.asarray(leg_miss(desired, candidates, jnp.asarray(effects)))
-    np.testing.assert_allclose(miss[1] - 0.04, np.sum(np.maximum(np.delete(effects, 1), 0)), atol=1e-5)
-    assert miss[1] < miss[0]
 
 
 def test_unusable_legs_and_usable_pattern_match_a_numpy_reference():

@@ -1,5 +1,6 @@
-"""The variant table: every variant is one entry, rules are integers in jitted code, and every rule
-gets a context of the documented shapes (tests/test_extending.py runs a new variant through maze_eval)."""
+"""The variant table and the pattern rules: each rule chooses and learns its own way, a batch runs
+only its variants' rules, and no rule but the oracle reads the damage (tests/test_extending.py runs
+a new rule through maze_eval)."""
 
 import chex
 import jax
@@ -8,72 +9,116 @@ import numpy as np
 import pytest
 
 from hte_jax.errors import ConfigError
-from hte_jax.hbr.store import load_hbr
 from hte_jax.online import variants
-from hte_jax.online.episode import variant_mode
-from hte_jax.online.execute import CONTACTS_MODE, SECONDARY_OUTPUTS, choose_patterns
-from hte_jax.online.secondary import JOINT_EVIDENCE, JOINT_RATIO, stuck_legs
-from hte_jax.online.gp import empty_gp
+from hte_jax.online.gp import add_observation
+from hte_jax.online.rules import (
+    CANDIDATE_PATTERNS,
+    AnyPattern,
+    GpUcb,
+    Oracle,
+    RandomPattern,
+    SensedLegs,
+    StepContext,
+    StepObservation,
+    candidate_elites,
+    choose_patterns,
+    learn_rules,
+    start_rules,
+)
+from hte_jax.online.secondary import oracle_pattern
+from hte_jax.online.sensing import JOINT_EVIDENCE, JOINT_RATIO, stuck_legs
+from hte_jax.sim.damage import paper_damage_masks
+
+FORWARD = [0.7, 0.5, 0.5]  # 0.2 m forward, no turn (normalised)
 
 
-def test_the_table_names_every_variant_once_with_a_known_rule():
-    assert {"hte", "perfect-hte", "random-hte", "rte", "2d-rte", "8d-rte", "aprol", "hte-contacts"} <= set(variants.VARIANTS)
+def _context(hbr, batch, seed=0, t=1):
+    return StepContext(hbr=hbr, desired=jnp.asarray([FORWARD] * batch), t=jnp.full(batch, t, jnp.int32),
+                       keys=jax.random.split(jax.random.PRNGKey(seed), batch))
+
+
+def test_the_table_holds_the_paper_variants_and_ours():
+    assert list(variants.VARIANTS) == ["hte", "perfect-hte", "random-hte", "rte", "hte-spare", "perfect-spare",
+                                       "2d-rte", "8d-rte", "aprol"]
     for name, entry in variants.VARIANTS.items():
-        assert entry.name == name and entry.rule in variants.RULES and entry.summary
-        assert entry.hierarchical == (entry.repertoire == "hbr")
-    assert variant_mode("rte", True) == variant_mode("2d-rte", False) == 0  # flat variants run RTE's rule
-    with pytest.raises(ConfigError, match="needs an HBR"):
-        variant_mode("hte", False)
+        assert entry.name == name and entry.summary and entry.hierarchical == (entry.repertoire == "hbr")
+    assert [name for name, v in variants.VARIANTS.items() if v.spares] == ["hte-spare", "perfect-spare"]
     with pytest.raises(ConfigError, match="unknown variant"):
         variants.variant("hte-psychic")
     with pytest.raises(ConfigError, match="already defined"):
-        variants.add_variant(variants.Variant("hte", "gp-ucb", summary="again"))
-    with pytest.raises(ConfigError, match="unknown rule"):
-        variants.add_variant(variants.Variant("hte-x", "psychic", summary="no such rule"))
+        variants.add_variant(variants.Variant("hte", GpUcb(), summary="again"))
+    with pytest.raises(ConfigError, match="PatternRule"):
+        variants.add_variant(variants.Variant("hte-x", "gp-ucb", summary="a name is not a rule"))
     with pytest.raises(ConfigError, match="no contact patterns"):
-        variants.add_variant(variants.Variant("flat-x", "gp-ucb", repertoire="2d", summary="flat with a rule"))
+        variants.add_variant(variants.Variant("flat-x", GpUcb(), repertoire="2d", summary="flat with a rule"))
 
 
-def test_contacts_rule_is_rte_until_a_leg_stays_off_the_floor():
-    hbr, _, _ = load_hbr()
-    desired = jnp.asarray([[0.7, 0.5, 0.5]] * 2)
-    gp = jax.tree.map(lambda x: jnp.broadcast_to(x, (2, *x.shape)), empty_gp(6, 9, SECONDARY_OUTPUTS))
-    modes = jnp.full(2, CONTACTS_MODE, jnp.int32)
-    contacts = np.zeros((2, 2, 6), np.float32)
-    contacts[:, 1] = 0.8  # every leg expected down 0.8 s
-    contacts[:, 0] = 0.9
-    contacts[1, 0, 4] = 0.0  # robot 1's leg 4 never touched the floor
-    chosen, query = choose_patterns(hbr, modes, jnp.asarray([63, 63]), gp, desired, jnp.ones(2, jnp.int32),
-                                    jax.random.split(jax.random.PRNGKey(0), 2), contacts=jnp.asarray(contacts))
-    assert np.asarray(chosen).tolist() == [-1, 63 - (1 << 1)]
-    np.testing.assert_array_equal(query, desired)
+def test_a_batch_holds_each_distinct_rule_once():
+    rules, which = variants.batch_rules(["rte", "hte", "rte", "perfect-hte", "perfect-spare", "hte", "2d-rte"])
+    assert rules == (AnyPattern(), GpUcb(), Oracle(), Oracle(spare=True))
+    assert which == [0, 1, 0, 2, 3, 1, 0]
 
 
-def test_sensed_rule_also_lifts_a_leg_whose_joints_do_not_follow_their_commands():
-    hbr, _, _ = load_hbr()
-    batch = 4
-    desired = jnp.asarray([[0.7, 0.5, 0.5]] * batch)
-    gp = jax.tree.map(lambda x: jnp.broadcast_to(x, (batch, *x.shape)), empty_gp(6, 9, SECONDARY_OUTPUTS))
-    contacts = np.zeros((batch, 2, 6), np.float32)
+def test_every_rule_chooses_in_the_documented_shapes(shipped_hbr):
+    hbr, _ = shipped_hbr
+    damages = paper_damage_masks()[:5]
+    rules = (AnyPattern(), GpUcb(), Oracle(), RandomPattern(), SensedLegs(spare=True))
+    batch = start_rules(rules, np.arange(5), damages, max_actions=4)
+    assert batch.states[1].gp.mask.shape == (5, 12)  # three steps per action
+    pattern, spare = choose_patterns(batch, _context(hbr, 5))
+    chex.assert_shape([pattern, spare], [(5,), (5,)])
+    chex.assert_type([pattern, spare], [jnp.int32, bool])
+    pattern = np.asarray(pattern)
+    assert pattern[0] == -1 and pattern[2] == oracle_pattern(damages[2]) and pattern[4] == -1
+    assert pattern[1] in CANDIDATE_PATTERNS and pattern[3] in CANDIDATE_PATTERNS
+    assert not np.asarray(spare).any()  # nothing sensed yet; the plain oracle does not spare
+    with pytest.raises(ValueError, match="rule indices"):
+        start_rules(rules, np.array([5]), damages[:1], 4)
+
+
+def test_gp_ucb_starts_at_the_lowest_pattern_and_leaves_one_seen_to_fail(shipped_hbr):
+    hbr, _ = shipped_hbr
+    rule = GpUcb()
+    state = rule.init(np.zeros((1, 6), bool), 4)
+    context = _context(hbr, 1)
+    index, found = candidate_elites(hbr, context.desired)
+    lowest = int(CANDIDATE_PATTERNS[np.argmax(np.asarray(found[0]))])
+    assert int(rule.choose(state, context)[0][0]) == lowest  # an empty GP scores alike: the first wins, as in the original
+    bad = hbr.middle.descriptors[index[0, np.argmax(np.asarray(found[0]))]]
+    gp = jax.tree.map(lambda x: x[0], state.gp)
+    for _ in range(3):
+        gp = add_observation(gp, bad, jnp.asarray([3.0, 3.0, 3.0]))
+    failed = state.replace(gp=jax.tree.map(lambda x: x[None], gp))
+    assert int(rule.choose(failed, _context(hbr, 1, t=4))[0][0]) != lowest
+
+
+def test_random_patterns_cover_many_of_the_allowed_ones(shipped_hbr):
+    hbr, _ = shipped_hbr
+    rule = RandomPattern()
+    draws = {int(rule.choose(rule.init(np.zeros((1, 6), bool), 1), _context(hbr, 1, seed=k))[0][0]) for k in range(20)}
+    assert len(draws) > 5 and draws <= set(CANDIDATE_PATTERNS.tolist())
+
+
+def test_sensed_legs_lifts_a_leg_off_the_floor_or_one_that_does_not_follow(shipped_hbr):
+    hbr, _ = shipped_hbr
+    rule = SensedLegs(spare=True)
+    state = rule.init(np.zeros((5, 6), bool), 4)
+    contacts = np.zeros((5, 2, 6), np.float32)
     contacts[:, 1], contacts[:, 0] = 0.8, 0.9  # every foot touched the floor as expected
-    motion = np.zeros((batch, 2, 6), np.float32)
-    motion[:, 1] = 4.0  # 4 rad commanded to every leg
-    motion[:, 0] = 3.6
+    motion = np.zeros((5, 2, 6), np.float32)
+    motion[:, 1], motion[:, 0] = 4.0, 3.6  # 4 rad commanded to every leg, 3.6 moved
     motion[1, 0, 1] = 0.3  # robot 1's leg 1 hardly moved (locked on the floor)
     motion[2, 0, 4] = 0.3  # robot 2's leg 4 too, but it was asked less than the evidence needs
     motion[2, 1, 4] = 0.5 * JOINT_EVIDENCE
-    contacts[3, 0, 2] = 0.0  # robot 3's leg 2 never touched the floor: the contacts still count
-    modes = jnp.full(batch, variants.rule_index("sensed"), jnp.int32)
-    chosen, query = choose_patterns(hbr, modes, jnp.full(batch, 63), gp, desired, jnp.ones(batch, jnp.int32),
-                                    jax.random.split(jax.random.PRNGKey(0), batch), contacts=jnp.asarray(contacts),
-                                    motion=jnp.asarray(motion))
-    assert np.asarray(chosen).tolist() == [-1, 63 - (1 << 4), -1, 63 - (1 << 3)]
-    np.testing.assert_array_equal(query, desired)
-    # the contacts rule alone does not see the locked leg
-    contacts_only = choose_patterns(hbr, jnp.full(batch, CONTACTS_MODE, jnp.int32), jnp.full(batch, 63), gp, desired,
-                                    jnp.ones(batch, jnp.int32), jax.random.split(jax.random.PRNGKey(0), batch),
-                                    contacts=jnp.asarray(contacts), motion=jnp.asarray(motion))[0]
-    assert np.asarray(contacts_only).tolist() == [-1, -1, -1, 63 - (1 << 3)]
+    contacts[3, 0, 2] = 0.0  # robot 3's leg 2 never touched the floor
+    contacts[4, 1, 5] = 0.2  # robot 4's leg 5 off the floor, but too little was expected of it to tell
+    contacts[4, 0, 5] = 0.0
+    state = state.replace(contacts=jnp.asarray(contacts), motion=jnp.asarray(motion))
+    pattern, spare = rule.choose(state, _context(hbr, 5))
+    assert np.asarray(pattern).tolist() == [-1, 63 - (1 << 4), -1, 63 - (1 << 3), -1]
+    assert np.asarray(spare).tolist() == [False, False, False, True, False]  # only a leg off the floor is spared
+    plain = SensedLegs()
+    assert not np.asarray(plain.choose(state, _context(hbr, 5))[1]).any()
 
 
 def test_stuck_legs_against_numpy():
@@ -84,23 +129,50 @@ def test_stuck_legs_against_numpy():
     np.testing.assert_array_equal(stuck_legs(jnp.asarray(motion)), expected)
 
 
-def test_every_rule_sees_a_context_of_the_documented_shapes():
-    hbr, _, _ = load_hbr()
-    batch = 3
-    gp = jax.tree.map(lambda x: jnp.broadcast_to(x, (batch, *x.shape)), empty_gp(6, 9, SECONDARY_OUTPUTS))
-    ctx = variants.step_context(hbr, jnp.full((batch, 3), 0.5), jnp.ones(batch, jnp.int32),
-                                jax.random.split(jax.random.PRNGKey(0), batch), jnp.full(batch, 63, jnp.int32),
-                                jnp.zeros(batch), gp, jnp.zeros((batch, 2, 6)), jnp.zeros((batch, 2, 6)))
-    chex.assert_shape([ctx.every, ctx.found, ctx.variance], (batch, 64))
-    chex.assert_shape([ctx.inputs, ctx.mean], (batch, 64, 9))
-    chex.assert_type([ctx.every, ctx.found], [jnp.int32, bool])
-    chex.assert_shape([ctx.contacts, ctx.motion], (batch, 2, 6))
-    for name, rule in variants.RULES.items():
-        pattern, query = rule(ctx)
-        chex.assert_shape(pattern, (batch,))
-        chex.assert_type(pattern, jnp.int32)
-        assert query is None or query.shape == (batch, 3), name
-        assert ((np.asarray(pattern) >= -1) & (np.asarray(pattern) < 64)).all(), name
-    modes = jnp.arange(batch, dtype=jnp.int32) % len(variants.RULES)
-    pattern, query = variants.choose(ctx, modes)
-    chex.assert_shape([pattern, query], [(batch,), (batch, 3)])
+def test_sensed_legs_learns_what_the_step_sensed_beside_what_its_elite_expected(shipped_hbr):
+    hbr, _ = shipped_hbr
+    rule = SensedLegs()
+    state = rule.init(np.zeros((2, 6), bool), 4)
+    elite = jnp.asarray(np.flatnonzero(np.asarray(hbr.middle.filled))[:2], jnp.int32)
+    sensed = jnp.asarray([[1.0, 0.0, 1.0, 1.0, 1.0, 1.0], [0.5] * 6], jnp.float32)
+    travel = jnp.full((2, 6), 0.25, jnp.float32)
+    observation = StepObservation(hbr=hbr, elite=elite, observed=jnp.zeros((2, 3)), contact_fraction=sensed,
+                                  leg_travel=travel)
+    learnt = rule.learn(rule.learn(state, observation), observation)
+    np.testing.assert_allclose(learnt.contacts[:, 0], 2 * sensed)
+    np.testing.assert_allclose(learnt.contacts[:, 1], 2 * hbr.middle.extras["contact_fraction"][elite])
+    np.testing.assert_allclose(learnt.motion[:, 0], 2 * travel)
+    assert (np.asarray(learnt.motion[:, 1]) > 0).all()  # the elites' controllers command every joint
+
+
+def test_no_rule_but_the_oracle_reads_the_damage(shipped_hbr):
+    """The same batch, with the damages handed to the rules permuted, makes the same choices and
+    learns the same states for every rule but the oracle (the robot does not know its damage)."""
+    hbr, _ = shipped_hbr
+    damages = paper_damage_masks()
+    rules = (AnyPattern(), GpUcb(), RandomPattern(), SensedLegs(spare=True), Oracle())
+    which = np.arange(7) % len(rules)
+    permuted = damages[::-1]
+    elite = jnp.asarray(np.flatnonzero(np.asarray(hbr.middle.filled))[:7], jnp.int32)
+    rng = np.random.default_rng(3)
+    observation = StepObservation(hbr=hbr, elite=elite, observed=jnp.asarray(rng.uniform(0.3, 0.7, (7, 3)), jnp.float32),
+                                  contact_fraction=jnp.asarray(rng.uniform(0, 1, (7, 6)), jnp.float32),
+                                  leg_travel=jnp.asarray(rng.uniform(0, 2, (7, 6)), jnp.float32))
+    runs = []
+    for given in (damages, permuted):
+        batch = start_rules(rules, which, given, max_actions=3)
+        choices = []
+        for step in range(3):
+            choices.append(choose_patterns(batch, _context(hbr, 7, seed=step, t=step + 1)))
+            batch = learn_rules(batch, observation)
+        runs.append((choices, batch))
+    (first, first_batch), (second, second_batch) = runs
+    not_oracle = which != 4
+    for (p1, s1), (p2, s2) in zip(first, second):
+        np.testing.assert_array_equal(np.asarray(p1)[not_oracle], np.asarray(p2)[not_oracle])
+        np.testing.assert_array_equal(np.asarray(s1)[not_oracle], np.asarray(s2)[not_oracle])
+    for rule, a, b in zip(rules[:4], first_batch.states[:4], second_batch.states[:4]):
+        chex.assert_trees_all_equal(a, b)
+    # the oracle does read it: the permuted damages move its patterns
+    oracle_rows = np.flatnonzero(which == 4)
+    assert (np.asarray(first[0][0])[oracle_rows] != np.asarray(second[0][0])[oracle_rows]).any()

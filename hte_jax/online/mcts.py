@@ -401,8 +401,3 @@ def world_of(displacement: jax.Array, mask: jax.Array, field: jax.Array) -> Worl
         usable=jnp.argsort(~mask, stable=True).astype(jnp.int32),
         count=mask.sum().astype(jnp.int32),
     )
-
-
-def make_world(maze: Maze, grid: GridSpec, displacement: jax.Array, mask: jax.Array) -> World:
-    """A World for `plan`: predicted displacements (A, 3), usable actions (A,), and the maze's distance field."""
-    return world_of(displacement, mask, distance_field(maze, grid))

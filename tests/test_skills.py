@@ -1,10 +1,11 @@
-"""RTE's model of the actions: repertoire prior, observations, prediction for all actions at once."""
+"""RTE's model of the skills: repertoire prior, observations, prediction for all actions at once."""
 
 import jax.numpy as jnp
 import numpy as np
 
 from hte_jax.hbr.store import load_hbr
-from hte_jax.online.actions import action_set, displacement_of, empty_model, observe, outcome, predict
+from hte_jax.online.gp import add_observation, empty_gp
+from hte_jax.online.skills import OUTCOME_DIM, action_set, displacement_of, outcome, predict
 
 
 def test_prior_is_the_repertoire_and_observations_correct_it():
@@ -12,7 +13,7 @@ def test_prior_is_the_repertoire_and_observations_correct_it():
     actions = action_set(hbr.top, task.extent, pad_to=3000)
     filled = int(hbr.top.filled.sum())
     assert actions.size == 3000 and int(actions.mask.sum()) == filled
-    model = empty_model(actions, capacity=80)
+    model = empty_gp(80, actions.inputs.shape[1], OUTCOME_DIM)
     mean, var = predict(model, actions)
     stored = np.asarray(task.denormalise(hbr.top.descriptors[actions.slots[:filled]]))
     np.testing.assert_allclose(np.asarray(displacement_of(mean))[:filled, :2], stored, atol=1e-5)
@@ -20,7 +21,7 @@ def test_prior_is_the_repertoire_and_observations_correct_it():
     np.testing.assert_allclose(np.asarray(displacement_of(mean))[:filled, 2], yaw, atol=1e-5)
     # the damaged robot did (0.1, 0, 0) instead: that action now predicts it, far actions keep their prior
     index = 5
-    model = observe(model, actions, index, jnp.asarray([0.1, 0.0, 0.0]))
+    model = add_observation(model, actions.inputs[index], outcome(jnp.asarray([0.1, 0.0, 0.0])), actions.prior[index])
     mean, var = predict(model, actions)
     np.testing.assert_allclose(np.asarray(mean[index]), outcome(jnp.asarray([0.1, 0.0, 0.0])), atol=0.1)
     assert float(var[index]) < 0.01 * 0.2

@@ -1,0 +1,89 @@
+"""Wall time of one `maze_eval` action: planning and acting of one batch, per action, on this machine.
+
+Runs the HBR batch of a maze_eval configuration (a --protocol's variants on its damages, --preset
+planner) for --actions actions, --repeats times, and reports the median planning and acting
+seconds per action after the first (compiling) action of each repeat. It calls only
+`evaluation.run_batch`, so the same file times two versions of the library in one run
+(`--tree DIR`, repeatable: each run imports `hte_jax` from that checkout, in alternation), e.g.
+before and after a refactor:
+
+    python benchmarks/action_time.py --protocol hte-jax
+    python benchmarks/action_time.py --protocol hte-jax --tree /path/to/old/checkout --tree .
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+
+
+def measure(protocol: str, preset: str, actions: int, seed: int) -> dict:
+    """One run in this process: the timings of one batch (first action excluded)."""
+    from hte_jax.online.evaluation import batches, preset as preset_named, protocol_overrides, run_batch, with_overrides
+
+    overrides = protocol_overrides(protocol)
+    overrides.update(max_actions=str(actions), seed=str(seed))
+    config = with_overrides(preset_named(preset), overrides)
+    _, path, variants = next(b for b in batches(config) if b[1] is None or b[1].endswith("hbr.npz"))
+    result = run_batch(config, path, variants, progress=False)
+    plan, act = result.timings.plan, result.timings.act
+    return {"episodes": len(result.variants), "variants": variants, "plan_s": plan, "act_s": act,
+            "plan_median_s": float(np.median(plan[1:])), "act_median_s": float(np.median(act[1:])),
+            "first_action_s": plan[0] + act[0]}
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--protocol", default="hte-jax", help="maze_eval protocol whose HBR batch is timed")
+    parser.add_argument("--preset", default="cpu")
+    parser.add_argument("--actions", type=int, default=4, help="actions per run (the first compiles)")
+    parser.add_argument("--repeats", type=int, default=3, help="runs per tree, in alternation")
+    parser.add_argument("--tree", action="append", default=None, help="a checkout to time (repeatable; default: this one)")
+    parser.add_argument("--out", default=None, help="JSON path (default benchmarks/results/...)")
+    parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
+    if args.child:  # one measurement, printed as JSON for the parent
+        print(json.dumps(measure(args.protocol, args.preset, args.actions, seed=0)))
+        return 0
+    trees = [Path(t).resolve() for t in (args.tree or [HERE.parent])]
+    runs = {str(t): [] for t in trees}
+    for _ in range(args.repeats):
+        for tree in trees:
+            env = {**os.environ, "PYTHONPATH": str(tree)}
+            command = [sys.executable, str(HERE / "action_time.py"), "--child", "--protocol", args.protocol,
+                       "--preset", args.preset, "--actions", str(args.actions)]
+            done = subprocess.run(command, cwd=tree, env=env, capture_output=True, text=True)
+            if done.returncode != 0:
+                sys.exit(f"error: the run in {tree} failed: {done.stderr.strip().splitlines()[-1:]}")
+            runs[str(tree)].append(json.loads(done.stdout.strip().splitlines()[-1]))
+    sys.path.insert(0, str(HERE))
+    from common import environment, result_path
+
+    env = environment()
+    print(f"\none {args.protocol} action ({args.preset} preset), median over {args.repeats} runs x "
+          f"{args.actions - 1} actions, on {env['device']}")
+    print(f"{'tree':<40} {'episodes':>8} {'plan s':>8} {'act s':>8} {'action s':>9}")
+    rows = {}
+    for tree, measured in runs.items():
+        plan = float(np.median([m["plan_median_s"] for m in measured]))
+        act = float(np.median([m["act_median_s"] for m in measured]))
+        rows[tree] = {"episodes": measured[0]["episodes"], "variants": measured[0]["variants"], "plan_median_s": plan,
+                      "act_median_s": act, "action_median_s": plan + act, "runs": measured}
+        print(f"{tree[-40:]:<40} {measured[0]['episodes']:>8} {plan:>8.2f} {act:>8.2f} {plan + act:>9.2f}")
+    out = args.out or result_path(f"action_time_{args.protocol}_{args.preset}", env)
+    Path(out).write_text(json.dumps({"environment": env, "protocol": args.protocol, "preset": args.preset,
+                                     "actions": args.actions, "repeats": args.repeats, "trees": rows}, indent=2))
+    print(f"wrote {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
