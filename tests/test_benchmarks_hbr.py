@@ -36,20 +36,3 @@ def test_determinism_benchmark(tmp_path):
     assert result["identical"] is True  # on the CPU a seed is bit-reproducible
     assert result["elites"][0] == result["elites"][1] > 0 and len(result["wall_s"]) == 2
     assert "identical=True" in stdout
-
-
-def test_middle_frontier_benchmark(tmp_path):
-    out = tmp_path / "frontier.json"
-    stdout = run_benchmark("middle_frontier.py", "--batch", "8", "--generations", "2", "--block", "1", "--samples", "1",
-                           "--bins", "4", "--out", str(out))
-    result = json.loads(out.read_text())
-    assert [row["turn"] for row in result["stored_middle"]] == [[0.0, 0.25], [0.25, 0.5], [0.5, 0.75], [0.75, 1.0]]
-    for name, genes in (("hbr_middle", 18), ("flat", 36)):
-        search = result["searches"][name]
-        assert search["genes"] == genes and search["evaluations"] == 8 * 3 and len(search["curve"]) == 2
-        speeds = [s for s in search["best_speed"] if s is not None]
-        assert len(search["best_speed"]) == 4 and speeds and all(0 <= s <= 0.5 * 2**0.5 for s in speeds)
-        # The best speed per bin never falls over generations (a grid keeps its elites).
-        first, last = (search["curve"][k]["best_speed"] for k in (0, -1))
-        assert all(b is None or (a is not None and a >= b) for a, b in zip(last, first))
-    assert "HBR repr" in stdout
