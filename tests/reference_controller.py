@@ -1,4 +1,4 @@
-"""Plain NumPy (float64, explicit loops) reference of the original controller, facts section 2.1.
+"""Plain NumPy (float64, explicit loops) reference of the original controller, `docs/original_code.md` §2.1.
 
 Written from the specification, independently of hte_jax.sim.controller, to test it.
 """

@@ -1,4 +1,4 @@
-"""A flat repertoire's evaluation: one 36-parameter controller run for 3 s (paper section 5; facts section 6).
+"""A flat repertoire's evaluation: one 36-parameter controller run for 3 s (paper section 5; `docs/original_code.md` §6).
 
 Descriptor, "2d": final (x, y) in the start frame normalised to [0, 1] over [-extent, extent] m
 (the HBR top layer's grid). "8d": the same (x, y) plus one contact bit per leg, 1 when the foot

@@ -1,4 +1,4 @@
-"""Bottom layer: leg primitives (paper section 3; facts section 3).
+"""Bottom layer: leg primitives (paper section 3; `docs/original_code.md` §3).
 
 A primitive is the 6 controller parameters of one leg: (a, p, d) of the hip signal and (a, p, d)
 of the vertical signal. It is evaluated on the full standing robot for 1 s with a leg drawn at
@@ -9,7 +9,7 @@ Descriptor (each normalised to [0, 1]; outside the range the individual is inval
     signal rises (the hip angle falls): R * sum over steps with the foot down at both ends of
     -(q_hip[t+1] - q_hip[t]), R = 0.176 m the foot's horizontal reach. It is leg-agnostic, and
     after a whole period it measures the stroke that propels the body (the original's
-    start-to-end displacement is ~0 after exactly one period, facts section 14.7).
+    start-to-end displacement is ~0 after exactly one period, `docs/original_code.md` §14.7).
   height: the signed extreme of the foot's height relative to the body, minus its initial value.
   duty: the vertical signal's duty gene quantised to 4 levels {0, 1/3, 2/3, 1} (floor(4 d), with
     d = 1 in the top level; the original maps d = 1 to 0).

@@ -1,4 +1,4 @@
-"""Middle layer: 1 s body motions (paper section 3; facts section 4).
+"""Middle layer: 1 s body motions (paper section 3; `docs/original_code.md` §4).
 
 Genotype: 18 numbers, for each leg a target (swing, height, duty) in the bottom layer's
 descriptor space; each is mapped to its nearest bottom primitive and the six primitives form

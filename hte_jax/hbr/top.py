@@ -1,4 +1,4 @@
-"""Top layer: 3 s omnidirectional skills on a 100 x 100 grid (paper section 3; facts section 5).
+"""Top layer: 3 s omnidirectional skills on a 100 x 100 grid (paper section 3; `docs/original_code.md` §5).
 
 Genotype: three middle-layer primary descriptors (9 numbers), decoded and executed by
 `hierarchy.execute_skill` from the standing state, choosing middle elites by primary descriptor

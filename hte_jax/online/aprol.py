@@ -1,5 +1,5 @@
 """APROL (Kaushik et al. 2020) in the maze: K prior repertoires, one RTE GP each, and after every
-plan a choice of repertoire and skill by likelihood times an upper confidence bound (facts section 8).
+plan a choice of repertoire and skill by likelihood times an upper confidence bound (`docs/original_code.md` §8).
 
 The planner plans with the repertoire chosen last. Its plan asks for a displacement: the GP-predicted
 outcome of the planned skill. Every skill k, a of every repertoire then gets a log score
@@ -12,7 +12,7 @@ with mu, var the GP posterior of repertoire k at skill a, m_k the repertoire's m
 exp(-5 |predicted - observed|) over its trials and n_k its trial count. The best-scoring skill runs,
 and only its repertoire's GP and belief learn from the outcome.
 
-Fixed against the original (facts section 8 and docs/design.md):
+Fixed against the original (`docs/original_code.md` §8 and docs/design.md):
 - trial counts n_k grow with every trial (the original never incremented them);
 - closeness compares like with like: the repertoire's predicted (dx, dy, cos, sin) in metres with
   the observed one (the original mixed a normalised descriptor with metres);

@@ -1,4 +1,4 @@
-"""Jitted Gaussian processes on fixed-capacity, masked observation buffers (facts section 7).
+"""Jitted Gaussian processes on fixed-capacity, masked observation buffers (`docs/original_code.md` §7).
 
 A `GPData` buffer has room for `capacity` observations and a mask of the filled rows, so adding
 points never changes an array shape and never retraces. Padded rows are decoupled from the real
@@ -61,7 +61,7 @@ def covariance(kind: str, length_scale, variance, a: jax.Array, b: jax.Array) ->
     return variance * (1.0 + s5r + 5.0 * r2 / 3.0) * jnp.exp(-s5r)
 
 
-# The two GPs of the paper (facts 7.1 and 7.3).
+# The two GPs of the paper (`docs/original_code.md` §7.1, §7.3).
 RTE_KERNEL = Kernel("squared_exponential", length_scale=0.03, variance=0.01, noise=0.001)
 HTE_KERNEL = Kernel("matern52", length_scale=1.0, variance=0.05, noise=0.001)
 

@@ -1,4 +1,4 @@
-"""The maze of the paper's experiment (facts section 9) and the planner's 2-D geometry.
+"""The maze of the paper's experiment (`docs/original_code.md` §9) and the planner's 2-D geometry.
 
 Obstacles are axis-aligned boxes (x1, y1, x2, y2). `load_maze` reads a maze from a JSON file
 (`maze_to_dict`'s layout) or by the name of one shipped in assets/mazes/ ("paper", "two_rooms").
@@ -191,7 +191,7 @@ def reached_goal(maze: Maze, points: jax.Array) -> jax.Array:
     return jnp.linalg.norm(points - jnp.asarray(maze.goal), axis=-1) < maze.goal_radius
 
 
-# Offsets tried when the robot stands where the planner's disc overlaps an obstacle (facts 9).
+# Offsets tried when the robot stands where the planner's disc overlaps an obstacle (`docs/original_code.md` §9).
 _ESCAPES = np.array(sorted(((dx, dy) for dx in (-0.5, 0.0, 0.5) for dy in (-0.5, 0.0, 0.5)),
                            key=lambda o: (o[0] ** 2 + o[1] ** 2, o)), np.float32)
 

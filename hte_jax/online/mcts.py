@@ -1,4 +1,4 @@
-"""RTE's planner: Monte-Carlo tree search over the repertoire's actions, jitted and batched (facts 7.2).
+"""RTE's planner: Monte-Carlo tree search over the repertoire's actions, jitted and batched (`docs/original_code.md` §7.2).
 
 `search` grows a tree by `simulate`, one simulation at a time, each in four steps (the structure of
 mctx's search):

@@ -1,4 +1,4 @@
-"""Unstructured archive of fixed capacity (the original's sferes `Archive`, facts section 5).
+"""Unstructured archive of fixed capacity (the original's sferes `Archive`, `docs/original_code.md` §5).
 
 Rules for one candidate c against the archive, with l the distance threshold ("l value"),
 k = 15 and eps = 0.1 (Euclidean distances in descriptor space):

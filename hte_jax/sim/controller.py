@@ -1,4 +1,4 @@
-"""Open-loop periodic controllers of the original HTE code (facts section 2).
+"""Open-loop periodic controllers of the original HTE code (`docs/original_code.md` §2).
 
 Every joint follows a 100-sample periodic signal of period 1 s: a square wave of
 duty d and amplitude a, smoothed by a circular Gaussian (sigma = 3 samples, 21 taps),

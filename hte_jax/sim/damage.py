@@ -8,7 +8,7 @@ models (`RobotConfig.damage_model`) choose the pose:
   the hip and 0.045 m outside it, and cannot reach the floor unless the body tilts by about
   80 degrees (training rollouts are invalid past 45).
 - "locked": the standing pose (all three joints at 0), the foot on the floor. This is most
-  likely what the original code simulated (facts section 10: DART's initial position was
+  likely what the original code simulated (`docs/original_code.md` §10: DART's initial position was
   never applied before the joints were locked).
 
 The paper's seven conditions are each single leg 0..5 and the two middle legs 1+4.
