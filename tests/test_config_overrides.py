@@ -203,5 +203,8 @@ def test_configurations_stored_flat_read_as_the_nested_ones():
         assert cls.from_dict(config.to_dict()) == config
         added = {"collision_reward": -1000.0, "goal_reward": 100.0, "reflex_release": 0.0, "reflex_rate": 0.0,
                  "maze": ""} if cls is evaluation.EvalConfig else {}  # settings added since, at their defaults
-        assert config.to_dict() == {**old, **added}
+        retired = evaluation.RETIRED if cls is evaluation.EvalConfig else {}  # settings of levers that left
+        assert config.to_dict() == {**{k: v for k, v in old.items() if k not in retired}, **added}
     assert hbr_training.normalised_config(OLD_HBR) == OLD_HBR and flat_training.normalised_config(OLD_FLAT) == OLD_FLAT
+    with pytest.raises(ConfigError, match="left hte-jax"):
+        evaluation.EvalConfig.from_dict({**OLD_EVAL, "optimism": 1.0})
