@@ -111,7 +111,7 @@ def _check_moving(frames):
 
 
 @pytest.mark.filterwarnings("ignore:os.fork:RuntimeWarning")  # imageio-ffmpeg's reader is a subprocess
-def test_maze_eval_video_writes_the_episode_video(runs, gl_env):
+def test_maze_eval_video_writes_the_episode_video(gl_env, runs):
     on, _, _ = runs
     frames = _video_frames(on / "videos" / "hte_ep0_leg1.mp4")
     # 8 simulated seconds at 4x and 25 frames/s, the end, then the end held 1 s
@@ -124,7 +124,7 @@ def _render_episode(*args, env=PLAIN):
                           capture_output=True, text=True, timeout=900)
 
 
-def test_render_episode_cli_writes_a_gif(runs, tmp_path, gl_env):
+def test_render_episode_cli_writes_a_gif(gl_env, runs, tmp_path):
     on, _, _ = runs
     out = tmp_path / "episode.gif"
     proc = _render_episode(str(on), "--episode", "0", "--camera", "track", "--width", "64", "--height", "48", "--fps", "5",
