@@ -61,11 +61,12 @@ def gl_env():
 
     try:
         backend = gl.choose()
+        return {"MUJOCO_GL": backend, gl.CHECKED: backend}
     except gl.RenderError as error:
-        if os.environ.get(REQUIRE_GL) == "1":
-            pytest.fail(f"{REQUIRE_GL}=1 and no frame can be drawn: {error}", pytrace=False)
-        pytest.skip(f"needs OpenGL: {error}")
-    return {"MUJOCO_GL": backend, gl.CHECKED: backend}
+        reason = str(error)
+    if os.environ.get(REQUIRE_GL) == "1":
+        pytest.fail(f"{REQUIRE_GL}=1 and no frame can be drawn: {reason}", pytrace=False)
+    pytest.skip(f"needs OpenGL: {reason}")
 
 
 @pytest.fixture(scope="session")

@@ -11,7 +11,7 @@ The choice (`choose`):
 * `MUJOCO_GL` set by the user is kept as given (egl, osmesa, glfw or glx; another value is a
   one-line error) and tried like a candidate, so that one that cannot start is one line, not a
   traceback at import.
-* unset: EGL, then OSMesa, the first that starts a context. EGL runs on a GPU driver and, on a
+* unset: EGL, then OSMesa, the first that draws a frame. EGL runs on a GPU driver and, on a
   CPU machine, on Mesa's software EGL (Debian `libegl-mesa0`, llvmpipe); OSMesa is Mesa's
   off-screen software renderer (Debian `libosmesa6`). GLFW and GLX need a display: not tried.
 * none starts: `setup()` sets `MUJOCO_GL=disable`, so mujoco imports without any GL library and
