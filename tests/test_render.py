@@ -21,7 +21,6 @@ from PIL import Image
 from hte_jax.errors import ConfigError
 from hte_jax.sim.robot import load_robot
 from hte_jax.sim.rollout import RolloutSpec, rollout, standing_state
-
 from hte_jax.viz import gl
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
