@@ -7,15 +7,21 @@ camera) and the clip is written as MP4. Prints a table and writes JSON (median o
     python benchmarks/render_speed.py                       # 10 s at 480 x 360, 25 fps
     python benchmarks/render_speed.py --width 960 --height 720 --repeats 5
 
-MUJOCO_GL defaults to osmesa (egl where /dev/nvidia0 exists), as in `experiments.render`.
+MUJOCO_GL is chosen as in `experiments.render` (hte_jax/viz/gl.py: EGL, then OSMesa) and recorded.
 """
 
 from __future__ import annotations
 
 import os
+import sys
 
-if "MUJOCO_GL" not in os.environ:  # before mujoco is imported
-    os.environ["MUJOCO_GL"] = "egl" if os.path.exists("/dev/nvidia0") else "osmesa"
+from hte_jax.viz import gl  # imports no mujoco
+
+try:
+    gl.setup()  # MUJOCO_GL, before mujoco is imported
+except gl.RenderError as error:  # MUJOCO_GL is not a renderer
+    print(f"error: {error}", file=sys.stderr)
+    sys.exit(2)
 
 import argparse  # noqa: E402
 import json  # noqa: E402
@@ -47,6 +53,10 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     if args.fps < 1 or CONTROL_HZ % args.fps or args.seconds < 1 or args.repeats < 1:
         parser.error("--fps must divide 100; --seconds and --repeats must be >= 1")
+    try:
+        gl.require()
+    except gl.RenderError as error:
+        parser.exit(2, f"error: {error}\n")
 
     repertoire = load_flat(shipped_flat_path("2d"))[0][0]
     params = jnp.asarray(np.asarray(repertoire.genotypes)[np.asarray(repertoire.filled)][:1])

@@ -17,52 +17,34 @@ replay files under <run>/replays/; --episode I is the variant's I-th episode of 
 whole maze seen from above (or --camera track), the goal in green, the path so far as a blue
 trail, and a panel naming the action, the executed skill and each step's contact pattern;
 --speed simulated seconds per video second (default 4). MP4 through imageio-ffmpeg, GIF through
-Pillow (by the --out suffix). Headless OpenGL:
-MUJOCO_GL=egl where a GPU driver is present, otherwise osmesa (Debian package libosmesa6); the
-default is chosen for you when MUJOCO_GL is unset. Bad input gives a one-line error and exit 2.
+Pillow (by the --out suffix).
+
+Headless OpenGL, chosen for you when MUJOCO_GL is unset: EGL (a GPU driver, or Mesa's software
+EGL on a CPU), else OSMesa (Debian package libosmesa6); when neither starts, one line says what to
+install (hte_jax/viz/gl.py). Arguments and files are checked before OpenGL is needed (--help never
+needs it). Bad input gives a one-line error and exit 2.
 """
 
 from __future__ import annotations
 
-import os
+import argparse
 import sys
+from pathlib import Path
 
-GL_BACKENDS = ("egl", "osmesa", "glfw", "glx")
-if "MUJOCO_GL" not in os.environ:  # must be set before mujoco is imported
-    os.environ["MUJOCO_GL"] = "egl" if os.path.exists("/dev/nvidia0") else "osmesa"
-elif __name__ == "__main__" and os.environ["MUJOCO_GL"].lower().strip() not in GL_BACKENDS:
-    print(f"error: MUJOCO_GL={os.environ['MUJOCO_GL']!r} is not a renderer; use egl (GPU driver) or osmesa (CPU, "
-          "Debian package libosmesa6), or unset it", file=sys.stderr)
-    sys.exit(2)
+import numpy as np
+from tqdm.auto import tqdm
 
-import argparse  # noqa: E402
-import functools  # noqa: E402
-from pathlib import Path  # noqa: E402
+from experiments.cli import input_errors
+from hte_jax.errors import ConfigError, require_choice, require_int, require_number
+from hte_jax.qd.io import CheckpointError
+from hte_jax.viz import gl
+from hte_jax.viz.camera import CAMERAS, Camera
 
-import jax  # noqa: E402
-import jax.numpy as jnp  # noqa: E402
-import numpy as np  # noqa: E402
-from tqdm.auto import tqdm  # noqa: E402
-
-from experiments.cli import input_errors  # noqa: E402
-from hte_jax.errors import ConfigError  # noqa: E402
-from hte_jax.flat.comparison import resolve  # noqa: E402
-from hte_jax.flat.store import load_flat, shipped_flat_path  # noqa: E402
-from hte_jax.hbr.hierarchy import ANY_PATTERN, execute_skill  # noqa: E402
-from hte_jax.hbr.middle import NUM_PATTERNS  # noqa: E402
-from hte_jax.hbr.store import load_hbr  # noqa: E402
-from hte_jax.online.recording import REPLAY_DIR, Replay, load_replay, recorded_episodes, replay_path  # noqa: E402
-from hte_jax.qd.io import CheckpointError  # noqa: E402
-from hte_jax.sim.damage import parse_damage  # noqa: E402
-from hte_jax.sim.robot import DAMAGE_MODELS, RobotConfig, load_robot  # noqa: E402
-from hte_jax.sim.rollout import RolloutSpec, rollout, standing_state  # noqa: E402
-from hte_jax.viz.episode import frame_states, render_episode  # noqa: E402
-from hte_jax.viz.render import (  # noqa: E402
-    CAMERAS, Camera, RenderError, label, open_renderer, render_frames, render_model, tile, write_video,
-)
-
+# Nothing above imports mujoco or OpenGL: gl.setup() must choose MUJOCO_GL first. The modules that
+# simulate and render are imported inside the commands, after it.
 CONTROL_HZ = 100
-SKILL_STEPS = 300  # 3 s
+DAMAGE_MODELS = "raised (the damaged leg blocked in the air, default) or locked (its standing pose)"
+VIDEO_SUFFIXES = (".mp4", ".gif")
 
 
 def parser() -> argparse.ArgumentParser:
@@ -75,7 +57,7 @@ def parser() -> argparse.ArgumentParser:
     s.add_argument("--count", type=int, default=6, help="skills, spread evenly over the repertoire (default 6)")
     s.add_argument("--skills", default=None, help="comma-separated skill numbers (0 .. filled - 1) instead of --count")
     s.add_argument("--damage", default="none", help="none, leg0..leg5, legs<i>+<j> (default none)")
-    s.add_argument("--damage-model", default="raised", help=f"one of {', '.join(DAMAGE_MODELS)}")
+    s.add_argument("--damage-model", default="raised", help=DAMAGE_MODELS)
     s.add_argument("--camera", default="track", help=f"one of {', '.join(CAMERAS)}")
     s.add_argument("--width", type=int, default=320)
     s.add_argument("--height", type=int, default=240)
@@ -106,44 +88,45 @@ def parser() -> argparse.ArgumentParser:
     return p
 
 
-def _chosen(count: int, filled: int, skills: str | None) -> np.ndarray:
-    if skills is not None:
-        try:
-            chosen = np.asarray([int(k) for k in skills.split(",")], np.int64)
-        except ValueError:
-            raise ConfigError(f"--skills must be comma-separated integers, got {skills!r}") from None
-        bad = chosen[(chosen < 0) | (chosen >= filled)]
-        if bad.size:
-            raise ConfigError(f"skill {int(bad[0])} out of range: the repertoire holds {filled} skills (0 .. {filled - 1})")
-        return chosen
-    if count < 1:
-        raise ConfigError(f"--count must be >= 1, got {count}")
-    return np.unique(np.linspace(0, filled - 1, min(count, filled)).round().astype(np.int64))
+def _skill_numbers(text: str | None) -> list[int] | None:
+    if text is None:
+        return None
+    try:
+        return [int(k) for k in text.split(",")]
+    except ValueError:
+        raise ConfigError(f"--skills must be comma-separated integers, got {text!r}") from None
 
 
-@functools.partial(jax.jit, static_argnames=("every",))
-def _flat_states(robot, params, damage, every: int):
-    start = standing_state(robot, damage)
-    spec = RolloutSpec(num_steps=SKILL_STEPS, record_contacts=False, record_qpos_every=every)
-    result = rollout(robot, params, damage, start, spec)
-    return jnp.concatenate([result.qpos, result.final_state.qpos[:, None]], axis=1)
-
-
-@functools.partial(jax.jit, static_argnames=("every",))
-def _hbr_states(robot, hbr, genotypes, damage, every: int, patterns=None):
-    result = execute_skill(robot, hbr, genotypes, standing_state(robot, damage), damage, patterns, record_every=every)
-    steps = jnp.swapaxes(result.steps.qpos, 0, 1)  # (B, 3, F, 25)
-    return jnp.concatenate([steps.reshape(steps.shape[0], -1, steps.shape[-1]), result.state.qpos[:, None]], axis=1)
-
-
-def _setup(args):
+def check_arguments(args) -> None:
+    """The checks that need no simulation and no OpenGL (run before the GL backend is chosen)."""
+    require_int("--width", args.width)
+    require_int("--height", args.height)
+    require_choice("--camera", args.camera, CAMERAS)
+    if args.out is not None and Path(args.out).suffix not in VIDEO_SUFFIXES:
+        raise ConfigError(f"--out must end in .mp4 or .gif, got {args.out!r}")
+    if args.command == "episode":
+        if args.fps < 1:
+            raise ConfigError(f"--fps must be >= 1, got {args.fps}")
+        require_number("--speed", args.speed, 0.0, open_low=True)
+        if not Path(args.run).is_dir():
+            raise ConfigError(f"{args.run}: no such run folder")
+        return
     if args.fps < 1 or CONTROL_HZ % args.fps:
         raise ConfigError(f"--fps must divide {CONTROL_HZ}, got {args.fps}")
-    damage = parse_damage(args.damage)
-    return damage, load_robot(RobotConfig(damage_model=args.damage_model)), CONTROL_HZ // args.fps
+    require_int("--columns", args.columns)
+    if args.hbr is not None and not Path(args.hbr).exists():
+        raise CheckpointError(f"{args.hbr}: no such HBR file")
+    if args.command == "skills":
+        if args.flat is not None and args.flat not in ("2d", "8d") and not Path(args.flat).exists():
+            raise CheckpointError(f"{args.flat}: no such repertoire file")
+        if _skill_numbers(args.skills) is None and args.count < 1:
+            raise ConfigError(f"--count must be >= 1, got {args.count}")
 
 
 def _load_hbr(path_arg):
+    from hte_jax.flat.comparison import resolve
+    from hte_jax.hbr.store import load_hbr
+
     path = None if path_arg is None else resolve(path_arg)
     if path is not None and not Path(path).is_file():
         raise CheckpointError(f"{path}: no such HBR file")
@@ -151,79 +134,57 @@ def _load_hbr(path_arg):
     return hbr, np.asarray(hbr.top.genotypes)[np.asarray(hbr.top.filled)]
 
 
-def _parse_patterns(text: str) -> np.ndarray:
-    patterns = []
-    for item in text.split(","):
-        item = item.strip()
-        if item == "any":
-            patterns.append(ANY_PATTERN)
-        elif item.isdigit() and int(item) < NUM_PATTERNS:
-            patterns.append(int(item))
-        else:
-            raise ConfigError(f"unknown contact pattern {item!r}: use 0..{NUM_PATTERNS - 1} or any")
-    return np.asarray(patterns, np.int32)
+def _flat_params(flat_arg) -> np.ndarray:
+    from hte_jax.flat.comparison import resolve
+    from hte_jax.flat.store import load_flat, shipped_flat_path
+
+    path = shipped_flat_path(flat_arg) if flat_arg in ("2d", "8d") else resolve(flat_arg)
+    if not Path(path).is_file():
+        raise CheckpointError(f"{path}: no such repertoire file")
+    repertoire = load_flat(path)[0][0]
+    return np.asarray(repertoire.genotypes)[np.asarray(repertoire.filled)]
 
 
-def _pattern_label(pattern: int) -> str:
-    return "any pattern" if pattern == ANY_PATTERN else f"pattern {pattern} ({pattern:06b})"
+def skills_video(args) -> Path:
+    """`skills` / `patterns`: load and check what `args` names, then simulate the clips, render the
+    grid and write the video."""
+    import jax.numpy as jnp
 
+    from hte_jax.sim.damage import parse_damage
+    from hte_jax.sim.robot import RobotConfig, load_robot
+    from hte_jax.viz import skills
+    from hte_jax.viz.render import write_video
 
-def pattern_states(args) -> tuple[np.ndarray, np.ndarray, list[str]]:
-    """Recorded qpos (P, T, 25) of one skill under each pattern, the damage (6,) and clip labels."""
-    patterns = _parse_patterns(args.patterns)
-    damage, robot, every = _setup(args)
-    hbr, genotypes = _load_hbr(args.hbr)
-    skill = len(genotypes) // 2 if args.skill is None else args.skill
-    skill = int(_chosen(1, len(genotypes), str(skill))[0])
-    count = patterns.size
-    batch = jnp.broadcast_to(jnp.asarray(damage), (count, damage.size))
-    held = jnp.asarray(np.repeat(patterns[:, None], 3, axis=1))
-    genes = jnp.asarray(np.repeat(genotypes[skill][None], count, axis=0))
-    states = np.asarray(_hbr_states(robot, hbr, genes, batch, every, held))
-    return states, damage, [_pattern_label(int(p)) for p in patterns]
-
-
-def skill_states(args) -> tuple[np.ndarray, np.ndarray]:
-    """Recorded qpos (N, T, 25) of the chosen skills and the damage mask (6,)."""
-    damage, robot, every = _setup(args)
-    if args.flat is not None:
-        path = shipped_flat_path(args.flat) if args.flat in ("2d", "8d") else resolve(args.flat)
-        if not Path(path).is_file():
-            raise CheckpointError(f"{path}: no such repertoire file")
-        flat, _ = load_flat(path)
-        repertoire = flat[0]
-        params = np.asarray(repertoire.genotypes)[np.asarray(repertoire.filled)]
-        chosen = _chosen(args.count, len(params), args.skills)
-        batch = jnp.broadcast_to(jnp.asarray(damage), (chosen.size, damage.size))
-        return np.asarray(_flat_states(robot, jnp.asarray(params[chosen]), batch, every)), damage
-    hbr, genotypes = _load_hbr(args.hbr)
-    chosen = _chosen(args.count, len(genotypes), args.skills)
-    batch = jnp.broadcast_to(jnp.asarray(damage), (chosen.size, damage.size))
-    return np.asarray(_hbr_states(robot, hbr, jnp.asarray(genotypes[chosen]), batch, every)), damage
-
-
-def render_clips(args) -> Path:
-    """Simulate what `args.command` asks for, render every clip and write the grid video."""
-    camera = Camera(args.camera, distance=1.2 if args.camera == "track" else 2.0)
-    if args.columns < 1:
-        raise ConfigError(f"--columns must be >= 1, got {args.columns}")
-    if Path(args.out).suffix not in (".mp4", ".gif"):
-        raise ConfigError(f"--out must end in .mp4 or .gif, got {args.out!r}")
+    config = RobotConfig(damage_model=args.damage_model)
+    damage = parse_damage(args.damage)
+    labels = patterns = None
     if args.command == "patterns":
-        states, damage, labels = pattern_states(args)
+        patterns = skills.parse_patterns(args.patterns)
+        hbr, genotypes = _load_hbr(args.hbr)
+        skill = len(genotypes) // 2 if args.skill is None else args.skill
+        picked = np.repeat(skills.chosen(1, len(genotypes), [skill]), patterns.size)
+        labels = [skills.pattern_label(int(p)) for p in patterns]
+    elif args.flat is not None:
+        params = _flat_params(args.flat)
+        picked = skills.chosen(args.count, len(params), _skill_numbers(args.skills))
     else:
-        (states, damage), labels = skill_states(args), None
-    model = render_model(RobotConfig(damage_model=args.damage_model), damage)
-    renderer = open_renderer(model, args.width, args.height)
-    try:
-        with tqdm(total=states.shape[0] * states.shape[1], desc="render", unit="frame",
-                  disable=args.no_progress) as bar:
-            clips = [render_frames(model, qpos, renderer, camera, bar) for qpos in states]
-    finally:
-        renderer.close()
-    if labels is not None:
-        clips = [label(clip, text) for clip, text in zip(clips, labels)]
-    return write_video(args.out, tile(clips, min(args.columns, len(clips))), args.fps)
+        hbr, genotypes = _load_hbr(args.hbr)
+        picked = skills.chosen(args.count, len(genotypes), _skill_numbers(args.skills))
+    gl.require()  # every input is checked: OpenGL is needed from here on
+    robot, every = load_robot(config), CONTROL_HZ // args.fps
+    batch = jnp.broadcast_to(jnp.asarray(damage), (picked.size, damage.size))
+    if args.command == "patterns":
+        held = jnp.asarray(np.repeat(patterns[:, None], 3, axis=1))
+        states = skills.hbr_states(robot, hbr, jnp.asarray(genotypes[picked]), batch, every, held)
+    elif args.flat is not None:
+        states = skills.flat_states(robot, jnp.asarray(params[picked]), batch, every)
+    else:
+        states = skills.hbr_states(robot, hbr, jnp.asarray(genotypes[picked]), batch, every)
+    states = np.asarray(states)
+    camera = Camera(args.camera, distance=1.2 if args.camera == "track" else 2.0)
+    with tqdm(total=states.shape[0] * states.shape[1], desc="render", unit="frame", disable=args.no_progress) as bar:
+        frames = skills.render_grid(states, damage, config, camera, args.width, args.height, args.columns, labels, bar)
+    return write_video(args.out, frames, args.fps)
 
 
 def _numbers(numbers: list[int]) -> str:
@@ -232,11 +193,11 @@ def _numbers(numbers: list[int]) -> str:
     return ", ".join(map(str, numbers))
 
 
-def chosen_replay(args) -> Replay:
-    """The recorded episode `args` names in run folder `args.run`; ConfigError listing what is there."""
+def chosen_replay(args):
+    """The recorded episode (a Replay) `args` names in run folder `args.run`; ConfigError listing what is there."""
+    from hte_jax.online.recording import REPLAY_DIR, load_replay, recorded_episodes, replay_path
+
     run = Path(args.run)
-    if not run.is_dir():
-        raise ConfigError(f"{run}: no such run folder")
     available = recorded_episodes(run)
     if not available:
         raise ConfigError(f"{run} holds no recorded episodes ({REPLAY_DIR}/); record them with "
@@ -252,16 +213,16 @@ def chosen_replay(args) -> Replay:
 
 
 def episode_video(args) -> Path:
-    """Render the chosen recorded episode and write its video."""
-    if args.fps < 1:
-        raise ConfigError(f"--fps must be >= 1, got {args.fps}")
-    if args.out is not None and Path(args.out).suffix not in (".mp4", ".gif"):
-        raise ConfigError(f"--out must end in .mp4 or .gif, got {args.out!r}")
+    """`episode`: load and check the chosen recorded episode, then render it and write its video."""
+    from hte_jax.viz.episode import frame_states, render_episode
+    from hte_jax.viz.render import write_video
+
     replay = chosen_replay(args)
     stride = args.speed * CONTROL_HZ / replay.every / args.fps  # recorded states per frame
     if not (stride >= 1 and abs(stride - round(stride)) < 1e-9):
         raise ConfigError(f"--speed {args.speed} at --fps {args.fps} shows {stride:g} recorded states per frame "
                           f"({CONTROL_HZ // replay.every} per simulated second); choose them to make it a whole number >= 1")
+    gl.require()  # every input is checked: OpenGL is needed from here on
     info = replay.info
     out = args.out or Path(args.run) / "videos" / f"{info['variant']}_ep{info['episode']}_{info['damage']}.mp4"
     frames = frame_states(replay, round(stride))
@@ -272,8 +233,10 @@ def episode_video(args) -> Path:
 
 def main(argv=None) -> int:
     args = parser().parse_args(argv)
-    with input_errors(ConfigError, CheckpointError, RenderError) as errors:
-        written = episode_video(args) if args.command == "episode" else render_clips(args)
+    with input_errors(ConfigError, CheckpointError, gl.RenderError) as errors:
+        check_arguments(args)
+        gl.setup()  # MUJOCO_GL, before mujoco is imported; none starts: gl.require() says why, after the checks
+        written = episode_video(args) if args.command == "episode" else skills_video(args)
     if errors.failed:
         return 2
     print(f"wrote {written}")

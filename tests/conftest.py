@@ -1,7 +1,7 @@
 """Session-wide settings: a persistent XLA compilation cache shared by all tests of a session (and
 by pytest-xdist workers), in-memory compiled programs released after each test module, the
-controllers of an HBR's middle elites computed once per test process, and the benchmark-script
-tests run last.
+controllers of an HBR's middle elites computed once per test process, the benchmark-script
+tests run last, and the OpenGL backend of the tests that draw frames (`gl_env`).
 
 MJX programs take 15-30 s to compile on a CPU; tests that build the same program again (a
 resumed training run, a re-simulation, a benchmark script re-running a training preset) then
@@ -44,6 +44,29 @@ _LAST = ("test_benchmarks.py", "test_benchmarks_hbr.py")
 
 def pytest_collection_modifyitems(session, config, items):
     items.sort(key=lambda item: item.path.name in _LAST)
+
+
+# .ci/run sets it: there a test that needs OpenGL fails instead of skipping (CI must draw frames).
+REQUIRE_GL = "HTE_JAX_REQUIRE_GL"
+
+
+@pytest.fixture(scope="session")
+def gl_env():
+    """Environment variables for a process that draws frames: MUJOCO_GL set to the headless OpenGL
+    backend that starts here, chosen once per test process as the render CLI chooses
+    (`hte_jax.viz.gl.choose`: the user's MUJOCO_GL, else EGL, then OSMesa) and marked as checked.
+    Every test that needs OpenGL takes it: where no backend starts it skips, the reason naming what
+    to install, and with HTE_JAX_REQUIRE_GL=1 it fails."""
+    from hte_jax.viz import gl
+
+    try:
+        backend = gl.choose()
+        return {"MUJOCO_GL": backend, gl.CHECKED: backend}
+    except gl.RenderError as error:
+        reason = str(error)
+    if os.environ.get(REQUIRE_GL) == "1":
+        pytest.fail(f"{REQUIRE_GL}=1 and no frame can be drawn: {reason}", pytrace=False)
+    pytest.skip(f"needs OpenGL: {reason}")
 
 
 @pytest.fixture(scope="session")

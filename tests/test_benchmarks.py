@@ -53,14 +53,16 @@ def test_adaptation_benchmark(tmp_path):
     assert "plan med s" in stdout
 
 
-def test_render_speed_benchmark(tmp_path):
+def test_render_speed_benchmark(tmp_path, gl_env, monkeypatch):
+    for name, value in gl_env.items():  # the backend that starts here (the test skips where none does)
+        monkeypatch.setenv(name, value)
     out = tmp_path / "render.json"
     stdout = run_benchmark("render_speed.py", "--seconds", "1", "--fps", "10", "--width", "64", "--height", "48",
                            "--repeats", "2", "--out", str(out))
     (row,) = json.loads(out.read_text())["rows"]
     assert row["frames"] == 10 and len(row["render_s_all"]) == 2 and row["render_s_median"] > 0
     assert row["total_s_median"] >= row["render_s_median"] and row["frames_per_s"] > 0
-    assert "frames/s" in stdout
+    assert row["mujoco_gl"] == gl_env["MUJOCO_GL"] and "frames/s" in stdout
 
 
 def test_setting_strings():

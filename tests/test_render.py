@@ -1,9 +1,13 @@
-"""Recording states in rollouts and rendering them headless (osmesa) with MuJoCo's renderer.
+"""Recording states in rollouts, rendering them headless with MuJoCo's renderer, and the render
+CLI's argument checks and choice of OpenGL backend.
 
 Rendering runs in subprocesses: MUJOCO_GL must be set before mujoco is imported, and the rest of
-the suite has imported it already.
+the suite has imported it already. Tests that draw take `gl_env` (tests/conftest.py: they skip
+where no OpenGL starts, naming what to install); the others run everywhere.
 """
 
+import ctypes.util
+import json
 import os
 import subprocess
 import sys
@@ -17,9 +21,13 @@ from PIL import Image
 from hte_jax.errors import ConfigError
 from hte_jax.sim.robot import load_robot
 from hte_jax.sim.rollout import RolloutSpec, rollout, standing_state
+from hte_jax.viz import gl
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-OSMESA = dict(os.environ, MUJOCO_GL="osmesa", JAX_PLATFORMS="cpu")
+# The render CLI as a user starts it: MUJOCO_GL unset, the backend chosen by the CLI.
+PLAIN = {k: v for k, v in os.environ.items() if k not in ("MUJOCO_GL", gl.CHECKED)} | {"JAX_PLATFORMS": "cpu"}
+# libglvnd's libEGL with no vendor driver: EGL cannot start, as on a machine without it.
+NO_EGL = {"__EGL_VENDOR_LIBRARY_FILENAMES": "/nonexistent"}
 
 # Renders one shipped Flat-2D elite (of 64 drawn) that walks 0.3 to 0.7 m, looking straight down on the middle
 # of its path, one frame every 10 control steps; saves the frames and the recorded displacement.
@@ -51,9 +59,9 @@ CLIP = textwrap.dedent("""
 
 
 @pytest.fixture(scope="module")
-def clip(tmp_path_factory):
+def clip(tmp_path_factory, gl_env):
     out = tmp_path_factory.mktemp("render") / "clip.npz"
-    proc = subprocess.run([sys.executable, "-c", CLIP, str(out)], cwd=ROOT, env=OSMESA, capture_output=True,
+    proc = subprocess.run([sys.executable, "-c", CLIP, str(out)], cwd=ROOT, env=PLAIN | gl_env, capture_output=True,
                           text=True, timeout=900)
     assert proc.returncode == 0, proc.stderr[-2000:]
     return np.load(out)
@@ -100,27 +108,27 @@ def test_recorded_states_are_the_rollout_and_recording_changes_nothing():
         RolloutSpec(100, record_qpos_every=-1)
 
 
-def _render_cli(*args, env=OSMESA):
+def _render_cli(*args, env=PLAIN):
     return subprocess.run([sys.executable, "-m", "experiments.render", *args], cwd=ROOT, env=env,
                           capture_output=True, text=True, timeout=900)
 
 
-def test_render_skills_cli_writes_a_grid_gif(tmp_path):
+def test_render_skills_cli_writes_a_grid_gif(tmp_path, gl_env):
     out = tmp_path / "skills.gif"
     proc = _render_cli("skills", "--flat", "2d", "--count", "2", "--damage", "leg1", "--width", "64", "--height", "48",
-                       "--fps", "10", "--no-progress", "--out", str(out))
+                       "--fps", "10", "--no-progress", "--out", str(out), env=PLAIN | gl_env)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert proc.stdout.strip() == f"wrote {out}" and proc.stderr.strip() == ""
     with Image.open(out) as gif:
         assert gif.size == (128, 48) and gif.n_frames == 31  # two clips side by side, 3 s at 10 fps + the end
 
 
-def test_render_patterns_cli_labels_one_clip_per_pattern(tmp_path):
+def test_render_patterns_cli_labels_one_clip_per_pattern(tmp_path, gl_env):
     """One skill under three patterns: three labelled clips side by side; the clips differ (the
     patterns run different middle elites) and the label's dark pixels sit in the top-left corner."""
     out = tmp_path / "patterns.gif"
     proc = _render_cli("patterns", "--patterns", "any,63,47", "--damage", "leg1", "--width", "96", "--height", "64",
-                       "--fps", "10", "--no-progress", "--out", str(out))
+                       "--fps", "10", "--no-progress", "--out", str(out), env=PLAIN | gl_env)
     assert proc.returncode == 0, proc.stderr[-2000:]
     with Image.open(out) as gif:
         assert gif.size == (288, 64) and gif.n_frames == 31
@@ -129,21 +137,111 @@ def test_render_patterns_cli_labels_one_clip_per_pattern(tmp_path):
     clips = [last[:, k * 96:(k + 1) * 96] for k in range(3)]
     assert np.abs(clips[1] - clips[2]).sum() > 0
     assert all((clip[:14, :60].sum(axis=-1) < 120).any() for clip in clips)  # dark label text
-    bad = _render_cli("patterns", "--patterns", "any,64")
-    assert bad.returncode == 2 and bad.stderr.strip() == "error: unknown contact pattern '64': use 0..63 or any"
 
 
-@pytest.mark.parametrize("args, env, fragment", [
-    (["--damage", "leg9"], OSMESA, "unknown damage"),
-    (["--hbr", "no/such/hbr.npz"], OSMESA, "no such HBR file"),
-    (["--skills", "999999"], OSMESA, "out of range"),
-    (["--fps", "7"], OSMESA, "--fps must divide 100"),
-    (["--out", "x.avi"], OSMESA, "must end in .mp4 or .gif"),
-    ([], dict(OSMESA, MUJOCO_GL="vulkan"), "MUJOCO_GL"),
+# libglvnd's libEGL without a vendor driver and MUJOCO_GL=egl: no backend starts, on any machine.
+NO_GL = PLAIN | NO_EGL | {"MUJOCO_GL": "egl"}
+
+
+@pytest.mark.parametrize("args, fragment", [
+    (["skills", "--damage", "leg9"], "unknown damage"),
+    (["skills", "--skills", "999999"], "out of range"),
+    (["patterns", "--patterns", "any,64"], "unknown contact pattern '64': use 0..63 or any"),
 ])
-def test_render_cli_bad_input_is_one_line_and_exit_2(args, env, fragment):
-    proc = _render_cli("skills", "--count", "1", "--width", "32", "--height", "24", "--fps", "10", "--no-progress",
-                       *args, env=env)
+def test_render_cli_bad_input_is_one_line_and_exit_2_before_opengl_is_needed(args, fragment):
+    """Errors found in the files (the repertoire, the damage names) come before the missing OpenGL."""
+    proc = _render_cli(args[0], "--width", "32", "--height", "24", "--fps", "10", "--no-progress", *args[1:], env=NO_GL)
     assert proc.returncode == 2
     lines = proc.stderr.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith("error:") and fragment in lines[0]
+    assert len(lines) == 1 and lines[0].startswith("error:") and fragment in lines[0], lines
+
+
+@pytest.mark.parametrize("value, fragment", [
+    ("vulkan", "MUJOCO_GL='vulkan' is not a renderer"),
+    ("egl", "MUJOCO_GL=egl does not start"),  # with NO_EGL
+])
+def test_render_cli_reports_a_renderer_that_cannot_start_in_one_line(value, fragment):
+    """A MUJOCO_GL the user set is kept: not a renderer, or one that cannot start, is one line
+    naming it (and what to install), exit 2, before anything is simulated."""
+    proc = _render_cli("skills", "--flat", "2d", "--count", "1", "--no-progress", env=PLAIN | NO_EGL | {"MUJOCO_GL": value})
+    assert proc.returncode == 2
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error:") and fragment in lines[0], lines
+    assert value == "vulkan" or "libosmesa6" in lines[0]
+
+
+# Runs render.main on each argument list (JSON) in one fresh interpreter whose choice of GL backend
+# fails if it is made; prints each exit status and stderr, then which of mujoco / OpenGL got imported.
+NO_GL_SCRIPT = textwrap.dedent("""
+    import contextlib, io, json, sys
+    from hte_jax.viz import gl
+    def refuse(*args, **kwargs):
+        raise AssertionError("the GL backend was chosen")
+    gl.choose = refuse
+    from experiments.render import main
+    results = []
+    for args in json.loads(sys.argv[1]):
+        err = io.StringIO()
+        with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(err):
+            try:
+                code = main(args)
+            except SystemExit as exit:
+                code = exit.code
+        results.append([code, err.getvalue()])
+    print(json.dumps({"results": results, "imported": [m for m in ("mujoco", "OpenGL") if m in sys.modules]}))
+""")
+NO_GL_CASES = [
+    (["--help"], 0, None), (["skills", "--help"], 0, None), (["episode", "--help"], 0, None),
+    (["skills", "--fps", "7"], 2, "--fps must divide 100"), (["skills", "--out", "x.avi"], 2, "must end in .mp4 or .gif"),
+    (["skills", "--camera", "side"], 2, "--camera must be one of"), (["skills", "--skills", "1,x"], 2, "--skills must be"),
+    (["skills", "--hbr", "no/such/hbr.npz"], 2, "no such HBR file"), (["patterns", "--columns", "0"], 2, "--columns"),
+    (["episode", "no/such/run"], 2, "no such run folder"), (["episode", ".", "--speed", "0"], 2, "--speed"),
+]
+
+
+def test_render_help_and_argument_errors_touch_no_opengl():
+    """--help and the argument errors that need no file: one line, exit 2 (0 for help), no backend
+    chosen, neither mujoco nor OpenGL imported (they work on a machine without either library)."""
+    proc = subprocess.run([sys.executable, "-c", NO_GL_SCRIPT, json.dumps([a for a, _, _ in NO_GL_CASES])], cwd=ROOT,
+                          env=PLAIN, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    report = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert report["imported"] == []
+    for (args, code, fragment), (got, err) in zip(NO_GL_CASES, report["results"], strict=True):
+        assert got == code, (args, err)
+        if fragment is not None:
+            lines = err.strip().splitlines()
+            assert len(lines) == 1 and lines[0].startswith("error:") and fragment in lines[0], (args, lines)
+
+
+def test_without_egl_the_choice_falls_back_to_osmesa_or_names_what_to_install():
+    """MUJOCO_GL unset and EGL unable to start (NO_EGL): OSMesa where its library is installed,
+    otherwise one line saying why each failed and what to install, exit 2."""
+    proc = subprocess.run([sys.executable, "-m", "hte_jax.viz.gl"], cwd=ROOT, env=PLAIN | NO_EGL, capture_output=True,
+                          text=True, timeout=300)
+    if ctypes.util.find_library("OSMesa") is not None:
+        assert proc.returncode == 0 and proc.stdout.strip() == "osmesa", proc.stderr
+    else:
+        assert proc.returncode == 2
+        (line,) = proc.stderr.strip().splitlines()
+        assert line.startswith("error: cannot render: no headless OpenGL starts here (EGL: ")
+        assert "OSMesa: libOSMesa not found" in line and "apt-get install libosmesa6" in line
+
+
+def test_choice_order_and_messages():
+    """The user's MUJOCO_GL is tried alone; unset: EGL, then OSMesa, stopping at the first that starts."""
+    tried = []
+
+    def attempt(backend, env, works=("osmesa",)):
+        tried.append(backend)
+        return None if backend in works else f"{backend} missing"
+
+    assert gl.choose({}, attempt) == "osmesa" and tried == ["egl", "osmesa"]
+    tried.clear()
+    assert gl.choose({"MUJOCO_GL": "OSMesa "}, attempt) == "osmesa" and tried == ["osmesa"]
+    tried.clear()
+    assert gl.choose({"MUJOCO_GL": "egl", gl.CHECKED: "egl"}, attempt) == "egl" and tried == []
+    with pytest.raises(gl.RenderError, match=r"MUJOCO_GL=egl does not start \(egl missing\)"):
+        gl.choose({"MUJOCO_GL": "egl"}, attempt)
+    with pytest.raises(gl.RenderError, match=r"\(EGL: egl missing; OSMesa: osmesa missing\); install OSMesa"):
+        gl.choose({}, lambda backend, env: f"{backend} missing")

@@ -4,13 +4,12 @@ A replay sets each recorded qpos and runs the kinematics only: nothing is re-sim
 rendered trajectory is exactly the recorded one. The render model is the simulation model plus a
 checkered floor (so motion is visible) with the damaged legs tinted red.
 
-Headless OpenGL: `MUJOCO_GL=egl` on a machine with a GPU driver, `MUJOCO_GL=osmesa` on a CPU
-machine (Debian package `libosmesa6`). The variable must be set before `mujoco` is imported.
+Headless OpenGL: `MUJOCO_GL` must be chosen before `mujoco` is imported; `hte_jax.viz.gl.setup()`
+chooses it (EGL, then OSMesa) in commands that render.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import os
 import warnings
 from collections.abc import Callable, Iterator, Sequence
@@ -19,35 +18,13 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
-from hte_jax.errors import ConfigError, require_choice, require_int, require_number
+from hte_jax.errors import ConfigError, require_int
 from hte_jax.sim.robot import NUM_LEGS, RobotConfig, build_spec
+from hte_jax.viz import gl
+from hte_jax.viz.camera import CAMERAS, Camera  # noqa: F401 (re-exported)
+from hte_jax.viz.gl import RenderError  # noqa: F401 (re-exported)
 
-CAMERAS = ("track", "top")
 DAMAGED_RGBA = (0.85, 0.1, 0.1, 1.0)
-
-
-class RenderError(RuntimeError):
-    """The OpenGL renderer could not start."""
-
-
-@dataclasses.dataclass(frozen=True)
-class Camera:
-    """Where the camera looks from.
-
-    mode: "track" follows the robot's base from behind-left at `distance` (m), `elevation` and
-    `azimuth` (degrees); "top" looks straight down on the point `centre` (x, y) from `distance`,
-    image right = world +x, image up = world +y.
-    """
-
-    mode: str = "track"
-    distance: float = 1.2
-    elevation: float = -25.0
-    azimuth: float = 135.0
-    centre: tuple[float, float] = (0.0, 0.0)
-
-    def __post_init__(self):
-        require_choice("camera", self.mode, CAMERAS)
-        require_number("camera distance", self.distance, 0.0, open_low=True)
 
 
 def render_spec(config: RobotConfig = RobotConfig(), damage: np.ndarray | None = None,
@@ -76,9 +53,10 @@ def render_model(config: RobotConfig = RobotConfig(), damage: np.ndarray | None 
 
 
 def open_renderer(model: mujoco.MjModel, width: int, height: int) -> mujoco.Renderer:
-    """A renderer of `width` x `height` pixels; RenderError naming the MUJOCO_GL to try if none starts."""
+    """A renderer of `width` x `height` pixels; RenderError (one line) if it cannot start."""
     require_int("width", width)
     require_int("height", height)
+    gl.require()  # setup() found no backend: say why, without touching OpenGL
     try:
         with warnings.catch_warnings():  # a failing GLFW warns before it raises; the error says it all
             warnings.simplefilter("ignore")
@@ -86,9 +64,8 @@ def open_renderer(model: mujoco.MjModel, width: int, height: int) -> mujoco.Rend
     except Exception as error:  # mujoco raises several kinds when no GL context can be made
         backend = os.environ.get("MUJOCO_GL", "(unset)")
         raise RenderError(
-            f"the renderer could not start with MUJOCO_GL={backend} ({type(error).__name__}: {error}); "
-            "try MUJOCO_GL=egl on a machine with a GPU driver or MUJOCO_GL=osmesa (Debian package "
-            "libosmesa6) on a CPU machine"
+            f"the renderer could not start with MUJOCO_GL={backend} ({type(error).__name__}: {' '.join(str(error).split())}); "
+            f"choose MUJOCO_GL before mujoco is imported (hte_jax.viz.gl.setup()); {gl.HOW_TO_GET}"
         ) from None
 
 
