@@ -24,7 +24,7 @@ from hte_jax.geometry import planar_pose, relative_pose
 from hte_jax.hbr.middle import MiddleTask
 from hte_jax.hbr.store import load_hbr, save_hbr
 from hte_jax.online.evaluation import EvalConfig
-from hte_jax.online.execute import hbr_skills
+from hte_jax.online.skills import hbr_skills
 from hte_jax.qd.io import CheckpointError, read_checkpoint, save_checkpoint
 from hte_jax.sim.robot import load_robot
 from hte_jax.sim.rollout import RolloutSpec, rollout, standing_state
