@@ -13,7 +13,7 @@ from experiments.modulation import main as modulation_main
 from hte_jax.hbr.composition import planning_table, skill_ends
 from hte_jax.hbr.execution import STEPS_PER_SKILL, execute_skill
 from hte_jax.hbr.middle import pattern_code
-from hte_jax.hbr.modulation import Modulation
+from hte_jax.hbr.modulation import Modulation, spread_skills
 from hte_jax.hbr.store import load_hbr
 from hte_jax.sim import load_robot, standing_state
 
@@ -49,20 +49,54 @@ def test_counts_hand_case():
     assert summary["mean_patterns_both_per_skill"] == 0.5
 
 
+def test_spread_skills_take_one_skill_per_region_before_a_second():
+    # a 4 x 4 top grid: cells 0..12 crowd the lower-left quarter of the map, cells 13, 14, 15 sit
+    # alone in the three other quarters; cell 3 is empty
+    descriptors = np.zeros((16, 2))
+    descriptors[:13] = np.random.default_rng(0).uniform(0.05, 0.45, (13, 2))
+    descriptors[13:] = [[0.8, 0.2], [0.2, 0.8], [0.8, 0.8]]
+    filled = np.ones(16, bool)
+    filled[3] = False
+    for seed in range(5):
+        four = spread_skills(filled, descriptors, 4, seed)
+        assert sorted(four[four >= 13].tolist()) == [13, 14, 15] and four.size == 4 and filled[four].all()
+        six = spread_skills(filled, descriptors, 6, seed)
+        assert {13, 14, 15} <= set(six.tolist()) and np.unique(six).size == 6 and filled[six].all()
+    assert len({tuple(spread_skills(filled, descriptors, 6, seed)) for seed in range(5)}) > 1  # the seed draws
+    np.testing.assert_array_equal(spread_skills(filled, descriptors, 6, 2), spread_skills(filled, descriptors, 6, 2))
+    np.testing.assert_array_equal(spread_skills(filled, descriptors, 40, 0), np.flatnonzero(filled))
+
+
+def test_spread_skills_cover_the_shipped_map():
+    """Unlike the first skills by cell (one strip of the map), a sample spans the whole map."""
+    hbr, _, _ = load_hbr()
+    filled, descriptors = np.asarray(hbr.top.filled), np.asarray(hbr.top.descriptors)
+    everything = descriptors[filled]
+    span = everything.max(axis=0) - everything.min(axis=0)
+    first = descriptors[np.flatnonzero(filled)[:48]]
+    assert ((first.max(axis=0) - first.min(axis=0)) / span).min() < 0.2
+    for seed in range(3):
+        sample = descriptors[spread_skills(filled, descriptors, 48, seed)]
+        assert ((sample.max(axis=0) - sample.min(axis=0)) / span).min() > 0.8
+
+
 def test_reexecutions_match_direct_hierarchical_execution(tmp_path):
     out = tmp_path / "mod"
-    assert modulation_main(["--max-skills", "2", "--chunk", "64", "--out", str(out), "--no-progress"]) == 0
+    assert modulation_main(["--skills", "2", "--seed", "3", "--chunk", "64", "--out", str(out), "--no-progress"]) == 0
     mod = Modulation.load(out / "modulation.npz")
     assert mod.final_xy.shape == (2, 64, 2) and mod.patterns.tolist() == list(range(64))
     data = json.loads((out / "modulation.json").read_text())
     assert data["per_skill"]["shows"] == mod.counts()["shows"].tolist()
     assert data["summary"]["skills"] == 2
+    hbr, task, _ = load_hbr()
+    filled = int(np.asarray(hbr.top.filled).sum())
+    assert data["sample"] == {"skills": 2, "of": filled, "seed": 3}
+    assert mod.slots.tolist() == spread_skills(hbr.top.filled, hbr.top.descriptors, 2, seed=3).tolist()
     for name in ("modulation_map", "modulation_grid"):
         image = matplotlib.image.imread(out / f"{name}.png")
         assert image.ndim == 3 and image.std() > 0
     # two (skill, pattern) pairs re-executed directly with the pattern held for the 3 steps, each
     # step planned to the skill's end (the CLI's default composition)
-    hbr, task, _ = load_hbr()
     robot = load_robot()
     pairs = [(0, 63), (1, 27)]
     slots = np.array([mod.slots[s] for s, _ in pairs])
@@ -84,7 +118,8 @@ def test_reexecutions_match_direct_hierarchical_execution(tmp_path):
 
 
 @pytest.mark.parametrize("args, message", [
-    (["--max-skills", "0"], "--max-skills"),
+    (["--skills", "0"], "--skills must be >= 1"),
+    (["--skills", "some"], "--skills must be a positive integer or all"),
     (["--radius", "-1"], "--radius"),
     (["--hbr", "/nowhere/hbr.npz"], "no such checkpoint"),
 ])

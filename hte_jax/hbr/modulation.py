@@ -3,7 +3,8 @@
 Every top-layer skill is re-executed from the standing state with each contact pattern held for
 its 3 steps. Per skill we count the patterns for which the robot (i) showed the wanted pattern,
 measured over the whole 3 s (a foot is "on the ground" when down more than the middle layer's
-contact threshold), and (ii) ended in the skill's own x-y cell of the top grid.
+contact threshold), and (ii) ended in the skill's own x-y cell of the top grid. `spread_skills`
+draws a seeded sample of skills spread over the whole map, for a study sized to a CPU.
 """
 
 from __future__ import annotations
@@ -109,6 +110,41 @@ class Modulation:
             "feasible_patterns": int((per_pattern > 0).sum()),
             "mean_patterns_per_skill_within_radius_m": within,
         }
+
+
+def spread_skills(filled: np.ndarray, descriptors: np.ndarray, count: int, seed: int = 0) -> np.ndarray:
+    """Sorted cells of min(count, filled.sum()) skills spread over the whole map, drawn with `seed`.
+
+    filled: (C,) bool, the top grid's filled cells. descriptors: (C, 2) their final x-y, normalised
+    to [0, 1]. The map is cut into the finest square grid of blocks of which at most `count` hold
+    a skill; one skill is drawn from every such block, the rest one more per block in a random
+    order of the blocks. Every filled cell when count >= filled.sum().
+    """
+    if count < 1:
+        raise ValueError(f"count must be >= 1, got {count}")
+    slots = np.flatnonzero(np.asarray(filled))
+    if count >= slots.size:
+        return slots
+    points = np.clip(np.asarray(descriptors)[slots], 0.0, 1.0)  # (M, 2)
+
+    def blocks(side: int) -> np.ndarray:
+        coords = np.minimum((points * side).astype(np.int64), side - 1)
+        return coords[:, 0] * side + coords[:, 1]
+
+    side = 1
+    while side < 1024 and np.unique(blocks(side + 1)).size <= count:
+        side += 1
+    block = blocks(side)
+    order = np.random.default_rng(seed).permutation(slots.size)
+    rank = np.empty(slots.size, np.int64)  # how many skills of its block come before it in `order`
+    seen: dict[int, int] = {}
+    for k in order:
+        rank[k] = seen.get(block[k], 0)
+        seen[block[k]] = rank[k] + 1
+    position = np.empty(slots.size, np.int64)
+    position[order] = np.arange(slots.size)
+    chosen = np.lexsort((position, rank))[:count]
+    return np.sort(slots[chosen])
 
 
 def modulate(
