@@ -21,8 +21,8 @@ recorded).
     python benchmarks/cpu_commands.py --work-dir runs/newcomer       # keep what the commands write
     python benchmarks/cpu_commands.py --help-only                    # each command's --help (a quick check)
 
-Prints a table (command, wall seconds, exit status) and writes JSON to benchmarks/results/ with
-the CPU model, core count and date.
+Prints a table (command, wall seconds, CPU seconds of all its threads, exit status) and writes
+JSON to benchmarks/results/ with the CPU model, core count and date.
 """
 
 from __future__ import annotations
@@ -31,6 +31,7 @@ import argparse
 import json
 import os
 import platform
+import resource
 import signal
 import subprocess
 import sys
@@ -94,11 +95,18 @@ def last_line(text: str) -> str:
     return lines[-1] if lines else ""
 
 
+def _children_cpu_s() -> float:
+    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return usage.ru_utime + usage.ru_stime
+
+
 def run_command(name: str, argv: list[str], cwd: Path, timeout: float, log: Path) -> dict:
     """Run argv in cwd with this checkout on PYTHONPATH, stdout and stderr into `log`; its wall time,
-    exit status (None on a timeout) and, when it failed, the last line it printed."""
+    CPU time (user + system, all threads), exit status (None on a timeout) and, when it failed, the
+    last line it printed."""
     env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")])))
     load_before = os.getloadavg()[0]
+    cpu_before = _children_cpu_s()
     began = time.perf_counter()
     with open(log, "w") as sink:
         proc = subprocess.Popen(argv, cwd=cwd, env=env, stdout=sink, stderr=subprocess.STDOUT,
@@ -110,7 +118,8 @@ def run_command(name: str, argv: list[str], cwd: Path, timeout: float, log: Path
             proc.wait()
             status = None
     wall = time.perf_counter() - began
-    row = {"command": name, "argv": argv[1:], "wall_s": round(wall, 2), "exit": status,
+    cpu = _children_cpu_s() - cpu_before
+    row = {"command": name, "argv": argv[1:], "wall_s": round(wall, 2), "cpu_s": round(cpu, 2), "exit": status,
            "load_before": round(load_before, 2), "load_after": round(os.getloadavg()[0], 2)}
     if status is None:
         row["reason"] = f"timeout after {timeout:.0f} s"
@@ -141,9 +150,10 @@ def main(argv=None):
         print(f"{name}: {row['wall_s']:.0f} s, exit {row['exit']}" + (f" ({row['reason']})" if "reason" in row else ""),
               flush=True)
     width = max(len("python " + " ".join(row["argv"])) for row in rows)
-    print(f"\n{'command':<{width}} {'wall s':>8} {'exit':>5}  (load average before -> after)")
+    print(f"\n{'command':<{width}} {'wall s':>8} {'cpu s':>8} {'exit':>5}  (load average before -> after)")
     for row in rows:
-        print(f"{'python ' + ' '.join(row['argv']):<{width}} {row['wall_s']:>8.1f} {str(row['exit']):>5}  "
+        command = "python " + " ".join(row["argv"])
+        print(f"{command:<{width}} {row['wall_s']:>8.1f} {row['cpu_s']:>8.1f} {str(row['exit']):>5}  "
               f"({row['load_before']:.1f} -> {row['load_after']:.1f})" + (f"  {row['reason']}" if "reason" in row else ""))
     settings = {"commands": args.chosen, "help_only": args.help_only, "timeout_s": args.timeout,
                 "work_dir": None if temporary else str(work)}

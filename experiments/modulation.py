@@ -9,11 +9,11 @@ paper's nearest elite to each waypoint).
     python -m experiments.modulation --hbr runs/hbr-gpu --skills 200 --seed 1   # another sample
     python -m experiments.modulation --data runs/modulation/modulation.npz --radius 0.1 --out runs/mod-r01
 
-Presets: cpu (default) re-executes 48 skills drawn (--seed, default 0) spread over the whole map
-of final positions: the map is cut into the finest square grid of blocks of which at most 48 hold
-a skill, and one skill is drawn from each (`hte_jax.hbr.modulation.spread_skills`), so the
-figures keep their shape at a fraction of the cost; gpu re-executes every skill (2813 x 64 on the
-shipped HBR). --skills N|all overrides the preset's count.
+Presets: cpu (default) re-executes 48 skills spread over the whole map of final positions
+(`hte_jax.hbr.modulation.spread_skills`: the skills ordered along a Z-order curve over the map,
+every (skills / 48)-th taken from a start drawn with --seed, default 0), so the figures keep their
+shape and each skill is equally likely to count in the summary's means; gpu re-executes every
+skill (2813 x 64 on the shipped HBR). --skills N|all overrides the preset's count.
 
 Writes under --out (default runs/modulation): modulation_map.png (Fig. 4), modulation_grid.png
 (Fig. 5), modulation.json (summary, the skills' sample and per-skill counts) and modulation.npz
@@ -109,8 +109,9 @@ def main(argv=None) -> int:
             return 2
     else:
         filled = int(np.asarray(hbr.top.filled).sum())
-        skills = None if count is None or count >= filled else spread_skills(hbr.top.filled, hbr.top.descriptors, count, args.seed)
-        if skills is not None:
+        skills = None
+        if count is not None and count < filled:
+            skills = spread_skills(hbr.top.filled, hbr.top.descriptors, count, args.seed)
             sample = {"skills": int(skills.size), "of": filled, "seed": args.seed}
         mod = _simulate(hbr, task, skills, args, chunk, progress)
     out = Path(args.out)

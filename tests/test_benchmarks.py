@@ -117,7 +117,8 @@ def test_cpu_commands_benchmark(tmp_path):
     result = json.loads(out.read_text())
     assert [row["command"] for row in result["rows"]] == ["repertoire_stats", "modulation"]
     for row in result["rows"]:
-        assert row["exit"] == 0 and row["wall_s"] > 0 and "reason" not in row and row["argv"][-1] == "--help"
+        assert row["exit"] == 0 and row["wall_s"] > 0 and row["cpu_s"] > 0 and "reason" not in row
+        assert row["argv"][-1] == "--help"
         assert "usage:" in (work / "logs" / f"{row['command']}.log").read_text()
     assert result["environment"]["cpu_model"] and result["environment"]["usable_cores"] >= 1
     assert result["settings"]["help_only"] and "python -m experiments.modulation --help" in stdout

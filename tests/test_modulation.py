@@ -49,35 +49,35 @@ def test_counts_hand_case():
     assert summary["mean_patterns_both_per_skill"] == 0.5
 
 
-def test_spread_skills_take_one_skill_per_region_before_a_second():
-    # a 4 x 4 top grid: cells 0..12 crowd the lower-left quarter of the map, cells 13, 14, 15 sit
-    # alone in the three other quarters; cell 3 is empty
-    descriptors = np.zeros((16, 2))
-    descriptors[:13] = np.random.default_rng(0).uniform(0.05, 0.45, (13, 2))
-    descriptors[13:] = [[0.8, 0.2], [0.2, 0.8], [0.8, 0.8]]
-    filled = np.ones(16, bool)
-    filled[3] = False
+def test_spread_skills_take_one_skill_per_patch():
+    """On a full 16 x 16 grid, 16 skills are one per 4 x 4 block and 64 one per 2 x 2 block."""
+    cells = np.stack(np.meshgrid(np.arange(16), np.arange(16), indexing="ij"), axis=-1).reshape(-1, 2)
+    descriptors, filled = (cells + 0.5) / 16, np.ones(256, bool)
     for seed in range(5):
-        four = spread_skills(filled, descriptors, 4, seed)
-        assert sorted(four[four >= 13].tolist()) == [13, 14, 15] and four.size == 4 and filled[four].all()
-        six = spread_skills(filled, descriptors, 6, seed)
-        assert {13, 14, 15} <= set(six.tolist()) and np.unique(six).size == 6 and filled[six].all()
-    assert len({tuple(spread_skills(filled, descriptors, 6, seed)) for seed in range(5)}) > 1  # the seed draws
-    np.testing.assert_array_equal(spread_skills(filled, descriptors, 6, 2), spread_skills(filled, descriptors, 6, 2))
-    np.testing.assert_array_equal(spread_skills(filled, descriptors, 40, 0), np.flatnonzero(filled))
+        for count, side in ((16, 4), (64, 2)):
+            chosen = spread_skills(filled, descriptors, count, seed)
+            blocks = {tuple(block) for block in cells[chosen] // side}
+            assert chosen.size == count and len(blocks) == count  # every block once
+    assert len({tuple(spread_skills(filled, descriptors, 16, seed)) for seed in range(5)}) > 1  # the seed draws
+    filled[::3] = False
+    np.testing.assert_array_equal(spread_skills(filled, descriptors, 500, 0), np.flatnonzero(filled))
+    assert filled[spread_skills(filled, descriptors, 30, 0)].all()
 
 
 def test_spread_skills_cover_the_shipped_map():
-    """Unlike the first skills by cell (one strip of the map), a sample spans the whole map."""
-    hbr, _, _ = load_hbr()
+    """Unlike the first skills by cell (one strip of the map), a sample spans the whole map and
+    sits as far from the centre as the skills do on average."""
+    hbr, task, _ = load_hbr()
     filled, descriptors = np.asarray(hbr.top.filled), np.asarray(hbr.top.descriptors)
     everything = descriptors[filled]
     span = everything.max(axis=0) - everything.min(axis=0)
     first = descriptors[np.flatnonzero(filled)[:48]]
     assert ((first.max(axis=0) - first.min(axis=0)) / span).min() < 0.2
-    for seed in range(3):
+    radius = np.linalg.norm(np.asarray(task.denormalise(everything)), axis=-1).mean()
+    for seed in range(5):
         sample = descriptors[spread_skills(filled, descriptors, 48, seed)]
         assert ((sample.max(axis=0) - sample.min(axis=0)) / span).min() > 0.8
+        assert abs(np.linalg.norm(np.asarray(task.denormalise(sample)), axis=-1).mean() / radius - 1) < 0.1
 
 
 def test_reexecutions_match_direct_hierarchical_execution(tmp_path):

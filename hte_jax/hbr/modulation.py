@@ -116,35 +116,24 @@ def spread_skills(filled: np.ndarray, descriptors: np.ndarray, count: int, seed:
     """Sorted cells of min(count, filled.sum()) skills spread over the whole map, drawn with `seed`.
 
     filled: (C,) bool, the top grid's filled cells. descriptors: (C, 2) their final x-y, normalised
-    to [0, 1]. The map is cut into the finest square grid of blocks of which at most `count` hold
-    a skill; one skill is drawn from every such block, the rest one more per block in a random
-    order of the blocks. Every filled cell when count >= filled.sum().
+    to [0, 1]. The skills are ordered along a Z-order curve over the map (so each run of
+    consecutive skills is a compact patch) and every (filled / count)-th is taken from a random
+    start: one skill per patch of equal size, each skill equally likely to be taken. Every filled
+    cell when count >= filled.sum().
     """
     if count < 1:
         raise ValueError(f"count must be >= 1, got {count}")
     slots = np.flatnonzero(np.asarray(filled))
     if count >= slots.size:
         return slots
-    points = np.clip(np.asarray(descriptors)[slots], 0.0, 1.0)  # (M, 2)
-
-    def blocks(side: int) -> np.ndarray:
-        coords = np.minimum((points * side).astype(np.int64), side - 1)
-        return coords[:, 0] * side + coords[:, 1]
-
-    side = 1
-    while side < 1024 and np.unique(blocks(side + 1)).size <= count:
-        side += 1
-    block = blocks(side)
-    order = np.random.default_rng(seed).permutation(slots.size)
-    rank = np.empty(slots.size, np.int64)  # how many skills of its block come before it in `order`
-    seen: dict[int, int] = {}
-    for k in order:
-        rank[k] = seen.get(block[k], 0)
-        seen[block[k]] = rank[k] + 1
-    position = np.empty(slots.size, np.int64)
-    position[order] = np.arange(slots.size)
-    chosen = np.lexsort((position, rank))[:count]
-    return np.sort(slots[chosen])
+    coords = np.minimum((np.clip(np.asarray(descriptors)[slots], 0.0, 1.0) * 1024).astype(np.int64), 1023)
+    curve = np.zeros(slots.size, np.int64)
+    for bit in range(10):  # interleave the 10 bits of x and y
+        curve |= ((coords[:, 0] >> bit) & 1) << (2 * bit + 1) | ((coords[:, 1] >> bit) & 1) << (2 * bit)
+    ordered = slots[np.argsort(curve, kind="stable")]
+    step = slots.size / count
+    start = np.random.default_rng(seed).uniform(0.0, step)
+    return np.sort(ordered[np.floor(start + step * np.arange(count)).astype(np.int64)])
 
 
 def modulate(
