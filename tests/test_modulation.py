@@ -14,7 +14,6 @@ from hte_jax.hbr.composition import planning_table, skill_ends
 from hte_jax.hbr.execution import STEPS_PER_SKILL, execute_skill
 from hte_jax.hbr.middle import pattern_code
 from hte_jax.hbr.modulation import Modulation, spread_skills
-from hte_jax.hbr.store import load_hbr
 from hte_jax.sim import load_robot, standing_state
 
 
@@ -64,10 +63,10 @@ def test_spread_skills_take_one_skill_per_patch():
     assert filled[spread_skills(filled, descriptors, 30, 0)].all()
 
 
-def test_spread_skills_cover_the_shipped_map():
+def test_spread_skills_cover_the_shipped_map(shipped_hbr):
     """Unlike the first skills by cell (one strip of the map), a sample spans the whole map and
     sits as far from the centre as the skills do on average."""
-    hbr, task, _ = load_hbr()
+    hbr, task = shipped_hbr
     filled, descriptors = np.asarray(hbr.top.filled), np.asarray(hbr.top.descriptors)
     everything = descriptors[filled]
     span = everything.max(axis=0) - everything.min(axis=0)
@@ -80,7 +79,7 @@ def test_spread_skills_cover_the_shipped_map():
         assert abs(np.linalg.norm(np.asarray(task.denormalise(sample)), axis=-1).mean() / radius - 1) < 0.1
 
 
-def test_reexecutions_match_direct_hierarchical_execution(tmp_path):
+def test_reexecutions_match_direct_hierarchical_execution(tmp_path, shipped_hbr):
     out = tmp_path / "mod"
     assert modulation_main(["--skills", "2", "--seed", "3", "--chunk", "64", "--out", str(out), "--no-progress"]) == 0
     mod = Modulation.load(out / "modulation.npz")
@@ -88,7 +87,7 @@ def test_reexecutions_match_direct_hierarchical_execution(tmp_path):
     data = json.loads((out / "modulation.json").read_text())
     assert data["per_skill"]["shows"] == mod.counts()["shows"].tolist()
     assert data["summary"]["skills"] == 2
-    hbr, task, _ = load_hbr()
+    hbr, task = shipped_hbr
     filled = int(np.asarray(hbr.top.filled).sum())
     assert data["sample"] == {"skills": 2, "of": filled, "seed": 3}
     assert mod.slots.tolist() == spread_skills(hbr.top.filled, hbr.top.descriptors, 2, seed=3).tolist()
