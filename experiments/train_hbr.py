@@ -1,7 +1,8 @@
 """Train a hierarchical behavioural repertoire: bottom, middle and top layers.
 
-    python -m experiments.train_hbr                       # cpu preset, ~15 min on 2 cores
-    python -m experiments.train_hbr --preset gpu          # ~10 min on one H100 / H200
+    python -m experiments.train_hbr                       # cpu preset: a small HBR, for a 2-core CPU
+    python -m experiments.train_hbr --preset gpu          # the shipped HBR's budget, for one H100 / H200
+    python -m experiments.train_hbr --preset tiny         # a first look: every phase at tiny sizes
     python -m experiments.train_hbr --preset paper --out runs/paper   # the paper's budget
     python -m experiments.train_hbr --out runs/hbr --resume          # continue a killed run
     python -m experiments.train_hbr --middle-generations 100 --seed 3   # override any value
@@ -11,6 +12,7 @@
 Writes config.json, per-layer checkpoints and metrics CSVs, hbr.npz, summary.json and plots/
 under --out (default runs/hbr-<preset>). Every preset value has a flag; `--show-config` prints
 the resolved configuration and exits. Bad values give a one-line error and exit status 2.
+Times on a 2-core CPU: benchmarks/cpu_commands.py.
 A resumed run keeps the solver settings it was started with (4 / 8 for runs started before they
 were settings) unless they are given; a different value is then an error.
 """

@@ -3,6 +3,7 @@ results. These check that the scripts work, not how fast anything is (speed live
 """
 
 import json
+import sys
 
 import pytest
 
@@ -108,3 +109,28 @@ def test_load_time_benchmark(tmp_path):
     assert row["load_hbr_s"] > 0 and row["load_spare_s"] > 0 and row["whole_lookup_s"] > 0
     assert set(result["medians"]) == {"load_hbr_s", "load_spare_s", "whole_lookup_s"}
     assert "whole lookup equal bit for bit: True" in stdout
+
+
+def test_cpu_commands_benchmark(tmp_path):
+    """Each chosen command runs in the work folder, in the README's order, and lands in the JSON."""
+    out, work = tmp_path / "commands.json", tmp_path / "work"
+    stdout = run_benchmark("cpu_commands.py", "--commands", "modulation,repertoire_stats", "--help-only",
+                           "--work-dir", str(work), "--out", str(out))
+    result = json.loads(out.read_text())
+    assert [row["command"] for row in result["rows"]] == ["repertoire_stats", "modulation"]
+    for row in result["rows"]:
+        assert row["exit"] == 0 and row["wall_s"] > 0 and row["cpu_s"] > 0 and "reason" not in row
+        assert row["argv"][-1] == "--help"
+        assert "usage:" in (work / "logs" / f"{row['command']}.log").read_text()
+    assert result["environment"]["cpu_model"] and result["environment"]["usable_cores"] >= 1
+    assert result["settings"]["help_only"] and "python -m experiments.modulation --help" in stdout
+
+
+def test_cpu_commands_record_why_a_command_failed(tmp_path):
+    cpu_commands = benchmark_module("cpu_commands")
+    fails = [sys.executable, "-c", "import sys; print('50%\\r100%'); sys.exit('no OpenGL context')"]
+    row = cpu_commands.run_command("render", fails, tmp_path, 60, tmp_path / "render.log")
+    assert row["exit"] == 1 and row["reason"] == "no OpenGL context"
+    row = cpu_commands.run_command("slow", [sys.executable, "-c", "import time; time.sleep(60)"], tmp_path, 1,
+                                   tmp_path / "slow.log")
+    assert row["exit"] is None and row["reason"] == "timeout after 1 s"

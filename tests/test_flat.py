@@ -122,7 +122,7 @@ def test_8d_run_writes_consistent_repertoires_and_plots(flat8d_run):
         assert image.ndim == 3 and image.std() > 0
 
 
-def test_killed_flat_run_resumes_bit_identical(flat8d_run, tmp_path):
+def test_killed_flat_run_resumes_bit_identical(flat8d_run, tmp_path, capsys):
     class Killed(Exception):
         pass
 
@@ -132,9 +132,11 @@ def test_killed_flat_run_resumes_bit_identical(flat8d_run, tmp_path):
 
     config = preset("tiny", "8d")
     with pytest.raises(Killed):
-        train_flat(config, tmp_path / "killed", progress=False, on_block=kill, plots=False)
+        train_flat(config, tmp_path / "killed", progress=True, on_block=kill, plots=False)
+    assert "flat 8d: initial batch" in capsys.readouterr().err  # the initial batch shows its progress bar
     assert (tmp_path / "killed" / "checkpoint.npz").exists() and not (tmp_path / "killed" / "repertoires.npz").exists()
-    train_flat(config, tmp_path / "killed", resume_run=True, progress=False, plots=False)
+    train_flat(config, tmp_path / "killed", resume_run=True, progress=True, plots=False)
+    assert "initial batch" not in capsys.readouterr().err  # resumed from the checkpoint: no initial batch
     resumed, _ = read_checkpoint(tmp_path / "killed" / "repertoires.npz")
     whole, _ = read_checkpoint(flat8d_run / "repertoires.npz")
     assert resumed.keys() == whole.keys()

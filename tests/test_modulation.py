@@ -13,8 +13,7 @@ from experiments.modulation import main as modulation_main
 from hte_jax.hbr.composition import planning_table, skill_ends
 from hte_jax.hbr.hierarchy import STEPS_PER_SKILL, execute_skill
 from hte_jax.hbr.middle import pattern_code
-from hte_jax.hbr.modulation import Modulation
-from hte_jax.hbr.store import load_hbr
+from hte_jax.hbr.modulation import Modulation, spread_skills
 from hte_jax.sim import load_robot, standing_state
 
 
@@ -49,20 +48,54 @@ def test_counts_hand_case():
     assert summary["mean_patterns_both_per_skill"] == 0.5
 
 
-def test_reexecutions_match_direct_hierarchical_execution(tmp_path):
+def test_spread_skills_take_one_skill_per_patch():
+    """On a full 16 x 16 grid, 16 skills are one per 4 x 4 block and 64 one per 2 x 2 block."""
+    cells = np.stack(np.meshgrid(np.arange(16), np.arange(16), indexing="ij"), axis=-1).reshape(-1, 2)
+    descriptors, filled = (cells + 0.5) / 16, np.ones(256, bool)
+    for seed in range(5):
+        for count, side in ((16, 4), (64, 2)):
+            chosen = spread_skills(filled, descriptors, count, seed)
+            blocks = {tuple(block) for block in cells[chosen] // side}
+            assert chosen.size == count and len(blocks) == count  # every block once
+    assert len({tuple(spread_skills(filled, descriptors, 16, seed)) for seed in range(5)}) > 1  # the seed draws
+    filled[::3] = False
+    np.testing.assert_array_equal(spread_skills(filled, descriptors, 500, 0), np.flatnonzero(filled))
+    assert filled[spread_skills(filled, descriptors, 30, 0)].all()
+
+
+def test_spread_skills_cover_the_shipped_map(shipped_hbr):
+    """Unlike the first skills by cell (one strip of the map), a sample spans the whole map and
+    sits as far from the centre as the skills do on average."""
+    hbr, task = shipped_hbr
+    filled, descriptors = np.asarray(hbr.top.filled), np.asarray(hbr.top.descriptors)
+    everything = descriptors[filled]
+    span = everything.max(axis=0) - everything.min(axis=0)
+    first = descriptors[np.flatnonzero(filled)[:48]]
+    assert ((first.max(axis=0) - first.min(axis=0)) / span).min() < 0.2
+    radius = np.linalg.norm(np.asarray(task.denormalise(everything)), axis=-1).mean()
+    for seed in range(5):
+        sample = descriptors[spread_skills(filled, descriptors, 48, seed)]
+        assert ((sample.max(axis=0) - sample.min(axis=0)) / span).min() > 0.8
+        assert abs(np.linalg.norm(np.asarray(task.denormalise(sample)), axis=-1).mean() / radius - 1) < 0.1
+
+
+def test_reexecutions_match_direct_hierarchical_execution(tmp_path, shipped_hbr):
     out = tmp_path / "mod"
-    assert modulation_main(["--max-skills", "2", "--chunk", "64", "--out", str(out), "--no-progress"]) == 0
+    assert modulation_main(["--skills", "2", "--seed", "3", "--chunk", "64", "--out", str(out), "--no-progress"]) == 0
     mod = Modulation.load(out / "modulation.npz")
     assert mod.final_xy.shape == (2, 64, 2) and mod.patterns.tolist() == list(range(64))
     data = json.loads((out / "modulation.json").read_text())
     assert data["per_skill"]["shows"] == mod.counts()["shows"].tolist()
     assert data["summary"]["skills"] == 2
+    hbr, task = shipped_hbr
+    filled = int(np.asarray(hbr.top.filled).sum())
+    assert data["sample"] == {"skills": 2, "of": filled, "seed": 3}
+    assert mod.slots.tolist() == spread_skills(hbr.top.filled, hbr.top.descriptors, 2, seed=3).tolist()
     for name in ("modulation_map", "modulation_grid"):
         image = matplotlib.image.imread(out / f"{name}.png")
         assert image.ndim == 3 and image.std() > 0
     # two (skill, pattern) pairs re-executed directly with the pattern held for the 3 steps, each
     # step planned to the skill's end (the CLI's default composition)
-    hbr, task, _ = load_hbr()
     robot = load_robot()
     pairs = [(0, 63), (1, 27)]
     slots = np.array([mod.slots[s] for s, _ in pairs])
@@ -84,7 +117,8 @@ def test_reexecutions_match_direct_hierarchical_execution(tmp_path):
 
 
 @pytest.mark.parametrize("args, message", [
-    (["--max-skills", "0"], "--max-skills"),
+    (["--skills", "0"], "--skills must be >= 1"),
+    (["--skills", "some"], "--skills must be a positive integer or all"),
     (["--radius", "-1"], "--radius"),
     (["--hbr", "/nowhere/hbr.npz"], "no such checkpoint"),
 ])

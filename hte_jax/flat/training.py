@@ -30,7 +30,7 @@ from hte_jax.flat.store import FlatRepertoires, save_flat
 from hte_jax.flat.task import QD_OFFSET, FlatTask, evaluate_flat, flat_spec
 from hte_jax.qd import io
 from hte_jax.qd.batched import BatchedMapElites
-from hte_jax.qd.loop import MapElitesConfig, QDState, resume, run
+from hte_jax.qd.loop import MapElitesConfig, QDState, run, start_or_resume
 from hte_jax.qd.metrics import projected_statistics
 from hte_jax.sim.damage import APROL_DAMAGES, damage_masks
 from hte_jax.sim.robot import RobotConfig, SolverConfig, load_robot, stored_solver
@@ -196,7 +196,8 @@ def train_flat(
     algo = flat_algorithm(config, mesh)
     checkpoint = out / "checkpoint.npz"
     began = time.perf_counter()
-    state = resume(algo, checkpoint) if checkpoint.exists() else algo.init(jax.random.PRNGKey(config.seed))
+    state = start_or_resume(algo, jax.random.PRNGKey(config.seed), checkpoint, progress=progress,
+                            description=f"flat {config.variant}")
     state = run(
         algo,
         state,

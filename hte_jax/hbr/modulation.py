@@ -3,7 +3,8 @@
 Every top-layer skill is re-executed from the standing state with each contact pattern held for
 its 3 steps. Per skill we count the patterns for which the robot (i) showed the wanted pattern,
 measured over the whole 3 s (a foot is "on the ground" when down more than the middle layer's
-contact threshold), and (ii) ended in the skill's own x-y cell of the top grid.
+contact threshold), and (ii) ended in the skill's own x-y cell of the top grid. `spread_skills`
+draws a seeded sample of skills spread over the whole map, for a study sized to a CPU.
 """
 
 from __future__ import annotations
@@ -109,6 +110,30 @@ class Modulation:
             "feasible_patterns": int((per_pattern > 0).sum()),
             "mean_patterns_per_skill_within_radius_m": within,
         }
+
+
+def spread_skills(filled: np.ndarray, descriptors: np.ndarray, count: int, seed: int = 0) -> np.ndarray:
+    """Sorted cells of min(count, filled.sum()) skills spread over the whole map, drawn with `seed`.
+
+    filled: (C,) bool, the top grid's filled cells. descriptors: (C, 2) their final x-y, normalised
+    to [0, 1]. The skills are ordered along a Z-order curve over the map (so each run of
+    consecutive skills is a compact patch) and every (filled / count)-th is taken from a random
+    start: one skill per patch of equal size, each skill equally likely to be taken. Every filled
+    cell when count >= filled.sum().
+    """
+    if count < 1:
+        raise ValueError(f"count must be >= 1, got {count}")
+    slots = np.flatnonzero(np.asarray(filled))
+    if count >= slots.size:
+        return slots
+    coords = np.minimum((np.clip(np.asarray(descriptors)[slots], 0.0, 1.0) * 1024).astype(np.int64), 1023)
+    curve = np.zeros(slots.size, np.int64)
+    for bit in range(10):  # interleave the 10 bits of x and y
+        curve |= ((coords[:, 0] >> bit) & 1) << (2 * bit + 1) | ((coords[:, 1] >> bit) & 1) << (2 * bit)
+    ordered = slots[np.argsort(curve, kind="stable")]
+    step = slots.size / count
+    start = np.random.default_rng(seed).uniform(0.0, step)
+    return np.sort(ordered[np.floor(start + step * np.arange(count)).astype(np.int64)])
 
 
 def modulate(

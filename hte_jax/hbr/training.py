@@ -35,7 +35,7 @@ from hte_jax.hbr.spare import SPARE_L, SPARE_STREAM, STRICT_CONTACT
 from hte_jax.hbr.store import SPARE_FILE, bottom_fingerprint, save_hbr, save_spare
 from hte_jax.hbr.top import TopTask, evaluate_top, top_spec
 from hte_jax.qd import io
-from hte_jax.qd.loop import MapElites, MapElitesConfig, QDState, resume, run
+from hte_jax.qd.loop import MapElites, MapElitesConfig, QDState, run, start_or_resume
 from hte_jax.qd.selection import SelectionConfig
 from hte_jax.sim.robot import Robot, RobotConfig, SolverConfig, load_robot, stored_solver
 from hte_jax.sim.rollout import standing_state
@@ -265,7 +265,7 @@ def train_hbr(
         schedule: LayerSchedule = getattr(config, layer)
         checkpoint = out / layer / "checkpoint.npz"
         began = time.perf_counter()
-        state = resume(algo, checkpoint) if checkpoint.exists() else algo.init(keys[layer])
+        state = start_or_resume(algo, keys[layer], checkpoint, progress=progress, description=layer)
         hook = None if on_block is None else (lambda block, st, row, _layer=layer: on_block(_layer, block, st, row))
         state = run(
             algo,

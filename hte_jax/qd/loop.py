@@ -293,3 +293,16 @@ def resume(algo: MapElites, checkpoint_path: str | Path) -> QDState:
     """Load a checkpoint written by `run` for this algorithm (clear error on any mismatch)."""
     template = algo.empty_state(jax.random.PRNGKey(0))
     return io.load_checkpoint(checkpoint_path, template, algo.checkpoint_metadata())
+
+
+def start_or_resume(algo: MapElites, key: jax.Array, checkpoint_path: str | Path, *, progress: bool = True,
+                    description: str | None = None) -> QDState:
+    """The state a `run` starts from: the checkpoint at checkpoint_path if there is one (`resume`),
+    else `algo.init(key)`, whose compilation and initial batch (minutes on a CPU) show as a bar."""
+    if Path(checkpoint_path).exists():
+        return resume(algo, checkpoint_path)
+    label = "initial batch" if description is None else f"{description}: initial batch"
+    with tqdm(total=1, desc=label, unit="batch", disable=not progress, leave=False) as bar:
+        state = jax.block_until_ready(algo.init(key))
+        bar.update()
+    return state
