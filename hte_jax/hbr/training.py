@@ -326,7 +326,7 @@ def train_spare(hbr: HBR, base: HBRConfig, out_dir: str | Path, *, threshold: fl
     key, step_key = jax.random.split(jax.random.fold_in(jax.random.PRNGKey(config.seed), SPARE_STREAM))
     checkpoint = out / "middle" / "checkpoint.npz"
     began = time.perf_counter()
-    state = resume(algo, checkpoint) if checkpoint.exists() else algo.init(key)
+    state = start_or_resume(algo, key, checkpoint, progress=progress, description="spare")
     state = run(algo, state, config.middle.generations, block_size=config.middle.block_size,
                 log_path=out / "middle" / "metrics.csv", checkpoint_path=checkpoint, progress=progress,
                 description="spare")
