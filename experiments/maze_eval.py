@@ -263,7 +263,7 @@ def _save_batch(path: Path, result) -> None:
         "start": ep.history.start,
         "predicted": ep.history.predicted, "observed": ep.history.observed, "value": ep.history.value,
         "path": ep.history.path, "path_length": ep.history.path_length, "patterns": ep.history.patterns,
-        "errors": ep.history.errors,
+        "errors": ep.history.errors, "contacts": ep.history.contacts, "leg_travel": ep.history.leg_travel,
     }
     labels = {"seed": result.seed, "variants": result.variants, "damages": result.damages, "replicates": result.replicates,
               "repertoire": result.repertoire, "plan_seconds": result.timings.plan, "act_seconds": result.timings.act}

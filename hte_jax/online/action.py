@@ -35,7 +35,7 @@ from hte_jax.online.rules import RuleBatch, StepContext, StepObservation, choose
 from hte_jax.online.secondary import ERROR_DIM
 from hte_jax.online.skills import Skills, displacement_of
 from hte_jax.sim.controller import NUM_PARAMS
-from hte_jax.sim.robot import Robot
+from hte_jax.sim.robot import NUM_LEGS, Robot
 from hte_jax.sim.rollout import RolloutSpec, SimState, ValidityLimits, rollout
 
 STEP_CONTROL_STEPS = 100  # one second
@@ -74,7 +74,8 @@ class ActionOutcome:
     in the pre-action frame. patterns: (B, 3) int32 contact pattern asked for at each step (-1: any,
     for flat skills, and for steps after the robot went invalid). middle_index: (B, 3) int32
     executed middle elite (-1 for flat skills and steps not run). errors: (B, 3, 3) relative error
-    (x, y, yaw) of each step (0 for flat skills). rules: the rules after this action's
+    (x, y, yaw) of each step (0 for flat skills). contacts: (B, 3, 6) share of each step each foot was
+    on the floor; leg_travel: (B, 3, 6) rad each leg's joints moved in each step (0 for flat skills). rules: the rules after this action's
     observations (None for flat skills). qpos: (B, F, 25) the state every k = `record_every`
     control steps of the action from its start (F = 400 / k), or None (not recorded).
     """
@@ -87,6 +88,8 @@ class ActionOutcome:
     patterns: jax.Array
     middle_index: jax.Array
     errors: jax.Array
+    contacts: jax.Array
+    leg_travel: jax.Array
     rules: RuleBatch | None
     qpos: jax.Array | None = None
 
@@ -185,14 +188,15 @@ def hbr_step(robots, skills: Skills, goal: jax.Array, taken: jax.Array, carry, x
     """One 1 s step of B HBR skills on `robots`: choose (`choose_step`), run one second, learn
     (`learn_step`). carry: (state, rules, alive (B,) bool); xs: (target (B, 3), step () int32,
     keys (B, 2)). Returns the carry and the step's record (pattern, elite run or -1, relative
-    errors, invalid reason, pose after, qpos or None)."""
+    errors, invalid reason, pose after, contact fractions, leg travel, qpos or None)."""
     state, rules, alive = carry
     target, step, keys = xs
     pattern, elite, found = robots.staged(choose_step)(skills, rules, robots.pose(state), target, goal, step, taken,
                                                        keys, alive)
     second = robots.second(state, skills.hbr, elite, found, alive)
     rules, error = robots.staged(learn_step)(skills, rules, elite, second)
-    record = (pattern, jnp.where(alive, elite, -1), error, second.invalid_reason, second.pose, second.qpos)
+    record = (pattern, jnp.where(alive, elite, -1), error, second.invalid_reason, second.pose, second.contact_fraction,
+              second.leg_travel, second.qpos)
     return (second.state, rules, alive & (second.invalid_reason == 0)), record
 
 
@@ -207,7 +211,7 @@ def hbr_action(robots, skills: Skills, state: SimState | None, rules: RuleBatch,
     step_keys = jnp.swapaxes(jax.vmap(lambda k: jax.random.split(k, STEPS_PER_SKILL))(keys), 0, 1)  # (3, B, 2)
     xs = (jnp.swapaxes(targets, 0, 1), jnp.arange(STEPS_PER_SKILL, dtype=jnp.int32), step_keys)
     alive = jnp.ones(action.shape[0], bool)
-    (state, rules, alive), (patterns, middle, errors, reasons, poses, qpos) = robots.steps(
+    (state, rules, alive), (patterns, middle, errors, reasons, poses, contacts, travel, qpos) = robots.steps(
         lambda c, x: hbr_step(robots, skills, goal, taken, c, x), (state, rules, alive), xs)
     rest = robots.neutral(state)
     if qpos is not None:  # (3, B, F / 4, 25) steps and (B, F / 4, 25) neutral -> (B, F, 25)
@@ -222,6 +226,8 @@ def hbr_action(robots, skills: Skills, state: SimState | None, rules: RuleBatch,
         patterns=patterns.T,
         middle_index=middle.T,
         errors=jnp.swapaxes(errors, 0, 1),
+        contacts=jnp.swapaxes(contacts, 0, 1),
+        leg_travel=jnp.swapaxes(travel, 0, 1),
         rules=rules,
         qpos=qpos,
     )
@@ -240,6 +246,8 @@ def flat_action(robots, state: SimState | None, params: jax.Array) -> ActionOutc
         patterns=jnp.full((batch, STEPS_PER_SKILL), ANY_PATTERN, jnp.int32),
         middle_index=jnp.full((batch, STEPS_PER_SKILL), -1, jnp.int32),
         errors=jnp.zeros((batch, STEPS_PER_SKILL, ERROR_DIM), jnp.float32),
+        contacts=jnp.zeros((batch, STEPS_PER_SKILL, NUM_LEGS), jnp.float32),
+        leg_travel=jnp.zeros((batch, STEPS_PER_SKILL, NUM_LEGS), jnp.float32),
         rules=None,
         qpos=last.qpos,
     )

@@ -53,7 +53,7 @@ from hte_jax.online.rules import PatternRule, RuleBatch, start_rules
 from hte_jax.online.secondary import ERROR_DIM
 from hte_jax.online.skills import OUTCOME_DIM, Skills, displacement_of, predict
 from hte_jax.online.skills import outcome as outcome_of
-from hte_jax.sim.robot import Robot
+from hte_jax.sim.robot import NUM_LEGS, Robot
 from hte_jax.sim.rollout import SimState
 
 
@@ -83,7 +83,9 @@ class History:
     action. observed: (B, L, 3) the measured displacement. value: (B, L) the plan's value.
     path: (B, L, D + 1, 3) the planned path (world frame). path_length: (B, L) int32.
     patterns: (B, L, 3) int32 contact pattern of each step (-1: any). errors: (B, L, 3, 3)
-    relative errors of each step (x, y, yaw).
+    relative errors of each step (x, y, yaw). contacts: (B, L, 3, 6) share of each step each foot was
+    sensed on the floor. leg_travel: (B, L, 3, 6) rad each leg's joints moved in each step (both 0
+    for flat skills: what the leg senses of `rules.SensedLegs` read).
     """
 
     action: jax.Array
@@ -97,6 +99,8 @@ class History:
     path_length: jax.Array
     patterns: jax.Array
     errors: jax.Array
+    contacts: jax.Array
+    leg_travel: jax.Array
 
 
 @struct.dataclass
@@ -173,6 +177,8 @@ def start_episodes(
         path_length=jnp.zeros((batch, length), jnp.int32),
         patterns=jnp.full((batch, length, STEPS_PER_SKILL), -1, jnp.int32),
         errors=jnp.zeros((batch, length, STEPS_PER_SKILL, ERROR_DIM), jnp.float32),
+        contacts=jnp.zeros((batch, length, STEPS_PER_SKILL, NUM_LEGS), jnp.float32),
+        leg_travel=jnp.zeros((batch, length, STEPS_PER_SKILL, NUM_LEGS), jnp.float32),
     )
     return Episodes(
         sim=start if simulated else None,
@@ -310,6 +316,8 @@ def record_action(maze: Maze, config: AdaptationConfig, skills: Skills, episodes
         path_length=h.path_length.at[rows, slot].set(decision.plan.path_length),
         patterns=h.patterns.at[rows, slot].set(outcome.patterns),
         errors=h.errors.at[rows, slot].set(outcome.errors),
+        contacts=h.contacts.at[rows, slot].set(outcome.contacts),
+        leg_travel=h.leg_travel.at[rows, slot].set(outcome.leg_travel),
     )
     first = SECONDS_PER_ACTION * episodes.taken + 1
     trajectory = episodes.trajectory
