@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from hte_jax.hbr.composition import skill_ends
-from hte_jax.hbr.reexecution import checked_pairs, stored_ends
+from hte_jax.hbr.modulation import checked_pairs, stored_ends
 
 
 def test_defaults_are_every_filled_skill_and_every_pattern(shipped_hbr):
