@@ -55,7 +55,7 @@ class InputErrors:
 
 def add_set_flag(parser: argparse.ArgumentParser) -> None:
     """`--set KEY=VALUE` (repeatable): override any setting by its key, dotted through nested
-    configurations (`errors.with_overrides`); applied after the setting flags."""
+    configurations (`config.with_overrides`); applied after the setting flags."""
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="override a setting by its key, dotted through nested configurations "
                              "(planner.iterations=50, solver.ls_iterations=8, top.parents.selection=density); repeatable")

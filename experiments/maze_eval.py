@@ -51,7 +51,8 @@ from tqdm.auto import tqdm
 
 from experiments.cli import add_set_flag, input_errors, set_overrides
 from experiments.devices import add_device_flags, device_mesh, is_writer
-from hte_jax.errors import ConfigError, require_int, settings
+from hte_jax.config import settings
+from hte_jax.errors import ConfigError, require_int
 from hte_jax.online.evaluation import (
     PRESETS,
     PROTOCOLS,

@@ -23,7 +23,7 @@ import sys
 
 from experiments.cli import add_set_flag, input_errors, set_overrides
 from experiments.devices import add_device_flags, device_mesh, is_writer
-from hte_jax.errors import settings
+from hte_jax.config import settings
 from hte_jax.flat.training import PRESETS, VARIANTS, FlatConfig, preset, train_flat, with_overrides
 from hte_jax.qd.io import stored_config
 from hte_jax.sim.robot import stored_solver

@@ -1,11 +1,12 @@
-"""The one override rule (`hte_jax.errors.with_overrides`) on flat and nested configuration dataclasses."""
+"""The one override rule (`hte_jax.config.with_overrides`) on flat and nested configuration dataclasses."""
 
 import dataclasses
 
 import pytest
 
-from hte_jax import errors
-from hte_jax.errors import ConfigError, config_dict, config_from_dict, inline, require_int, settings, with_overrides
+from hte_jax import config as configuration
+from hte_jax.config import config_dict, config_from_dict, inline, settings, with_overrides
+from hte_jax.errors import ConfigError, require_int
 from hte_jax.flat import training as flat_training
 from hte_jax.hbr import training as hbr_training
 from hte_jax.hbr.training import PRESETS, LayerSchedule
@@ -75,9 +76,9 @@ def test_inlined_settings_read_as_the_parents_own():
 
 
 def test_every_module_shares_the_one_rule():
-    assert hbr_training.with_overrides is errors.with_overrides
-    assert flat_training.with_overrides is errors.with_overrides
-    assert evaluation.with_overrides is errors.with_overrides
+    assert hbr_training.with_overrides is configuration.with_overrides
+    assert flat_training.with_overrides is configuration.with_overrides
+    assert evaluation.with_overrides is configuration.with_overrides
 
 
 def test_nested_keys_and_type_conversion():

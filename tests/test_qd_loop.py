@@ -11,7 +11,8 @@ import matplotlib.image
 import numpy as np
 import pytest
 
-from hte_jax.errors import ConfigError, with_overrides
+from hte_jax.config import with_overrides
+from hte_jax.errors import ConfigError
 from hte_jax.qd import (
     Archive,
     CheckpointError,

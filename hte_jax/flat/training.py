@@ -23,8 +23,9 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh
 
-from hte_jax.errors import ConfigError, config_dict, config_from_dict, inline, require_int, require_number
-from hte_jax.errors import with_overrides as _with_overrides
+from hte_jax.config import config_dict, config_from_dict, inline
+from hte_jax.errors import ConfigError, require_int, require_number
+from hte_jax.config import with_overrides as _with_overrides
 from hte_jax.flat.plots import plot_flat
 from hte_jax.flat.store import FlatRepertoires, save_flat
 from hte_jax.flat.task import QD_OFFSET, FlatTask, evaluate_flat, flat_spec
@@ -109,7 +110,7 @@ class FlatConfig:
         )
 
     def to_dict(self) -> dict:
-        """The stored layout (`errors.config_dict`: the solver's settings among the others)."""
+        """The stored layout (`config.config_dict`: the solver's settings among the others)."""
         return config_dict(self)
 
     @classmethod

@@ -21,8 +21,9 @@ import jax
 import numpy as np
 from jax.sharding import Mesh
 
-from hte_jax.errors import ConfigError, config_dict, config_from_dict, inline, require_choice, require_int, require_number
-from hte_jax.errors import with_overrides as _with_overrides
+from hte_jax.config import config_dict, config_from_dict, inline
+from hte_jax.errors import ConfigError, require_choice, require_int, require_number
+from hte_jax.config import with_overrides as _with_overrides
 from hte_jax.hbr import bottom as bottom_layer
 from hte_jax.hbr import middle as middle_layer
 from hte_jax.hbr.analysis import hbr_statistics
@@ -145,7 +146,7 @@ class HBRConfig:
         return TopTask(bins=self.top_bins)
 
     def to_dict(self) -> dict:
-        """The stored layout (`errors.config_dict`: the solver's settings among the others)."""
+        """The stored layout (`config.config_dict`: the solver's settings among the others)."""
         return config_dict(self)
 
     @classmethod

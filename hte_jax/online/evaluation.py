@@ -23,8 +23,9 @@ import jax
 import numpy as np
 from jax.sharding import Mesh
 
-from hte_jax.errors import ConfigError, config_dict, config_from_dict, inline, require_choice, require_int
-from hte_jax.errors import with_overrides as _with_overrides
+from hte_jax.config import config_dict, config_from_dict, inline
+from hte_jax.errors import ConfigError, require_choice, require_int
+from hte_jax.config import with_overrides as _with_overrides
 from hte_jax.flat.store import load_flat, shipped_flat_path
 from hte_jax.hbr.store import load_hbr, load_spare, shipped_hbr_path, spare_beside
 from hte_jax.online.arena import maze_robot, start_states
@@ -154,7 +155,7 @@ class EvalConfig:
                                  reflex_release=self.reflex_release, reflex_rate=self.reflex_rate)
 
     def to_dict(self) -> dict:
-        """The stored layout (`errors.config_dict`: inlined settings among the others)."""
+        """The stored layout (`config.config_dict`: inlined settings among the others)."""
         return config_dict(self)
 
     @classmethod

@@ -23,7 +23,8 @@ from jax.sharding import Mesh
 from tqdm.auto import tqdm
 
 from hte_jax import sharding
-from hte_jax.errors import ConfigError, config_dict, inline, require_int, require_number
+from hte_jax.config import config_dict, inline
+from hte_jax.errors import ConfigError, require_int, require_number
 from hte_jax.qd import io
 from hte_jax.qd.emitters import Emitter, config_emitter
 from hte_jax.qd.metrics import MetricsLog, RepertoireMetrics, repertoire_metrics

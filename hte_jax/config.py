@@ -1,0 +1,183 @@
+"""The one rule for overriding, storing and reading the settings of (nested) configuration
+dataclasses (`HBRConfig`, `FlatConfig`, `EvalConfig`, ...).
+
+A configuration nests another in a field: `bottom: LayerSchedule` (its settings are "bottom.<name>"
+everywhere) or, declared with `inline`, `planner: PlannerConfig = inline(PlannerConfig())` (its
+settings read as the parent's own: "iterations", stored flat, while "planner.iterations" works too).
+"""
+
+import copy
+import dataclasses
+import typing
+
+from hte_jax.errors import ConfigError
+
+INLINE = "inline"  # dataclasses.field metadata key of an inlined nested configuration (`inline`)
+
+
+def convert_setting(key: str, current, value):
+    """`value` read as the type of the setting's `current` value (a CLI string, say)."""
+    kind = type(current)
+    if isinstance(value, kind):
+        return value
+    try:
+        return kind(value)
+    except (TypeError, ValueError):
+        raise ConfigError(f"setting {key!r}: cannot read {value!r} as {kind.__name__}") from None
+
+
+def inline(default):
+    """A field holding a nested configuration (default `default`) whose settings read as its parent's
+    own: an override names one by its own name (or through the field, "planner.iterations"),
+    `config_dict` stores them among the parent's, and their error messages carry no path. Their names
+    must differ from the parent's other settings."""
+    return dataclasses.field(default=default, metadata={INLINE: True})
+
+
+def with_overrides(config, overrides: dict):
+    """A copy of the (possibly nested, frozen) dataclass `config` with settings replaced.
+
+    A key names a leaf setting: "field", or "a.b.field" through nested dataclass fields; a setting of
+    an inlined configuration (`inline`) also by its own name at its parent's level. Each value
+    is read as its setting's current type (`convert_setting`); the copy is rebuilt with
+    `dataclasses.replace`, inner dataclasses first, so every `__post_init__` check runs, and an inner
+    check's message is prefixed with its path ("middle.selection must be ..."; inlined fields add none).
+    """
+    changes: dict = {}  # field name -> new leaf value, or the changes of a nested dataclass
+    for key, value in overrides.items():
+        *path, name = key.split(".")
+        target, fields = config, []
+        for part in path:
+            route = _route(target, part, key)
+            target = _follow(target, route)
+            if not _is_config(target):
+                raise ConfigError(f"unknown setting {key!r}")
+            fields += route
+        route = _route(target, name, key)
+        current = _follow(target, route)
+        if _is_config(current):
+            raise ConfigError(f"unknown setting {key!r}")
+        *outer, leaf = fields + route
+        pending = changes
+        for part in outer:
+            pending = pending.setdefault(part, {})
+        pending[leaf] = convert_setting(key, current, value)
+    return _rebuilt(config, changes)
+
+
+def config_dict(config) -> dict:
+    """`config` as plain data, the layout configurations are stored in: `dataclasses.asdict`'s,
+    except that an inlined configuration's settings sit among its parent's."""
+    out = {}
+    for field in dataclasses.fields(config):
+        value = getattr(config, field.name)
+        if _is_config(value) and _is_inline(field):
+            out.update(config_dict(value))
+        else:
+            out[field.name] = config_dict(value) if _is_config(value) else copy.deepcopy(value)
+    return out
+
+
+def config_from_dict(cls, data: dict, base=None):
+    """The configuration of dataclass `cls` that `data` describes, in `config_dict`'s layout or in
+    `dataclasses.asdict`'s (an inlined configuration under its field name), or a mix. Settings that
+    `data` lacks keep the values of `base` (default: the fields' defaults); an unknown key is a
+    TypeError, as for the constructor; a nested configuration's check names its path."""
+    data, values = dict(data), {}
+    types = typing.get_type_hints(cls)
+    for field in dataclasses.fields(cls):
+        kind = types[field.name]
+        if not _is_config_class(kind):
+            if field.name in data:
+                values[field.name] = data.pop(field.name)
+            continue
+        inner = data.pop(field.name, {})
+        if _is_inline(field):
+            inner = {**inner, **{key: data.pop(key) for key in _stored_keys(kind) if key in data}}
+        inner_base = getattr(base, field.name) if base is not None else (
+            None if field.default is dataclasses.MISSING else field.default)
+        if not inner and inner_base is not None:
+            continue  # kept as it is
+        try:
+            values[field.name] = config_from_dict(kind, inner, inner_base)
+        except ConfigError as error:
+            if _is_inline(field):
+                raise
+            raise ConfigError(f"{field.name}.{error}") from None
+    values.update(data)
+    return cls(**values) if base is None else dataclasses.replace(base, **values)
+
+
+def settings(cls) -> dict[str, dataclasses.Field]:
+    """Every leaf setting of configuration dataclass `cls`, by the key `with_overrides` takes
+    ("a.b.field" through nested configurations, an inlined one's by their own names), in field order:
+    what a command line offers."""
+    out = {}
+    types = typing.get_type_hints(cls)
+    for field in dataclasses.fields(cls):
+        if not field.init:
+            continue
+        kind = types[field.name]
+        if _is_config_class(kind):
+            prefix = "" if _is_inline(field) else f"{field.name}."
+            out.update({prefix + key: leaf for key, leaf in settings(kind).items()})
+        else:
+            out[field.name] = field
+    return out
+
+
+def _is_config(value) -> bool:
+    return dataclasses.is_dataclass(value) and not isinstance(value, type)
+
+
+def _is_config_class(kind) -> bool:
+    return isinstance(kind, type) and dataclasses.is_dataclass(kind)
+
+
+def _is_inline(field: dataclasses.Field) -> bool:
+    return bool(field.metadata.get(INLINE))
+
+
+def _stored_keys(cls) -> list[str]:
+    """The top-level keys of `config_dict` for configurations of class `cls`."""
+    types = typing.get_type_hints(cls)
+    return [key for field in dataclasses.fields(cls)
+            for key in (_stored_keys(types[field.name]) if _is_inline(field) else [field.name])]
+
+
+def _route(config, name: str, key: str) -> list[str]:
+    """The fields from `config` to its settable field or setting `name` (through inlined
+    configurations); `key` is the whole setting's name."""
+    fields = [field for field in dataclasses.fields(config) if field.init]
+    if name in {field.name for field in fields}:
+        return [name]
+    for field in fields:
+        if _is_inline(field):
+            try:
+                return [field.name, *_route(getattr(config, field.name), name, key)]
+            except ConfigError:
+                pass
+    raise ConfigError(f"unknown setting {key!r}")
+
+
+def _follow(config, route: list[str]):
+    for name in route:
+        config = getattr(config, name)
+    return config
+
+
+def _rebuilt(config, changes: dict):
+    values = {}
+    for field in dataclasses.fields(config):  # in field order, as a constructor validates them
+        if field.name not in changes:
+            continue
+        value, current = changes[field.name], getattr(config, field.name)
+        if _is_config(current):
+            try:
+                value = _rebuilt(current, value)
+            except ConfigError as error:
+                if _is_inline(field):
+                    raise
+                raise ConfigError(f"{field.name}.{error}") from None
+        values[field.name] = value
+    return dataclasses.replace(config, **values)
