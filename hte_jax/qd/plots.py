@@ -61,27 +61,6 @@ def plot_grid(
     return _save(fig, path)
 
 
-def plot_scatter(
-    repertoire: Repertoire,
-    dims: tuple[int, int] = (0, 1),
-    *,
-    color: np.ndarray | None = None,
-    color_label: str = "fitness",
-    labels: tuple[str, str] = ("descriptor 0", "descriptor 1"),
-    title: str = "",
-    path: str | Path | None = None,
-):
-    """Elites' descriptors projected onto `dims`, coloured by fitness (or by `color`)."""
-    filled = np.asarray(repertoire.filled)
-    points = np.asarray(repertoire.descriptors)[filled][:, list(dims)]
-    values = np.asarray(repertoire.fitnesses)[filled] if color is None else np.asarray(color)[filled]
-    fig, ax = plt.subplots(figsize=(5.5, 4.5))
-    scatter = ax.scatter(points[:, 0], points[:, 1], c=values, s=4, cmap="viridis")
-    fig.colorbar(scatter, ax=ax, label=color_label)
-    ax.set(xlabel=labels[0], ylabel=labels[1], title=title or f"{filled.sum()} elites")
-    return _save(fig, path)
-
-
 def plot_metrics(log_path: str | Path, *, title: str = "", path: str | Path | None = None):
     """Coverage, QD score and max / mean fitness against evaluations, from a metrics CSV."""
     rows = MetricsLog(log_path).read()
