@@ -47,7 +47,7 @@ import numpy as np
 
 from tqdm.auto import tqdm
 
-from experiments.cli import add_set_flag, fail, input_errors, set_overrides
+from experiments.cli import Interruption, add_set_flag, fail, input_errors, interruptible, set_overrides
 from experiments.devices import add_device_flags, device_mesh, is_writer
 from hte_jax.errors import ConfigError, require_int, settings
 from hte_jax.online.evaluation import (
@@ -111,6 +111,11 @@ def parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     args = parser().parse_args(argv)
+    with interruptible() as interrupt:
+        return _main(args, interrupt)
+
+
+def _main(args, interrupt: Interruption) -> int:
     with input_errors() as errors:
         mesh = device_mesh(args)  # first: --distributed must start before jax touches the devices
         writer = is_writer()  # only process 0 of a multi-host run writes files
@@ -126,10 +131,12 @@ def main(argv=None) -> int:
         if writer:
             out.mkdir(parents=True, exist_ok=True)
             write_json(out / "config.json", {"preset": args.preset, "protocol": args.protocol, **config.to_dict()})
+            interrupt.saved = f"wrote {out / 'config.json'} only"
         maze = config.maze_task  # read once for every batch and plot
         records, curves, tracks = [], {}, {}
         earlier, recorded = {}, []  # episodes of each variant in earlier batches; (variant, episode) recorded
-        for k, (seed, path, variants) in enumerate(batches(config)):
+        planned = batches(config)
+        for k, (seed, path, variants) in enumerate(planned):
             labels = [v for v, _, _ in batch_labels(config, variants)]
             result = run_batch(config, path, variants, maze, progress=not args.no_progress, seed=seed,
                                record=rows_to_record(labels, videos, earlier), record_every=RECORD_EVERY, mesh=mesh)
@@ -140,6 +147,7 @@ def main(argv=None) -> int:
             if not writer:
                 continue
             _save_batch(out / f"episodes_{k}.npz", result)
+            interrupt.saved = f"wrote {_batch_files(k + 1)} ({k + 1} of {len(planned)} batch{'es' if len(planned) > 1 else ''}) in {out}, no summary"
             recorded += _save_replays(out, result, numbers, k)
             _plot_batch(out / "plots", result, curves, tracks, maze)
             print(f"batch {k} ({'/'.join(variants)} on seed {seed}: {result.repertoire['path']}, "
@@ -150,6 +158,7 @@ def main(argv=None) -> int:
         return 2
     if not writer:
         return 0
+    interrupt.saved = f"wrote {_batch_files(len(planned))} (every batch) in {out}; summaries, plots, videos in part or not"
     order = {name: i for i, name in enumerate(config.variant_list)}
     records.sort(key=lambda r: order[r["variant"]])  # stable: the variants in the order asked for
     summary = summarise(records, config.max_actions)
@@ -178,6 +187,10 @@ def main(argv=None) -> int:
         return fail(failed)
     print(f"wrote {out}")
     return 0
+
+
+def _batch_files(count: int) -> str:
+    return "episodes_0.npz" if count == 1 else f"episodes_0.npz .. episodes_{count - 1}.npz"
 
 
 def _video_count(text: str) -> int:

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from experiments.cli import fail, input_errors
+from experiments.cli import Interruption, fail, input_errors, interruptible
 from hte_jax.flat.comparison import resolve
 from hte_jax.hbr.composition import COMPOSITIONS, planning_table
 from hte_jax.hbr.modulation import Modulation, modulate
@@ -52,6 +52,11 @@ def parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     args = parser().parse_args(argv)
+    with interruptible() as interrupt:
+        return _main(args, interrupt)
+
+
+def _main(args, interrupt: Interruption) -> int:
     if args.max_skills is not None and args.max_skills < 1:
         return fail(f"--max-skills must be >= 1, got {args.max_skills}")
     if args.radius is not None and not args.radius > 0:
@@ -75,6 +80,7 @@ def main(argv=None) -> int:
         mod = modulate(robot, hbr, task, standing_state(robot), skills=skills, patterns=patterns, chunk=args.chunk,
                        progress=not args.no_progress, table=table)
     out = Path(args.out)
+    interrupt.saved = f"the figures and data in {out} in part or not"
     out.mkdir(parents=True, exist_ok=True)
     plot_modulation_map(mod, out / "modulation_map.png", task.extent, args.radius)
     plot_modulation_grid(mod, out / "modulation_grid.png", task.extent)

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from experiments.cli import input_errors
+from experiments.cli import input_errors, interruptible
 from hte_jax.errors import ConfigError
 from hte_jax.flat.comparison import resolve
 from hte_jax.hbr.composition import planning_table, skill_ends
@@ -45,6 +45,7 @@ def parser() -> argparse.ArgumentParser:
     return p
 
 
+@interruptible()  # Ctrl-C: `interrupted: nothing written` (the file is written at the end)
 def main(argv=None) -> int:
     args = parser().parse_args(argv)
     with input_errors() as errors:

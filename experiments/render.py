@@ -44,7 +44,7 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 from tqdm.auto import tqdm  # noqa: E402
 
-from experiments.cli import input_errors  # noqa: E402
+from experiments.cli import input_errors, interruptible  # noqa: E402
 from hte_jax.errors import ConfigError  # noqa: E402
 from hte_jax.flat.comparison import resolve  # noqa: E402
 from hte_jax.flat.store import load_flat, shipped_flat_path  # noqa: E402
@@ -270,6 +270,7 @@ def episode_video(args) -> Path:
     return write_video(out, video, args.fps)
 
 
+@interruptible()  # Ctrl-C: `interrupted: nothing written` (the video is written at the end)
 def main(argv=None) -> int:
     args = parser().parse_args(argv)
     with input_errors(ConfigError, CheckpointError, RenderError) as errors:
