@@ -158,7 +158,7 @@ def _main(args, interrupt: Interruption) -> int:
         return 2
     if not writer:
         return 0
-    interrupt.saved = f"wrote {_batch_files(len(planned))} (every batch) in {out}; summaries, plots, videos in part or not"
+    interrupt.saved = f"wrote {_batch_files(len(planned))} (every batch) in {out}, part of the summaries, plots and videos"
     order = {name: i for i, name in enumerate(config.variant_list)}
     records.sort(key=lambda r: order[r["variant"]])  # stable: the variants in the order asked for
     summary = summarise(records, config.max_actions)

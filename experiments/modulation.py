@@ -80,7 +80,7 @@ def _main(args, interrupt: Interruption) -> int:
         mod = modulate(robot, hbr, task, standing_state(robot), skills=skills, patterns=patterns, chunk=args.chunk,
                        progress=not args.no_progress, table=table)
     out = Path(args.out)
-    interrupt.saved = f"the figures and data in {out} in part or not"
+    interrupt.saved = f"part of the figures and data written in {out}"
     out.mkdir(parents=True, exist_ok=True)
     plot_modulation_map(mod, out / "modulation_map.png", task.extent, args.radius)
     plot_modulation_grid(mod, out / "modulation_grid.png", task.extent)

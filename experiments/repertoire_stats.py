@@ -54,7 +54,7 @@ def _main(args, interrupt: Interruption) -> int:
     text = markdown_table(table)
     print(text, end="")
     out = Path(args.out)
-    interrupt.saved = f"{out / 'table2.json'} and {out / 'table2.md'} in part or not"
+    interrupt.saved = f"part of table2.json and table2.md written in {out}"
     out.mkdir(parents=True, exist_ok=True)
     write_json(out / "table2.json", {"rows": rows, "aggregate": table})
     (out / "table2.md").write_text(text)

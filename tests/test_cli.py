@@ -133,6 +133,9 @@ def test_resume_of_a_folder_without_a_run_is_refused(command, tmp_path, capsys):
         assert capsys.readouterr().err == (f"error: --resume: {folder} holds no run to resume (no config.json); "
                                            "leave out --resume to start one\n")
     assert not (tmp_path / "absent").exists() and not any(tmp_path.iterdir())
+    (tmp_path / "config.json").write_bytes(b"\x00garbage")  # a damaged run folder
+    assert main(["--preset", "tiny", "--out", str(tmp_path), "--resume", "--no-progress"]) == EXIT_BAD_INPUT
+    assert capsys.readouterr().err.startswith(f"error: {tmp_path / 'config.json'} is not a run's configuration (not JSON")
 
 
 def test_a_file_of_random_bytes_is_not_a_checkpoint(tmp_path, capsys):
