@@ -116,7 +116,9 @@ class Interruption:
 
 
 @contextlib.contextmanager
-def interruptible(saved: str | Callable[[], str | None] | None = None, resume: str | None = None) -> Iterator[Interruption]:
+def interruptible(
+    saved: str | Callable[[], str | None] | None = None, resume: str | None = None
+) -> Iterator[Interruption]:
     """Within the block, Ctrl-C (SIGINT) prints `Interruption.line()` on stderr and ends the process
     with `EXIT_INTERRUPTED` at once, without a traceback and without waiting for running XLA
     computations. A Python signal handler only runs when the main thread executes bytecode, so the

@@ -147,7 +147,7 @@ def _main(args, interrupt: Interruption) -> int:
             if not writer:
                 continue
             _save_batch(out / f"episodes_{k}.npz", result)
-            interrupt.saved = f"wrote {_batch_files(k + 1)} ({k + 1} of {len(planned)} batch{'es' if len(planned) > 1 else ''}) in {out}, no summary"
+            interrupt.saved = f"wrote {_batch_files(k + 1, len(planned))} in {out}, no summary"
             recorded += _save_replays(out, result, numbers, k)
             _plot_batch(out / "plots", result, curves, tracks, maze)
             print(f"batch {k} ({'/'.join(variants)} on seed {seed}: {result.repertoire['path']}, "
@@ -158,7 +158,7 @@ def _main(args, interrupt: Interruption) -> int:
         return 2
     if not writer:
         return 0
-    interrupt.saved = f"wrote {_batch_files(len(planned))} (every batch) in {out}, part of the summaries, plots and videos"
+    interrupt.saved = f"wrote {_batch_files(len(planned), len(planned))} in {out}, part of the summaries, plots, videos"
     order = {name: i for i, name in enumerate(config.variant_list)}
     records.sort(key=lambda r: order[r["variant"]])  # stable: the variants in the order asked for
     summary = summarise(records, config.max_actions)
@@ -189,8 +189,10 @@ def _main(args, interrupt: Interruption) -> int:
     return 0
 
 
-def _batch_files(count: int) -> str:
-    return "episodes_0.npz" if count == 1 else f"episodes_0.npz .. episodes_{count - 1}.npz"
+def _batch_files(count: int, total: int) -> str:
+    """The batch files written, for the line Ctrl-C prints: "episodes_0.npz .. episodes_1.npz (2 of 3 batches)"."""
+    files = "episodes_0.npz" if count == 1 else f"episodes_0.npz .. episodes_{count - 1}.npz"
+    return f"{files} ({count} of {total} batch{'es' if total > 1 else ''})"
 
 
 def _video_count(text: str) -> int:

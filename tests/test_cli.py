@@ -1,4 +1,5 @@
-"""The commands' shared error handling and Ctrl-C line (`experiments.cli`), `--resume` and unreadable checkpoints through the commands."""
+"""The commands' shared error handling and Ctrl-C line (`experiments.cli`); `--resume` and
+unreadable checkpoints through the commands."""
 
 import numpy as np
 import pytest

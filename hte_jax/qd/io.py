@@ -113,7 +113,8 @@ def _read(path: Path, only: str | None = None) -> dict[str, np.ndarray]:
     except OSError as error:
         raise CheckpointError(f"{path}: cannot be read ({error.strerror})") from None
     if magic != _ZIP_MAGIC:  # np.load would try it as a .npy, then as a pickle
-        raise CheckpointError(f"{path}: not an hte-jax checkpoint ({'an empty file' if not magic else 'not an .npz archive'})")
+        what = "an empty file" if not magic else "not an .npz archive"
+        raise CheckpointError(f"{path}: not an hte-jax checkpoint ({what})")
     try:
         with np.load(path, allow_pickle=False) as data:
             return {name: data[name] for name in data.files if only is None or name == only}
