@@ -24,7 +24,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from experiments.cli import fail, input_errors
+from experiments.cli import fail, input_errors, interruptible
 from hte_jax.errors import ConfigError, require_int, require_number
 from hte_jax.hbr.store import load_hbr
 from hte_jax.online.skills import ActionSet, action_set, replayed_models
@@ -96,6 +96,7 @@ def run_models(run: Path, variants: set[str] | None) -> tuple[GPData, dict]:
     return jax.tree.map(lambda *parts: jnp.concatenate(parts), *models), {"episodes": used, "skipped": skipped}
 
 
+@interruptible()  # Ctrl-C: `interrupted: nothing written` (fit.json is written at the end)
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--run", required=True, help="a maze_eval run folder")

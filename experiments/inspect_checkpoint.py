@@ -16,7 +16,7 @@ import sys
 
 import numpy as np
 
-from experiments.cli import input_errors
+from experiments.cli import input_errors, interruptible
 from hte_jax.qd.io import CheckpointError, read_checkpoint
 
 
@@ -48,6 +48,7 @@ def describe(path: str) -> str:
     return "\n".join(lines)
 
 
+@interruptible()  # Ctrl-C: `interrupted: nothing written` (it only reads)
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("path")

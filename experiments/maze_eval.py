@@ -49,7 +49,7 @@ import numpy as np
 
 from tqdm.auto import tqdm
 
-from experiments.cli import add_set_flag, input_errors, set_overrides
+from experiments.cli import Interruption, add_set_flag, input_errors, interruptible, set_overrides
 from experiments.devices import add_device_flags, device_mesh, is_writer
 from hte_jax.config import settings
 from hte_jax.errors import ConfigError, require_int
@@ -115,6 +115,11 @@ def parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     args = parser().parse_args(argv)
+    with interruptible() as interrupt:
+        return _main(args, interrupt)
+
+
+def _main(args, interrupt: Interruption) -> int:
     with input_errors() as errors:
         mesh = device_mesh(args)  # first: --distributed must start before jax touches the devices
         writer = is_writer()  # only process 0 of a multi-host run writes files
@@ -130,10 +135,12 @@ def main(argv=None) -> int:
         if writer:
             out.mkdir(parents=True, exist_ok=True)
             write_json(out / "config.json", {"preset": args.preset, "protocol": args.protocol, **config.to_dict()})
+            interrupt.saved = f"wrote {out / 'config.json'} only"
         maze = config.maze_task  # read once for every batch and plot
         records, curves, tracks = [], {}, {}
         earlier, recorded = {}, []  # episodes of each variant in earlier batches; (variant, episode) recorded
-        for k, (seed, path, variants) in enumerate(batches(config)):
+        planned = batches(config)
+        for k, (seed, path, variants) in enumerate(planned):
             labels = [v for v, _, _ in batch_labels(config, variants)]
             result = run_batch(config, path, variants, maze, progress=not args.no_progress, seed=seed,
                                record=rows_to_record(labels, videos, earlier), record_every=RECORD_EVERY, mesh=mesh)
@@ -144,6 +151,7 @@ def main(argv=None) -> int:
             if not writer:
                 continue
             _save_batch(out / f"episodes_{k}.npz", result)
+            interrupt.saved = f"wrote {_batch_files(k + 1, len(planned))} in {out}, no summary"
             recorded += _save_replays(out, result, numbers, k)
             _plot_batch(out / "plots", result, curves, tracks, maze)
             print(f"batch {k} ({'/'.join(variants)} on seed {seed}: {result.repertoire['path']}, "
@@ -154,6 +162,7 @@ def main(argv=None) -> int:
         return 2
     if not writer:
         return 0
+    interrupt.saved = f"wrote {_batch_files(len(planned), len(planned))} in {out}, part of the summaries, plots, videos"
     order = {name: i for i, name in enumerate(config.variant_list)}
     records.sort(key=lambda r: order[r["variant"]])  # stable: the variants in the order asked for
     summary = summarise(records, config.max_actions)
@@ -182,6 +191,12 @@ def main(argv=None) -> int:
         print(unrendered, file=sys.stderr)
     print(f"wrote {out}")
     return 0
+
+
+def _batch_files(count: int, total: int) -> str:
+    """The batch files written, for the line Ctrl-C prints: "episodes_0.npz .. episodes_1.npz (2 of 3 batches)"."""
+    files = "episodes_0.npz" if count == 1 else f"episodes_0.npz .. episodes_{count - 1}.npz"
+    return f"{files} ({count} of {total} batch{'es' if total > 1 else ''})"
 
 
 def _video_count(text: str) -> int:

@@ -16,7 +16,7 @@ import time
 
 import jax
 
-from experiments.cli import fail, input_errors
+from experiments.cli import fail, input_errors, interruptible
 from hte_jax.flat.comparison import resolve
 from hte_jax.hbr.composition import measure_steps
 from hte_jax.hbr.store import load_hbr, save_hbr, shipped_hbr_path
@@ -37,6 +37,7 @@ def parser() -> argparse.ArgumentParser:
     return p
 
 
+@interruptible()  # Ctrl-C: `interrupted: nothing written` (the HBR file is replaced at the end)
 def main(argv=None) -> int:
     args = parser().parse_args(argv)
     for name in ("starts", "chunk"):

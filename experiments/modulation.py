@@ -31,7 +31,7 @@ import jax
 import numpy as np
 from tqdm.auto import tqdm
 
-from experiments.cli import fail, input_errors
+from experiments.cli import Interruption, fail, input_errors, interruptible
 from hte_jax.errors import ConfigError
 from hte_jax.flat.comparison import resolve
 from hte_jax.hbr.composition import COMPOSITIONS, planning_table
@@ -87,6 +87,11 @@ def skill_count(text: str | None, preset: str) -> int | None:
 
 def main(argv=None) -> int:
     args = parser().parse_args(argv)
+    with interruptible() as interrupt:
+        return _main(args, interrupt)
+
+
+def _main(args, interrupt: Interruption) -> int:
     chunk = PRESETS[args.preset]["chunk"] if args.chunk is None else args.chunk
     if args.radius is not None and not args.radius > 0:
         return fail(f"--radius must be > 0, got {args.radius}")
@@ -115,6 +120,7 @@ def main(argv=None) -> int:
             sample = {"skills": int(skills.size), "of": filled, "seed": args.seed}
         mod = _simulate(hbr, task, skills, args, chunk, progress)
     out = Path(args.out)
+    interrupt.saved = f"part of the figures and data written in {out}"
     out.mkdir(parents=True, exist_ok=True)
     with tqdm(total=2, desc="figures", unit="figure", disable=not progress, leave=False) as bar:
         plot_modulation_map(mod, out / "modulation_map.png", task.extent, args.radius)

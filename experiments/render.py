@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 from tqdm.auto import tqdm
 
-from experiments.cli import input_errors
+from experiments.cli import input_errors, interruptible
 from hte_jax.errors import ConfigError, require_choice, require_int, require_number
 from hte_jax.qd.io import CheckpointError
 from hte_jax.viz import gl
@@ -231,6 +231,7 @@ def episode_video(args) -> Path:
     return write_video(out, video, args.fps)
 
 
+@interruptible()  # Ctrl-C: `interrupted: nothing written` (the video is written at the end)
 def main(argv=None) -> int:
     args = parser().parse_args(argv)
     with input_errors(ConfigError, CheckpointError, gl.RenderError) as errors:

@@ -21,14 +21,22 @@ import argparse
 import json
 import sys
 
-from experiments.cli import add_set_flag, input_errors, set_overrides
+from experiments.cli import (
+    add_set_flag,
+    checkpoint_saved,
+    input_errors,
+    interruptible,
+    resumable_run,
+    resume_command,
+    set_overrides,
+)
 from experiments.devices import add_device_flags, device_mesh, is_writer
 from hte_jax.config import settings
 from hte_jax.flat.training import PRESETS, VARIANTS, FlatConfig, preset, train_flat, with_overrides
-from hte_jax.qd.io import stored_config
 from hte_jax.sim.robot import stored_solver
 
 SETTINGS = [key for key in settings(FlatConfig) if key != "variant"]
+CHECKPOINTS = {"checkpoint.npz": ""}  # the run's one checkpoint, of every repertoire
 
 
 def parser() -> argparse.ArgumentParser:
@@ -48,13 +56,18 @@ def parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     args = parser().parse_args(argv)
+    out = args.out or f"runs/flat-{args.variant}-{args.preset}"
+    with interruptible(lambda: checkpoint_saved(out, CHECKPOINTS), resume_command("experiments.train_flat", argv, out)):
+        return _main(args, out)
+
+
+def _main(args, out: str) -> int:
     with input_errors() as errors:
         mesh = device_mesh(args)  # first: --distributed must start before jax touches the devices
         config = preset(args.preset, args.variant)
         overrides = {k: getattr(args, k) for k in SETTINGS if getattr(args, k) is not None}
         overrides.update(set_overrides(args.set))
-        out = args.out or f"runs/flat-{args.variant}-{args.preset}"
-        stored = stored_config(out) if args.resume else None
+        stored = resumable_run(out, CHECKPOINTS) if args.resume else None
         if stored is not None:
             overrides = {**stored_solver(stored), **overrides}
         config = with_overrides(config, overrides)

@@ -23,12 +23,22 @@ import argparse
 import json
 import sys
 
-from experiments.cli import add_set_flag, input_errors, set_overrides
+from experiments.cli import (
+    add_set_flag,
+    checkpoint_saved,
+    input_errors,
+    interruptible,
+    resumable_run,
+    resume_command,
+    set_overrides,
+)
 from experiments.devices import add_device_flags, device_mesh, is_writer
 from hte_jax.config import settings
-from hte_jax.hbr.training import PRESETS, HBRConfig, preset, train_hbr, with_overrides
-from hte_jax.qd.io import stored_config
+from hte_jax.hbr.training import LAYERS, PRESETS, HBRConfig, preset, train_hbr, with_overrides
 from hte_jax.sim.robot import stored_solver
+
+
+CHECKPOINTS = {f"{layer}/checkpoint.npz": f"layer {layer}" for layer in LAYERS}  # in training order
 
 
 def _flag(key: str) -> str:
@@ -56,13 +66,18 @@ def parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     args = parser().parse_args(argv)
+    out = args.out or f"runs/hbr-{args.preset}"
+    with interruptible(lambda: checkpoint_saved(out, CHECKPOINTS), resume_command("experiments.train_hbr", argv, out)):
+        return _main(args, out)
+
+
+def _main(args, out: str) -> int:
     with input_errors() as errors:
         mesh = device_mesh(args)  # first: --distributed must start before jax touches the devices
         config: HBRConfig = preset(args.preset)
         overrides = {key: getattr(args, key) for key, _ in _settings() if getattr(args, key) is not None}
         overrides.update(set_overrides(args.set))
-        out = args.out or f"runs/hbr-{args.preset}"
-        stored = stored_config(out) if args.resume else None
+        stored = resumable_run(out, CHECKPOINTS) if args.resume else None
         if stored is not None:
             overrides = {**stored_solver(stored), **overrides}
         config = with_overrides(config, overrides)

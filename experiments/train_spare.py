@@ -18,13 +18,16 @@ import argparse
 import dataclasses
 import sys
 
-from experiments.cli import input_errors
+from experiments.cli import checkpoint_saved, input_errors, interruptible, resumable_run, resume_command
 from hte_jax.errors import ConfigError
 from hte_jax.flat.comparison import resolve
 from hte_jax.hbr.spare import SPARE_L, STRICT_CONTACT
 from hte_jax.hbr.store import load_hbr, shipped_hbr_path
 from hte_jax.hbr.training import PRESETS, preset, train_spare
 from hte_jax.sim.robot import SolverConfig, stored_solver
+
+
+CHECKPOINTS = {"middle/checkpoint.npz": "the spare archive"}
 
 
 def parser() -> argparse.ArgumentParser:
@@ -42,11 +45,19 @@ def parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     args = parser().parse_args(argv)
+    saved = lambda: checkpoint_saved(args.out, CHECKPOINTS)  # noqa: E731
+    with interruptible(saved, resume_command("experiments.train_spare", argv, args.out)):
+        return _main(args)
+
+
+def _main(args) -> int:
     with input_errors() as errors:
         if not 0.0 < args.threshold < 1.0:
             raise ConfigError(f"--threshold must be in (0, 1), got {args.threshold}")
         if args.l <= 0.0:
             raise ConfigError(f"--l must be > 0, got {args.l}")
+        if args.resume:
+            resumable_run(args.out, CHECKPOINTS)
         path = shipped_hbr_path() if args.hbr is None else resolve(args.hbr)
         hbr, _, meta = load_hbr(path)
         solver = stored_solver(meta.get("training", {}).get("config", {}))

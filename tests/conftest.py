@@ -38,8 +38,8 @@ def pytest_unconfigure(config):
         shutil.rmtree(_CACHE, ignore_errors=True)
 
 
-# Benchmark scripts re-run programs (a training preset, say) that other tests compile first.
-_LAST = ("test_benchmarks.py", "test_benchmarks_hbr.py")
+# Benchmark scripts and the Ctrl-C tests re-run programs (a training preset, say) that other tests compile first.
+_LAST = ("test_benchmarks.py", "test_benchmarks_hbr.py", "test_interrupts.py")
 
 
 def pytest_collection_modifyitems(session, config, items):

@@ -341,7 +341,7 @@ def test_corrupt_checkpoint_is_a_clear_error(tmp_path, small_algo):
     with pytest.raises(CheckpointError, match="truncated or corrupt"):
         resume(small_algo, path)
     (tmp_path / "junk.npz").write_bytes(b"not a zip at all")
-    with pytest.raises(CheckpointError, match="truncated or corrupt"):
+    with pytest.raises(CheckpointError, match="junk.npz: not an hte-jax checkpoint"):
         resume(small_algo, tmp_path / "junk.npz")
     with pytest.raises(CheckpointError, match="no such checkpoint"):
         resume(small_algo, tmp_path / "missing.npz")

@@ -3,7 +3,8 @@
 Layout: one npz entry per leaf, named by its pytree path, plus `__metadata__` (a JSON string
 with the format version, every leaf's shape and dtype, and the caller's metadata such as the
 container and config). Writes go to a temporary file in the same folder, are fsync-ed, then
-renamed over the target, so a kill mid-write leaves the previous checkpoint intact.
+renamed over the target, so a kill mid-write leaves the previous checkpoint intact (and a
+temporary file, which the next write of that checkpoint removes).
 Loading checks everything against a template and raises `CheckpointError` naming the problem.
 """
 
@@ -27,6 +28,7 @@ from hte_jax.qd.repertoire import EMPTY_FITNESS, Repertoire
 FORMAT = "hte_jax.checkpoint"
 FORMAT_VERSION = 1
 _META = "__metadata__"
+_ZIP_MAGIC = b"PK\x03\x04"  # how every .npz (a zip archive) begins
 
 
 class CheckpointError(ValueError):
@@ -64,6 +66,7 @@ def save_checkpoint(path: str | Path, tree: Any, metadata: dict | None = None, *
     finally:
         if tmp.exists():
             tmp.unlink()
+    _remove_leftovers(path)
     directory = os.open(path.parent, os.O_RDONLY)
     try:
         os.fsync(directory)
@@ -71,22 +74,66 @@ def save_checkpoint(path: str | Path, tree: Any, metadata: dict | None = None, *
         os.close(directory)
 
 
+def _remove_leftovers(path: Path) -> None:
+    """Remove the temporary files of `path` that writers killed mid-write left behind (those of
+    processes no longer running here): they are never read, only in the way."""
+    for leftover in path.parent.glob(f".{path.name}.tmp-*"):
+        pid = leftover.name.rpartition("-")[2]
+        if not pid.isdigit() or int(pid) == os.getpid():
+            continue
+        try:
+            os.kill(int(pid), 0)
+        except ProcessLookupError:
+            leftover.unlink(missing_ok=True)
+        except OSError:  # running, under another user
+            pass
+
+
 def read_checkpoint(path: str | Path) -> tuple[dict[str, np.ndarray], dict]:
     """All arrays and the header of a checkpoint file, fully read and CRC-checked."""
-    path = Path(path)
+    arrays = _read(Path(path))
+    return arrays, _header(Path(path), arrays.pop(_META, None))
+
+
+def read_header(path: str | Path) -> dict:
+    """The header of a checkpoint file (format, version, leaves, metadata) without reading its
+    arrays: a quick check that a file is a checkpoint (CheckpointError as `read_checkpoint`, except
+    that a damaged array is only found when it is read)."""
+    return _header(Path(path), _read(Path(path), only=_META).get(_META))
+
+
+def _read(path: Path, only: str | None = None) -> dict[str, np.ndarray]:
+    """The arrays of an .npz file (only the one named `only`, if given); CheckpointError for a
+    missing file, or one that is not an .npz of plain arrays or is truncated or corrupt."""
     if not path.is_file():
         raise CheckpointError(f"{path}: no such checkpoint file")
     try:
+        with open(path, "rb") as handle:
+            magic = handle.read(len(_ZIP_MAGIC))
+    except OSError as error:
+        raise CheckpointError(f"{path}: cannot be read ({error.strerror})") from None
+    if magic != _ZIP_MAGIC:  # np.load would try it as a .npy, then as a pickle
+        what = "an empty file" if not magic else "not an .npz archive"
+        raise CheckpointError(f"{path}: not an hte-jax checkpoint ({what})")
+    try:
         with np.load(path, allow_pickle=False) as data:
-            arrays = {name: data[name] for name in data.files}
-    except (zipfile.BadZipFile, zlib.error, EOFError, OSError, ValueError, KeyError) as error:
-        raise CheckpointError(f"{path}: not a readable checkpoint (truncated or corrupt): {error}") from None
-    if _META not in arrays:
+            return {name: data[name] for name in data.files if only is None or name == only}
+    except (zipfile.BadZipFile, zlib.error, EOFError, OSError) as error:
+        raise CheckpointError(f"{path}: not an hte-jax checkpoint, or a truncated or corrupt one ({error})") from None
+    except (ValueError, KeyError):  # entries that are not plain arrays (object arrays, foreign files)
+        raise CheckpointError(f"{path}: not an hte-jax checkpoint (its entries are not plain arrays)") from None
+
+
+def _header(path: Path, stored: np.ndarray | None) -> dict:
+    """The checked header of a checkpoint from its `__metadata__` entry (None: it has none)."""
+    if stored is None:
         raise CheckpointError(f"{path}: not an hte-jax checkpoint (no {_META} entry)")
     try:
-        header = json.loads(str(arrays.pop(_META)))
+        header = json.loads(str(stored))
     except json.JSONDecodeError as error:
         raise CheckpointError(f"{path}: corrupt metadata: {error}") from None
+    if not isinstance(header, dict):
+        raise CheckpointError(f"{path}: not an hte-jax checkpoint (its metadata is not a JSON object)")
     if header.get("format") != FORMAT:
         raise CheckpointError(f"{path}: not an hte-jax checkpoint (format {header.get('format')!r})")
     if header.get("version") != FORMAT_VERSION:
@@ -94,7 +141,7 @@ def read_checkpoint(path: str | Path) -> tuple[dict[str, np.ndarray], dict]:
             f"{path}: checkpoint format version {header.get('version')!r} is not supported "
             f"(this hte-jax reads version {FORMAT_VERSION})"
         )
-    return arrays, header
+    return header
 
 
 def load_checkpoint(path: str | Path, template: Any, expected_metadata: dict | None = None) -> Any:
@@ -143,7 +190,17 @@ def write_json(path: str | Path, data: dict) -> None:
 def stored_config(out: str | Path) -> dict | None:
     """The configuration a run folder was started with (its `config.json`), or None when it holds no run."""
     path = Path(out) / "config.json"
-    return json.loads(path.read_text()) if path.exists() else None
+    return _read_config(path) if path.exists() else None
+
+
+def _read_config(path: Path) -> dict:
+    try:
+        config = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as error:
+        raise ConfigError(f"{path} is not a run's configuration (not JSON: {error})") from None
+    if not isinstance(config, dict):
+        raise ConfigError(f"{path} is not a run's configuration (not a JSON object)")
+    return config
 
 
 def prepare_run_dir(out: str | Path, config: dict, resume_run: bool, normalise: Callable[[dict], dict] | None = None) -> Path:
@@ -160,7 +217,7 @@ def prepare_run_dir(out: str | Path, config: dict, resume_run: bool, normalise: 
     if config_path.exists():
         if not resume_run:
             raise ConfigError(f"{out} already holds a run; pass --resume to continue it or choose another --out")
-        stored = json.loads(config_path.read_text())
+        stored = _read_config(config_path)
         if normalise is not None:
             stored = jsonable(normalise(stored))
         changed = sorted(key for key in set(stored) | set(wanted) if stored.get(key) != wanted.get(key))
