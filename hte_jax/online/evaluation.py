@@ -27,7 +27,7 @@ from hte_jax.config import config_dict, config_from_dict, inline
 from hte_jax.errors import ConfigError, require_choice, require_int
 from hte_jax.config import with_overrides as _with_overrides
 from hte_jax.flat.store import load_flat, shipped_flat_path
-from hte_jax.hbr.store import load_hbr, load_spare, shipped_hbr_path, spare_beside
+from hte_jax.hbr.store import load_hbr, load_spare, spare_beside
 from hte_jax.online.arena import maze_robot, start_states
 from hte_jax.hbr.composition import COMPOSITIONS
 from hte_jax.online.episode import AdaptationConfig, Episodes, RunTimings, run_episodes, start_episodes

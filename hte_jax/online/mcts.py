@@ -30,7 +30,7 @@ from flax import struct
 
 from hte_jax.errors import require_int, require_number
 from hte_jax.geometry import compose_pose
-from hte_jax.online.maze import GridSpec, Maze, distance_field, in_bounds, move_collides, point_collides, reached_goal
+from hte_jax.online.maze import GridSpec, Maze, in_bounds, move_collides, point_collides, reached_goal
 
 
 @dataclasses.dataclass(frozen=True)
