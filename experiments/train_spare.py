@@ -18,12 +18,12 @@ import argparse
 import dataclasses
 import sys
 
-from experiments.cli import input_errors
+from experiments.cli import add_set_flag, input_errors, set_overrides
 from hte_jax.errors import ConfigError
 from hte_jax.flat.comparison import resolve
 from hte_jax.hbr.sparing import SPARE_L, STRICT_CONTACT, train_spare
 from hte_jax.hbr.store import load_hbr, shipped_hbr_path
-from hte_jax.hbr.training import PRESETS, preset
+from hte_jax.hbr.training import PRESETS, preset, with_overrides
 from hte_jax.sim.robot import SolverConfig, stored_solver
 
 
@@ -37,6 +37,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--resume", action="store_true", help="continue the run in --out")
     p.add_argument("--no-progress", action="store_true")
+    add_set_flag(p)
     return p
 
 
@@ -51,6 +52,7 @@ def main(argv=None) -> int:
         hbr, _, meta = load_hbr(path)
         solver = stored_solver(meta.get("training", {}).get("config", {}))
         base = dataclasses.replace(preset(args.preset), seed=args.seed, solver=SolverConfig(**solver))
+        base = with_overrides(base, set_overrides(args.set))  # the preset's other settings (middle.*, step_chunk)
         summary = train_spare(hbr, base, args.out, threshold=args.threshold, l=args.l, resume_run=args.resume,
                               progress=not args.no_progress)
     if errors.failed:

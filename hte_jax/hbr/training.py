@@ -97,6 +97,8 @@ class HBRConfig:
       resumes with that.
     step_starts: start states from which every middle elite's step is measured once the layers
       are trained (`composition.measure_steps`, stored in hbr.npz); 0: no step model.
+    step_chunk: samples per jitted rollout of the step model (memory; on a CPU the block's size
+      also sets the last bits of its steps).
     """
 
     bottom: LayerSchedule
@@ -112,11 +114,13 @@ class HBRConfig:
     bottom_fitness: str = "commands"
     solver: SolverConfig = inline(SolverConfig())
     step_starts: int = 8
+    step_chunk: int = 8192
 
     def __post_init__(self):
         require_int("seed", self.seed, minimum=0)
         require_int("middle_samples", self.middle_samples)
         require_int("step_starts", self.step_starts, minimum=0)
+        require_int("step_chunk", self.step_chunk)
         require_number("contact_threshold", self.contact_threshold, 0.0, 1.0)
         require_number("contact_purity", self.contact_purity, 0.0)
         require_number("bottom_l", self.bottom_l, 0.0, open_low=True)
@@ -294,7 +298,7 @@ def train_hbr(
         began = time.perf_counter()
         key = jax.random.fold_in(jax.random.PRNGKey(config.seed), len(LAYERS))
         model = measure_steps(robot, hbr.middle_params, hbr.middle.filled, config.middle_task, start, key,
-                              starts=config.step_starts)
+                              starts=config.step_starts, chunk=config.step_chunk, mesh=mesh, progress=progress)
         hbr = hbr.replace(step_model=model)
         summary["step_model"] = {"starts": config.step_starts, "wall_time_s": time.perf_counter() - began}
     summary["statistics"] = hbr_statistics(hbr, config.top_task)
