@@ -17,6 +17,7 @@ import time
 import jax
 
 from experiments.cli import fail, input_errors, interruptible
+from experiments.devices import add_device_flags, device_mesh, is_writer
 from hte_jax.flat.comparison import resolve
 from hte_jax.hbr.composition import measure_steps
 from hte_jax.hbr.store import load_hbr, save_hbr, shipped_hbr_path
@@ -34,6 +35,8 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--starts", type=int, default=8, help="start states per elite (default 8)")
     p.add_argument("--seed", type=int, default=0, help="PRNG seed of the drawn start states")
     p.add_argument("--chunk", type=int, default=8192, help="rollouts per jitted call")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_device_flags(p)
     return p
 
 
@@ -46,6 +49,7 @@ def main(argv=None) -> int:
     if args.seed < 0:
         return fail(f"--seed must be >= 0, got {args.seed}")
     with input_errors(CheckpointError) as errors:
+        mesh = device_mesh(args)  # first: --distributed must start before jax touches the devices
         path = shipped_hbr_path() if args.hbr is None else resolve(args.hbr)
         hbr, top_task, meta = load_hbr(path)
     if errors.failed:
@@ -54,8 +58,11 @@ def main(argv=None) -> int:
     robot = load_robot(RobotConfig(**solver))
     began = time.perf_counter()
     model = measure_steps(robot, hbr.middle_params, hbr.middle.filled, hbr.middle_task, standing_state(robot),
-                          jax.random.PRNGKey(args.seed), starts=args.starts, chunk=args.chunk)
+                          jax.random.PRNGKey(args.seed), starts=args.starts, chunk=args.chunk, mesh=mesh,
+                          progress=not args.no_progress)
     model = jax.device_get(model)
+    if not is_writer():
+        return 0
     seconds = time.perf_counter() - began
     extra = {k: v for k, v in meta.items() if k not in CHROME}
     extra["step_model"] = {"starts": args.starts, "seed": args.seed, "device": jax.devices()[0].device_kind,

@@ -18,12 +18,12 @@ import argparse
 import dataclasses
 import sys
 
-from experiments.cli import checkpoint_saved, input_errors, interruptible, resumable_run, resume_command
+from experiments.cli import add_set_flag, checkpoint_saved, input_errors, interruptible, resumable_run, resume_command, set_overrides
 from hte_jax.errors import ConfigError
 from hte_jax.flat.comparison import resolve
 from hte_jax.hbr.spare import SPARE_L, STRICT_CONTACT
 from hte_jax.hbr.store import load_hbr, shipped_hbr_path
-from hte_jax.hbr.training import PRESETS, preset, train_spare
+from hte_jax.hbr.training import PRESETS, preset, train_spare, with_overrides
 from hte_jax.sim.robot import SolverConfig, stored_solver
 
 
@@ -40,6 +40,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--resume", action="store_true", help="continue the run in --out")
     p.add_argument("--no-progress", action="store_true")
+    add_set_flag(p)
     return p
 
 
@@ -62,6 +63,7 @@ def _main(args) -> int:
         hbr, _, meta = load_hbr(path)
         solver = stored_solver(meta.get("training", {}).get("config", {}))
         base = dataclasses.replace(preset(args.preset), seed=args.seed, solver=SolverConfig(**solver))
+        base = with_overrides(base, set_overrides(args.set))  # the preset's other settings (middle.*, step_chunk)
         summary = train_spare(hbr, base, args.out, threshold=args.threshold, l=args.l, resume_run=args.resume,
                               progress=not args.no_progress)
     if errors.failed:

@@ -6,9 +6,22 @@ Two places do the splitting, both with `jax.shard_map`, so that each device runs
 program on its own rows with no collective inside (a `vmap`-ped while loop, such as the MJX
 Newton solver's or the planner's, would otherwise wait on every device at each iteration):
 - every MJX rollout (`sim.rollout.rollout`) splits its rows over the mesh that `spread_over`
-  makes current while a program is traced (`MapElites` sets it around its evaluations), and its
-  results come back replicated;
+  makes current while a program is traced (`MapElites` sets it around its evaluations, the step
+  model around its blocks), and its results come back replicated;
 - an episode batch (`online.episode.run_episodes`) runs its plan and act steps per device.
+
+Who places arrays (docs/design.md, "Which arrays are replicated and which are split"): only a
+function given devices, and it places every array it computes with, at its entry:
+- the MAP-Elites loops (`place`: the state replicated; each generation's rows split inside the
+  rollouts), the step model (`hbr.composition.measure_steps`: robot, controllers and start
+  replicated, each block's rows split), episode batches (`online.episode.run_episodes`: skills,
+  robot, distance field replicated, episodes split); their results come back replicated (or on
+  the host);
+- everything else (loaders, analyses, plots) places nothing: it makes uncommitted arrays, which
+  jax runs on the default device and moves to wherever they are needed, and runs where its inputs
+  are. jax refuses to mix an array committed to ONE device with a mesh's; `mjx.put_model` makes
+  such arrays, which `uncommitted` undoes (`sim.robot.load_robot`).
+
 Rows are independent, so a row's result does not depend on the device count N: draws are made
 per individual before the split (the population's genotypes and draws, the episodes' own keys)
 and a batch that does not divide by N is padded with copies of its last row (`pad_rows`), whose
@@ -115,6 +128,12 @@ def put_replicated(tree: Any, mesh: Mesh) -> Any:
 def put_batch(tree: Any, mesh: Mesh) -> Any:
     """Outside jit: the leading axis of every leaf (a multiple of the device count) split over the mesh."""
     return jax.tree.map(lambda x: jax.device_put(x, batch_sharding(mesh, np.ndim(x))), tree)
+
+
+def uncommitted(tree: Any) -> Any:
+    """Every array of `tree` as an uncommitted copy on the default device (through the host): for
+    arrays that a library committed to one device (`mjx.put_model`), which no mesh could take."""
+    return jax.device_put(jax.device_get(tree))
 
 
 def spread_over(mesh: Mesh):

@@ -107,7 +107,7 @@ def shipped():
     return hbr, top_task, load_robot()
 
 
-def test_measured_steps_match_a_direct_rollout(shipped):
+def test_measured_steps_match_a_direct_rollout(shipped, capsys):
     hbr, _, robot = shipped
     rows = np.arange(5)
     params, filled = hbr.middle_params[rows], hbr.middle.filled[rows]
@@ -120,6 +120,16 @@ def test_measured_steps_match_a_direct_rollout(shipped):
     expected = hbr.middle_task.normalise(relative_pose(poses[:, 0], poses[:, 1]))
     np.testing.assert_allclose(model.steps, expected, atol=1e-6)
     np.testing.assert_array_equal(model.spread, np.zeros(5))
+    # Empty slots are not simulated and change nothing: 5 more slots, empty, with blocks of 5 samples
+    # (the size above) run one block, not two, and the filled slots' steps keep their bits.
+    empty = jnp.full((5, params.shape[1]), jnp.nan)
+    with_empty = measure_steps(robot, jnp.concatenate([params, empty]),
+                               jnp.concatenate([filled, jnp.zeros(5, bool)]), hbr.middle_task, start,
+                               jax.random.key(0), starts=1, chunk=5, progress=True)
+    np.testing.assert_array_equal(with_empty.steps[:5], model.steps)
+    np.testing.assert_array_equal(with_empty.steps[5:], 0.0)
+    np.testing.assert_array_equal(with_empty.spread[5:], np.inf)
+    assert "1/1" in capsys.readouterr().err  # the progress bar counted one block
     several = measure_steps(robot, params, filled, hbr.middle_task, start, jax.random.key(0), starts=3)
     assert np.all(np.isfinite(several.spread)) and np.all(np.asarray(several.spread) > 0)
     assert np.all((np.asarray(several.steps) > 0) & (np.asarray(several.steps) < 1))

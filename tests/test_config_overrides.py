@@ -185,6 +185,7 @@ OLD_HBR = {"bottom": OLD_LAYER, "middle": {**OLD_LAYER, "mutation_rate": 0.11},
            "seed": 0, "middle_samples": 2, "contact_threshold": 0.3, "contact_purity": 0.0, "bottom_l": 0.01,
            "middle_l": 0.05, "top_bins": 100, "bottom_fitness": "commands", "solver_iterations": 6, "ls_iterations": 4,
            "solver_tolerance": 1e-08, "step_starts": 2}
+HBR_ADDED = {"step_chunk": 8192}  # HBR settings added since, at their defaults
 OLD_FLAT = {"variant": "8d", "batch_size": 16, "init_size": 32, "generations": 2, "block_size": 1, "mutation_rate": 0.14,
             "eta_m": 10.0, "seed": 0, "bins": 20, "contact_threshold": 0.3, "solver_iterations": 3, "ls_iterations": 4,
             "solver_tolerance": 1e-08}
@@ -202,10 +203,12 @@ def test_configurations_stored_flat_read_as_the_nested_ones():
                              (flat_training.FlatConfig, OLD_FLAT, flat)):
         assert cls.from_dict(old) == config == cls.from_dict(dataclasses.asdict(config))
         assert cls.from_dict(config.to_dict()) == config
-        added = {"collision_reward": -1000.0, "goal_reward": 100.0, "reflex_release": 0.0, "reflex_rate": 0.0,
-                 "maze": ""} if cls is evaluation.EvalConfig else {}  # settings added since, at their defaults
+        added = {evaluation.EvalConfig: {"collision_reward": -1000.0, "goal_reward": 100.0, "reflex_release": 0.0,
+                                         "reflex_rate": 0.0, "maze": ""},
+                 hbr_training.HBRConfig: HBR_ADDED}.get(cls, {})  # settings added since, at their defaults
         retired = evaluation.RETIRED if cls is evaluation.EvalConfig else {}  # settings of levers that left
         assert config.to_dict() == {**{k: v for k, v in old.items() if k not in retired}, **added}
-    assert hbr_training.normalised_config(OLD_HBR) == OLD_HBR and flat_training.normalised_config(OLD_FLAT) == OLD_FLAT
+    assert hbr_training.normalised_config(OLD_HBR) == {**OLD_HBR, **HBR_ADDED}
+    assert flat_training.normalised_config(OLD_FLAT) == OLD_FLAT
     with pytest.raises(ConfigError, match="left hte-jax"):
         evaluation.EvalConfig.from_dict({**OLD_EVAL, "optimism": 1.0})

@@ -146,3 +146,22 @@ def test_padding_repeats_the_last_row():
     assert padded["a"].tolist() == [0, 1, 2, 3, 4, 5, 5, 5] and padded["b"].shape == (8, 2)
     mesh = sharding.batch_mesh(1)
     assert sharding.padded_size(6, mesh) == 6
+
+
+def test_the_robot_is_handed_out_uncommitted():
+    """The placement rule (`sharding`): loaders place nothing. `mjx.put_model` commits the model to
+    device 0, which jax refuses to mix with a mesh's arrays (the crash of issue 36); `load_robot`
+    undoes it with `sharding.uncommitted`, which keeps every value."""
+    import jax
+
+    from hte_jax import sharding
+    from hte_jax.sim.mjx_import import mjx
+    from hte_jax.sim.robot import load_robot, mj_model
+
+    committed = mjx.put_model(mj_model())
+    assert all(leaf.committed for leaf in jax.tree.leaves(committed))
+    robot = load_robot()
+    assert not any(leaf.committed for leaf in jax.tree.leaves(robot))
+    for made, placed in zip(jax.tree.leaves(sharding.uncommitted(committed)), jax.tree.leaves(committed)):
+        assert not made.committed and made.dtype == placed.dtype
+        np.testing.assert_array_equal(made, placed)

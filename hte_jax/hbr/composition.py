@@ -21,14 +21,18 @@ steps that depend little on where they start are preferred.
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 from flax import struct
+from jax.sharding import Mesh
+from tqdm.auto import tqdm
 
+from hte_jax import sharding
 from hte_jax.geometry import compose_pose, planar_pose, relative_pose
 from hte_jax.hbr.middle import NUM_PATTERNS, PRIMARY, MiddleTask
-from hte_jax.qd.archive import map_rows
 from hte_jax.sim.robot import NUM_LEGS, Robot
 from hte_jax.sim.rollout import RolloutSpec, SimState, rollout
 
@@ -155,40 +159,68 @@ def plan_step(
 
 def measure_steps(
     robot: Robot, middle_params: jax.Array, filled: jax.Array, task: MiddleTask, start: SimState, key: jax.Array,
-    starts: int = 8, chunk: int = 8192,
+    starts: int = 8, chunk: int = 8192, mesh: Mesh | None = None, progress: bool = False,
 ) -> StepModel:
-    """Measure every middle elite's 1 s step from `starts` start states (one batched MJX rollout per chunk).
+    """Measure every filled middle elite's 1 s step from `starts` start states.
 
     middle_params: (Cm, 36) controllers, filled: (Cm,) bool. Start 0 is 1 s of the neutral pose
     after standing (as after an online action); the others are 1 s of a uniformly drawn filled elite
     (as inside a skill). Each sample runs the predecessor then the elite from the standing state
     `start` (unbatched); the elite's step is measured in the frame of its own start pose.
+
+    Only the filled elites' samples are simulated (counted on the host), one jitted MJX rollout per
+    block with a progress bar over the blocks. A block holds min(chunk, Cm x starts) samples at
+    any fill (the last one padded): on a CPU, XLA's code for a vmapped rollout rounds differently
+    with its row count, and this keeps a sample's bits those of the run that simulated every slot.
+    mesh: each block's rows are split over it, everything else replicated (`sharding`'s placement
+    rule; None: all visible devices). Returns host-made (uncommitted) arrays.
     """
     count = middle_params.shape[0]
     filled_rows = jnp.flatnonzero(filled, size=count, fill_value=0)
     draws = jax.random.randint(key, (count, starts - 1), 0, jnp.maximum(filled.sum(), 1))
     predecessors = jnp.concatenate([jnp.full((count, 1), -1), filled_rows[draws]], axis=1)  # (Cm, S)
-    spec = RolloutSpec(num_steps=2 * task.steps, pose_steps=(task.steps, 2 * task.steps), record_contacts=False)
+    elites = np.flatnonzero(np.asarray(filled))
+    own = np.repeat(elites, starts).astype(np.int32)  # (E * S,) the filled elites' samples
+    before = np.asarray(predecessors, np.int32)[elites].reshape(-1)
+    size = max(1, min(chunk, count * starts))  # rows per block, whatever the fill
+    blocks = -(-own.size // size)
+    mesh = sharding.batch_mesh() if mesh is None else mesh
+    shared = sharding.put_replicated((robot, middle_params, start), mesh)
+    measured = np.zeros((count * starts, PRIMARY), np.float32)
+    valid = np.zeros(count * starts, bool)
+    samples = (elites[:, None] * starts + np.arange(starts)).reshape(-1)  # their rows of (Cm * S,)
+    for block in tqdm(range(blocks), disable=not progress, unit="block", desc="step model"):
+        rows = slice(block * size, (block + 1) * size)
+        take = own[rows].size
+        pad = size - take  # the last block: padded as a full one (elite 0 after the neutral pose)
+        indices = (np.pad(own[rows], (0, pad)), np.pad(before[rows], (0, pad), constant_values=-1))
+        inputs = sharding.put_replicated(indices, mesh)
+        with sharding.spread_over(mesh):
+            steps, ok = _measure_block(*shared, *inputs, task)
+        measured[samples[rows]] = np.asarray(steps)[:take]
+        valid[samples[rows]] = np.asarray(ok)[:take]
     weights = _weights(1.0)
-
-    def block(args):
-        own, before = args  # (n,), (n,)
-        first = jnp.where(before[:, None] >= 0, middle_params[jnp.maximum(before, 0)], 0.0)
-        params = jnp.stack([first, middle_params[own]], axis=1)  # (n, 2, 36)
-        result = rollout(robot, params, jnp.zeros(NUM_LEGS, bool), start, spec)
-        poses = planar_pose(result.base_pos, result.base_quat)
-        return task.normalise(relative_pose(poses[:, 0], poses[:, 1])), result.valid
-
-    own = jnp.repeat(jnp.arange(count), starts)
-    measured, valid = map_rows(block, (own, predecessors.reshape(-1)), (0, -1), chunk)
-    measured = measured.reshape(count, starts, PRIMARY)
-    valid = valid.reshape(count, starts)
+    measured = jnp.asarray(measured.reshape(count, starts, PRIMARY))
+    valid = jnp.asarray(valid.reshape(count, starts))
     used = valid.sum(axis=1)
     mean = jnp.where(valid[..., None], measured, 0.0).sum(axis=1) / jnp.maximum(used, 1)[:, None]
     squared = jnp.sum(((measured - mean[:, None]) * weights) ** 2, axis=-1)
     spread = jnp.sqrt(jnp.where(valid, squared, 0.0).sum(axis=1) / jnp.maximum(used, 1))
-    ok = filled & (used > 0)
+    ok = jnp.asarray(np.asarray(filled)) & (used > 0)
     return StepModel(steps=jnp.where(ok[:, None], mean, 0.0), spread=jnp.where(ok, spread, jnp.inf))
+
+
+@functools.partial(jax.jit, static_argnames=("task",))
+def _measure_block(robot: Robot, middle_params: jax.Array, start: SimState, own: jax.Array, before: jax.Array,
+                   task: MiddleTask) -> tuple[jax.Array, jax.Array]:
+    """(n, 3) normalised steps and (n,) validity of elites `own` (n,) after `before` (n,) (-1: the
+    neutral pose), from the standing state `start`; one batched rollout of 2 s."""
+    first = jnp.where(before[:, None] >= 0, middle_params[jnp.maximum(before, 0)], 0.0)
+    params = jnp.stack([first, middle_params[own]], axis=1)  # (n, 2, 36)
+    spec = RolloutSpec(num_steps=2 * task.steps, pose_steps=(task.steps, 2 * task.steps), record_contacts=False)
+    result = rollout(robot, params, jnp.zeros(NUM_LEGS, bool), start, spec)
+    poses = planar_pose(result.base_pos, result.base_quat)
+    return task.normalise(relative_pose(poses[:, 0], poses[:, 1])), result.valid
 
 
 def plan_batch(table: PatternTable, task: MiddleTask, here: jax.Array, target: jax.Array, pattern: jax.Array,

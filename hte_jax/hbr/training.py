@@ -100,6 +100,8 @@ class HBRConfig:
       resumes with that.
     step_starts: start states from which every middle elite's step is measured once the layers
       are trained (`composition.measure_steps`, stored in hbr.npz); 0: no step model.
+    step_chunk: samples per jitted rollout of the step model (memory; on a CPU the block's size
+      also sets the last bits of its steps).
     """
 
     bottom: LayerSchedule
@@ -115,11 +117,13 @@ class HBRConfig:
     bottom_fitness: str = "commands"
     solver: SolverConfig = inline(SolverConfig())
     step_starts: int = 8
+    step_chunk: int = 8192
 
     def __post_init__(self):
         require_int("seed", self.seed, minimum=0)
         require_int("middle_samples", self.middle_samples)
         require_int("step_starts", self.step_starts, minimum=0)
+        require_int("step_chunk", self.step_chunk)
         require_number("contact_threshold", self.contact_threshold, 0.0, 1.0)
         require_number("contact_purity", self.contact_purity, 0.0)
         require_number("bottom_l", self.bottom_l, 0.0, open_low=True)
@@ -297,7 +301,7 @@ def train_hbr(
         began = time.perf_counter()
         key = jax.random.fold_in(jax.random.PRNGKey(config.seed), len(LAYERS))
         model = measure_steps(robot, hbr.middle_params, hbr.middle.filled, config.middle_task, start, key,
-                              starts=config.step_starts)
+                              starts=config.step_starts, chunk=config.step_chunk, mesh=mesh, progress=progress)
         hbr = hbr.replace(step_model=model)
         summary["step_model"] = {"starts": config.step_starts, "wall_time_s": time.perf_counter() - began}
     summary["statistics"] = hbr_statistics(hbr, config.top_task)
@@ -311,6 +315,11 @@ def train_hbr(
     return TrainingOutcome(hbr=hbr, summary=summary)
 
 
+def _normalised_spare(stored: dict) -> dict:
+    """A spare run's stored configuration with its HBR configuration read through today's (settings added since)."""
+    return {**stored, "hbr_config": normalised_config(stored["hbr_config"])} if "hbr_config" in stored else stored
+
+
 def train_spare(hbr: HBR, base: HBRConfig, out_dir: str | Path, *, threshold: float = STRICT_CONTACT,
                 l: float = SPARE_L, resume_run: bool = False, progress: bool = True) -> dict:
     """Train a second middle archive for `hbr`'s spare sets (`hbr.spare`): its middle layer's task and budget
@@ -320,7 +329,8 @@ def train_spare(hbr: HBR, base: HBRConfig, out_dir: str | Path, *, threshold: fl
     and returns the summary."""
     config = dataclasses.replace(base, contact_threshold=threshold, middle_l=l, contact_purity=0.0)
     out = Path(out_dir)
-    io.prepare_run_dir(out, {"hbr_config": config.to_dict(), "bottom": bottom_fingerprint(hbr)}, resume_run)
+    io.prepare_run_dir(out, {"hbr_config": config.to_dict(), "bottom": bottom_fingerprint(hbr)}, resume_run,
+                       normalise=_normalised_spare)
     robot = load_robot(config.robot)
     start = standing_state(robot)
     algo = layer_algorithms(config, robot, start, {"bottom": hbr.bottom})["middle"]()
@@ -339,7 +349,7 @@ def train_spare(hbr: HBR, base: HBRConfig, out_dir: str | Path, *, threshold: fl
     if config.step_starts:
         params = elite_controllers(hbr.bottom, spare.genotypes, spare.filled)
         steps = jax.device_get(measure_steps(robot, params, spare.filled, config.middle_task, start, step_key,
-                                             starts=config.step_starts))
+                                             starts=config.step_starts, chunk=config.step_chunk, progress=progress))
     filled = np.asarray(spare.filled)
     fraction = np.asarray(spare.extras["contact_fraction"])[filled]
     own = np.asarray(hbr.middle.extras["contact_fraction"])[np.asarray(hbr.middle.filled)]

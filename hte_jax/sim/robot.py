@@ -17,6 +17,7 @@ import mujoco
 from flax import struct
 from hte_jax.sim.mjx_import import mjx
 
+from hte_jax import sharding
 from hte_jax.errors import ConfigError, require_choice, require_int, require_number
 
 NUM_LEGS = 6
@@ -288,6 +289,7 @@ def robot_info(model: mujoco.MjModel, config: RobotConfig) -> RobotInfo:
 
 
 def load_robot(config: RobotConfig = RobotConfig()) -> Robot:
-    """Compile the hexapod for `config` and move it to the default JAX device."""
+    """Compile the hexapod for `config`: its arrays uncommitted on the default JAX device, so that a
+    function spreading work over a mesh can take them there (`sharding`'s placement rule)."""
     model = mj_model(config)
-    return Robot(model=mjx.put_model(model), info=robot_info(model, config))
+    return Robot(model=sharding.uncommitted(mjx.put_model(model)), info=robot_info(model, config))

@@ -1,0 +1,100 @@
+"""Every command of `experiments/` end to end on 2 forced CPU devices (issue 36): `tests/commands_script.py`
+runs them in ONE subprocess started with `XLA_FLAGS=--xla_force_host_platform_device_count=2` (so
+every command uses both devices, as it would on a 2-GPU machine: a command that mixes arrays of one
+device with arrays of the mesh fails here), each command's `main(argv)` in turn with tiny settings,
+the later ones on what the earlier ones wrote; the tests below check each one's exit status and files.
+
+Mostly XLA compiling the commands' MJX programs for 2 devices: about N minutes on a 2-core CPU.
+`render` runs only where a GL context starts (MUJOCO_GL egl, then osmesa); its test skips otherwise.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from hte_jax.qd.io import read_checkpoint
+from tests.commands_script import STEP_CHUNK
+
+ROOT = Path(__file__).resolve().parent.parent
+DEVICES = 2
+# command -> files it writes, under the script's output folder
+FLAT = ["config.json", "checkpoint.npz", "metrics.csv", "repertoires.npz", "summary.json", "plots"]
+FILES = {
+    "train_hbr": [f"train_hbr/{f}" for f in ("config.json", "summary.json", "hbr.npz", "bottom/checkpoint.npz",
+                                             "middle/metrics.csv", "top/checkpoint.npz", "plots")],
+    **{f"train_flat_{v}": [f"train_flat_{v}/{f}" for f in FLAT] for v in ("2d", "8d", "aprol")},
+    "train_spare": [f"train_spare/{f}" for f in ("config.json", "middle/checkpoint.npz", "spare.npz", "summary.json")],
+    "measure_steps": ["measure_steps/hbr.npz"],
+    "maze_eval": [f"maze_eval/{f}" for f in ("config.json", "episodes.json", "summary.json", "statistics.json",
+                                             "episodes_0.npz", "episodes_1.npz", "plots/fig6_actions.png")],
+    "modulation": [f"modulation/{f}" for f in ("modulation.json", "modulation.npz", "modulation_map.png",
+                                               "modulation_grid.png")],
+    "repertoire_stats": ["repertoire_stats/table2.json", "repertoire_stats/table2.md"],
+    "fit_gp": ["maze_eval/fit.json"],
+    "inspect_checkpoint": [],  # prints only
+}
+
+
+GL_PROBE = "import mujoco; c = mujoco.GLContext(8, 8); c.make_current(); c.free()"
+
+
+def gl_backend() -> str | None:
+    """The MUJOCO_GL under which a GL context starts here (egl, then osmesa), or None."""
+    for backend in ("egl", "osmesa"):
+        probe = subprocess.run([sys.executable, "-c", GL_PROBE], env=dict(os.environ, MUJOCO_GL=backend),
+                               capture_output=True, timeout=120)
+        if probe.returncode == 0:
+            return backend
+    return None
+
+
+@pytest.fixture(scope="module")
+def commands(tmp_path_factory):
+    out = tmp_path_factory.mktemp("commands")
+    backend = gl_backend()
+    env = dict(os.environ, XLA_FLAGS=f"--xla_force_host_platform_device_count={DEVICES}", JAX_PLATFORMS="cpu",
+               PYTHONPATH=os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")])))
+    if backend is not None:
+        env["MUJOCO_GL"] = backend
+    done = subprocess.run([sys.executable, "-m", "tests.commands_script", str(out), *(["--render"] if backend else [])],
+                          cwd=ROOT, env=env, capture_output=True, text=True, timeout=3600)
+    assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-6000:]
+    record = json.loads((out / "commands.json").read_text())
+    assert record["devices"] == DEVICES
+    return out, record["commands"], done.stdout + done.stderr
+
+
+@pytest.mark.parametrize("name", list(FILES))
+def test_the_command_runs_on_2_devices(commands, name):
+    out, statuses, log = commands
+    assert name in statuses, f"{name} did not run"
+    assert statuses[name]["status"] == 0, f"{name} ended with {statuses[name]['status']}:\n{log[-4000:]}"
+    for file in FILES[name]:
+        assert (out / file).exists(), f"{name} wrote no {file}"
+
+
+def test_render_runs_on_2_devices(commands):
+    out, statuses, log = commands
+    if "render" not in statuses:
+        pytest.skip("no GL context starts here (MUJOCO_GL egl or osmesa: a GPU driver, Mesa's EGL or libosmesa6)")
+    assert statuses["render"]["status"] == 0, log[-4000:]
+    assert (out / "render" / "skills.gif").stat().st_size > 0
+
+
+def test_the_hbr_was_trained_and_its_step_model_measured_in_several_blocks_on_2_devices(commands):
+    out, _, _ = commands
+    summary = json.loads((out / "train_hbr" / "summary.json").read_text())
+    assert len(summary["devices"]) == DEVICES
+    arrays, _ = read_checkpoint(out / "train_hbr" / "hbr.npz")
+    samples = arrays["middle_slots"].size * summary["config"]["step_starts"]
+    assert samples > 2 * STEP_CHUNK, f"{samples} step-model samples fit in fewer than 3 blocks of {STEP_CHUNK}"
+    assert arrays["middle_step_mean"].shape == (arrays["middle_slots"].size, 3)
+    measured = np.isfinite(arrays["middle_step_spread"])  # +inf: every start went invalid
+    assert measured.any() and (arrays["middle_step_mean"][measured] != 0).any(axis=1).all()
