@@ -25,7 +25,7 @@ from hte_jax import sharding
 from hte_jax.errors import ConfigError
 from hte_jax.sim.controller import NUM_PARAMS, SAMPLES_PER_PERIOD, servo_command, target_table
 from hte_jax.sim.damage import apply_damage, damaged_joint_mask, damaged_pose
-from hte_jax.sim.robot import FOOT_RADIUS, NUM_JOINTS, NUM_LEGS, Robot, mj_model
+from hte_jax.sim.robot import FOOT_RADIUS, NUM_JOINTS, NUM_LEGS, Robot, mj_model, warp_capacity
 
 
 class InvalidReason(enum.IntFlag):
@@ -340,12 +340,22 @@ def rollout(
     if init.qpos.ndim == 1:
         init = _broadcast(init, batch)
     tables = jax.vmap(jax.vmap(target_table))(params.astype(jnp.float32))  # (B, S, 100, 18)
-    template = mjx.make_data(robot.model)
+    template = empty_data(robot, batch)
 
     def run(shared, rows):
         return jax.vmap(functools.partial(_rollout_one, shared[0], spec, shared[1]))(*rows)
 
     return sharding.map_rows(run, (robot, template), (tables, damage, init))
+
+
+def empty_data(robot: Robot, rows: int) -> mjx.Data:
+    """The mjx.Data that `rows` robots simulated together start from, in the robot's MJX
+    implementation. The Warp backend keeps one contact buffer for the whole batch (sized for `rows`
+    robots, `warp_capacity`) and a constraint buffer per robot."""
+    if robot.config.impl == "jax":
+        return mjx.make_data(robot.model, impl="jax")
+    contacts, constraint_rows = warp_capacity(robot.config)
+    return mjx.make_data(mj_model(robot.config), impl="warp", naconmax=rows * contacts, njmax=constraint_rows)
 
 
 def standing_state(robot: Robot, damage: jax.Array | None = None, settle_steps: int = 100) -> SimState:
