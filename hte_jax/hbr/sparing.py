@@ -31,6 +31,7 @@ from hte_jax.hbr.training import HBRConfig, layer_algorithms
 from hte_jax.qd import io
 from hte_jax.qd.loop import resume, run
 from hte_jax.qd.repertoire import Repertoire
+from hte_jax.sim.mjx_import import require_impl
 from hte_jax.sim.robot import NUM_LEGS, load_robot
 from hte_jax.sim.rollout import standing_state
 
@@ -118,6 +119,7 @@ def train_spare(hbr: HBR, base: HBRConfig, out_dir: str | Path, *, threshold: fl
     and returns the summary."""
     config = dataclasses.replace(base, contact_threshold=threshold, middle_l=l, contact_purity=0.0)
     out = Path(out_dir)
+    require_impl(config.robot.impl)  # before the run folder is made: a missing extra writes nothing
     io.prepare_run_dir(out, {"hbr_config": config.to_dict(), "bottom": bottom_fingerprint(hbr)}, resume_run)
     robot = load_robot(config.robot)
     start = standing_state(robot)

@@ -36,6 +36,7 @@ class InvalidReason(enum.IntFlag):
     FLIPPED = 4  # body tilted more than ValidityLimits.max_tilt
     HEIGHT = 8  # base height outside [min_base_height, max_base_height]
     BODY_ON_FLOOR = 16  # a corner of the body box below the floor (only feet collide with it)
+    WARP_OVERFLOW = 32  # MuJoCo Warp dropped contacts or constraint rows: a buffer too small (impl "warp")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -218,6 +219,17 @@ def check_state(qpos: jax.Array, qvel: jax.Array, limits: ValidityLimits) -> jax
     ).astype(jnp.int32)
 
 
+def warp_overflow(data: mjx.Data) -> jax.Array:
+    """`InvalidReason.WARP_OVERFLOW` (int32 scalar) if MuJoCo Warp has dropped contacts or constraint
+    rows of this robot since its data was made (buffers too small: physics no longer trustworthy),
+    else 0. Solver iteration caps (settings, not losses) do not count."""
+    from mujoco.mjx.third_party.mujoco_warp import OverflowType
+
+    lost = (OverflowType.NEFC | OverflowType.NJMAX_NNZ | OverflowType.BROADPHASE | OverflowType.NARROWPHASE
+            | OverflowType.CCD | OverflowType.NVMAX)
+    return jnp.where((data._impl.overflow & int(lost)) != 0, InvalidReason.WARP_OVERFLOW, 0).astype(jnp.int32)
+
+
 def _rollout_one(
     robot: Robot, spec: RolloutSpec, template: mjx.Data, tables: jax.Array, damage: jax.Array, init: SimState
 ):
@@ -253,7 +265,10 @@ def _rollout_one(
         stepped = data.replace(ctrl=command)
         for _ in range(config.substeps):
             stepped = mjx.step(robot.model, stepped)
-        new_reason = jnp.where(reason == 0, check_state(stepped.qpos, stepped.qvel, spec.limits), reason)
+        found = check_state(stepped.qpos, stepped.qvel, spec.limits)
+        if config.impl == "warp":
+            found = found | warp_overflow(stepped)
+        new_reason = jnp.where(reason == 0, found, reason)
         ok = new_reason == 0
         # Freeze an invalid individual at its last valid state (no NaN leaks out).
         stepped = stepped.replace(
