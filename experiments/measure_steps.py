@@ -20,7 +20,6 @@ from experiments.cli import fail, input_errors
 from hte_jax.flat.comparison import resolve
 from hte_jax.hbr.composition import measure_steps
 from hte_jax.hbr.store import load_hbr, save_hbr, shipped_hbr_path
-from hte_jax.qd.io import CheckpointError
 from hte_jax.sim.robot import RobotConfig, load_robot, stored_solver
 from hte_jax.sim.rollout import standing_state
 
@@ -44,13 +43,13 @@ def main(argv=None) -> int:
             return fail(f"--{name} must be >= 1, got {getattr(args, name)}")
     if args.seed < 0:
         return fail(f"--seed must be >= 0, got {args.seed}")
-    with input_errors(CheckpointError) as errors:
+    with input_errors() as errors:
         path = shipped_hbr_path() if args.hbr is None else resolve(args.hbr)
         hbr, top_task, meta = load_hbr(path)
+        solver = stored_solver(meta.get("training", {}).get("config", {}))
+        robot = load_robot(RobotConfig(**solver))  # the HBR's physics (a ConfigError if its backend is missing)
     if errors.failed:
         return 2
-    solver = stored_solver(meta.get("training", {}).get("config", {}))
-    robot = load_robot(RobotConfig(**solver))
     began = time.perf_counter()
     model = measure_steps(robot, hbr.middle_params, hbr.middle.filled, hbr.middle_task, standing_state(robot),
                           jax.random.PRNGKey(args.seed), starts=args.starts, chunk=args.chunk)

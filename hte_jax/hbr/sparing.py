@@ -27,7 +27,7 @@ from hte_jax.hbr.composition import PatternTable, StepModel, descriptor_steps, m
 from hte_jax.hbr.execution import ANY_PATTERN, HBR
 from hte_jax.hbr.middle import NUM_PATTERNS, PRIMARY, elite_controllers, pattern_code
 from hte_jax.hbr.store import SPARE_FILE, bottom_fingerprint, save_spare
-from hte_jax.hbr.training import HBRConfig, layer_algorithms
+from hte_jax.hbr.training import HBRConfig, layer_algorithms, normalised_config
 from hte_jax.qd import io
 from hte_jax.qd.loop import resume, run
 from hte_jax.qd.repertoire import Repertoire
@@ -110,6 +110,14 @@ def with_spare(hbr: HBR, spare: Repertoire, spare_params: jnp.ndarray, spare_ste
                        spare_count=int(rows.size))
 
 
+def _normalised_spare_config(stored: dict) -> dict:
+    """A spare run's stored configuration with its HBR settings read through today's HBRConfig
+    (settings added since: the values such runs ran with, `hbr.training.normalised_config`)."""
+    if "hbr_config" not in stored:
+        return stored
+    return {**stored, "hbr_config": normalised_config(stored["hbr_config"])}
+
+
 def train_spare(hbr: HBR, base: HBRConfig, out_dir: str | Path, *, threshold: float = STRICT_CONTACT,
                 l: float = SPARE_L, resume_run: bool = False, progress: bool = True) -> dict:
     """Train a second middle archive for `hbr`'s sparing sets: its middle layer's task and budget
@@ -120,7 +128,8 @@ def train_spare(hbr: HBR, base: HBRConfig, out_dir: str | Path, *, threshold: fl
     config = dataclasses.replace(base, contact_threshold=threshold, middle_l=l, contact_purity=0.0)
     out = Path(out_dir)
     require_impl(config.robot.impl)  # before the run folder is made: a missing extra writes nothing
-    io.prepare_run_dir(out, {"hbr_config": config.to_dict(), "bottom": bottom_fingerprint(hbr)}, resume_run)
+    io.prepare_run_dir(out, {"hbr_config": config.to_dict(), "bottom": bottom_fingerprint(hbr)}, resume_run,
+                       normalise=_normalised_spare_config)
     robot = load_robot(config.robot)
     start = standing_state(robot)
     algo = layer_algorithms(config, robot, start, {"bottom": hbr.bottom})["middle"]()
