@@ -55,7 +55,7 @@ def require_impl(impl: str) -> None:
     if impl != "warp":
         return
     if not warp_installed():
-        reason = "; ".join(WARP_IMPORT_ERRORS) or "warp-lang is not importable"
+        reason = WARP_IMPORT_ERRORS[0] if WARP_IMPORT_ERRORS else "MJX's Warp backend did not import"
         raise ConfigError(f"impl='warp' needs MJX's Warp backend, the warp extra: {WARP_EXTRA} ({reason})")
     _start_warp()
 
