@@ -192,7 +192,7 @@ OLD_FLAT = {"variant": "8d", "batch_size": 16, "init_size": 32, "generations": 2
 def test_configurations_stored_flat_read_as_the_nested_ones():
     """A configuration stored before the nesting (flat) reads as the same nested configuration as the
     nested layout does, and is stored again as it was (with the settings added since: the planner's two
-    rewards, the tilt reflex's release and rate, the maze)."""
+    rewards, the tilt reflex's release and rate, the maze, MJX's implementation)."""
     evaluation_config = with_overrides(evaluation.preset("gpu"), {"planner.iterations": 50, "solver.solver_iterations": 2,
                                                                   "reflex_tilt": 0.3})
     hbr = with_overrides(PRESETS["tiny"], {"top.selection": "density", "top.density_bins": 8, "solver_iterations": 6})
@@ -203,5 +203,6 @@ def test_configurations_stored_flat_read_as_the_nested_ones():
         assert cls.from_dict(config.to_dict()) == config
         added = {"collision_reward": -1000.0, "goal_reward": 100.0, "reflex_release": 0.0, "reflex_rate": 0.0,
                  "maze": ""} if cls is evaluation.EvalConfig else {}  # settings added since, at their defaults
-        assert config.to_dict() == {**old, **added}
-    assert hbr_training.normalised_config(OLD_HBR) == OLD_HBR and flat_training.normalised_config(OLD_FLAT) == OLD_FLAT
+        assert config.to_dict() == {**old, **added, "impl": "jax"}
+    assert hbr_training.normalised_config(OLD_HBR) == {**OLD_HBR, "impl": "jax"}
+    assert flat_training.normalised_config(OLD_FLAT) == {**OLD_FLAT, "impl": "jax"}
