@@ -6,13 +6,16 @@ stops at the first size that does not fit). Per size: compile time, median run t
 of --repeats runs, simulated physics steps/s, 3 s rollouts/s, peak memory. Then, in
 the same run, native MuJoCo's multithreaded `mujoco.rollout` on the same robot with
 all cores, as the reference line (open-loop position-servo targets from the same
-controllers; see docs/design.md). --compare SETTING ("S/L[@tol=T][@dt=D]", see
+controllers; see docs/design.md). --compare SETTING ("S/L[@tol=T][@dt=D][@impl=I]", see
 physics_frontier.py) times a second MJX setting at every batch size, right after the first,
-and prints the throughput ratio (first / compared) at each size.
+and prints the throughput ratio (first / compared) at each size; --impl warp with --compare 4/4
+(or --compare 4/4@impl=warp) compares MJX's two implementations in the same run.
 
     python benchmarks/batch_size.py                      # CPU: 1 .. 1024
     python benchmarks/batch_size.py --max-batch 131072   # GPU
     python benchmarks/batch_size.py --min-batch 8192 --max-batch 131072 --compare 4/8   # new vs old default
+    python benchmarks/batch_size.py --min-batch 8192 --max-batch 131072 --impl warp --compare 4/4 \
+        --native-batches ''                                      # MJX's Warp backend vs its JAX one
 
 Prints a table and writes JSON to benchmarks/results/.
 """
@@ -43,6 +46,7 @@ def _parse(argv=None):
     p.add_argument("--solver-iterations", type=int, default=None)
     p.add_argument("--ls-iterations", type=int, default=None)
     p.add_argument("--no-joint-limits", action="store_true")
+    p.add_argument("--impl", default=None, help="MJX's implementation, jax (default) or warp")
     p.add_argument("--compare", default=None, help="a second solver setting timed at every MJX batch size, e.g. 4/8")
     p.add_argument("--native-batches", type=str, default="64,256,1024,4096",
                    help="comma-separated batch sizes for native MuJoCo ('' to skip)")
@@ -56,7 +60,7 @@ def _parse(argv=None):
 
 
 def _robot_config(args, setting: str | None = None):
-    """The robot of the flags, with a setting string ("S/L[@tol=T][@dt=D]") on top."""
+    """The robot of the flags, with a setting string ("S/L[@tol=T][@dt=D][@impl=I]") on top."""
     from hte_jax.sim.robot import RobotConfig
 
     overrides = {}
@@ -66,8 +70,10 @@ def _robot_config(args, setting: str | None = None):
         overrides["ls_iterations"] = args.ls_iterations
     if args.no_joint_limits:
         overrides["joint_limits"] = False
-    if setting is not None:
-        overrides.update(parse_setting(setting))
+    if args.impl is not None:
+        overrides["impl"] = args.impl
+    if setting is not None:  # a setting string names its implementation (none: jax), whatever --impl says
+        overrides.update({"impl": RobotConfig.impl, **parse_setting(setting)})
     return RobotConfig(**overrides)
 
 
@@ -108,6 +114,7 @@ def _worker(args) -> dict:
     stats = jax.devices()[0].memory_stats() or {}
     return {
         "engine": "mjx",
+        "impl": robot.config.impl,
         "batch": batch,
         "compile_s": compile_s,
         "run_s": run_s,
@@ -185,6 +192,8 @@ def _spawn(flag: str, batch: int, args, setting: str | None = None) -> dict:
             cmd += [f"--{name.replace('_', '-')}", str(getattr(args, name))]
     if args.no_joint_limits:
         cmd.append("--no-joint-limits")
+    if args.impl is not None:
+        cmd += ["--impl", args.impl]
     if setting is not None:
         cmd += ["--worker-setting", setting]
     return run_worker(cmd, args.timeout, {"batch": batch})
@@ -206,15 +215,15 @@ def _fmt_bytes(n) -> str:
 
 
 def _table(rows) -> str:
-    head = (f"{'engine':7} {'setting':>9} {'batch':>7} {'compile s':>9} {'run s':>8} {'steps/s':>11} {'rollouts/s':>10} "
+    head = (f"{'engine':7} {'setting':>14} {'batch':>7} {'compile s':>9} {'run s':>8} {'steps/s':>11} {'rollouts/s':>10} "
             f"{'peak dev':>11} {'XLA bufs':>11} {'peak RSS':>11}")
     lines = [head, "-" * len(head)]
     for r in rows:
         if "error" in r:
-            lines.append(f"{r.get('engine', 'mjx'):7} {r.get('setting', '-'):>9} {r['batch']:>7} {r['error']}")
+            lines.append(f"{r.get('engine', 'mjx'):7} {r.get('setting', '-'):>14} {r['batch']:>7} {r['error']}")
             continue
         lines.append(
-            f"{r['engine']:7} {r.get('setting', '-'):>9} {r['batch']:>7} {r.get('compile_s', float('nan')):>9.1f} {r['run_s']:>8.3f} "
+            f"{r['engine']:7} {r.get('setting', '-'):>14} {r['batch']:>7} {r.get('compile_s', float('nan')):>9.1f} {r['run_s']:>8.3f} "
             f"{r['steps_per_s']:>11,.0f} {r['rollouts_per_s']:>10,.1f} "
             f"{_fmt_bytes(r.get('peak_device_bytes')):>11} {_fmt_bytes(r.get('xla_bytes')):>11} "
             f"{_fmt_bytes(r.get('peak_rss_bytes')):>11}"
@@ -239,7 +248,7 @@ def main(argv=None):
         compare = setting_label(_robot_config(args, args.compare))
     settings = {"steps": args.steps, "repeats": args.repeats, "timestep": config.timestep,
                 "solver_iterations": config.solver_iterations, "ls_iterations": config.ls_iterations,
-                "joint_limits": config.joint_limits, "compare": compare}
+                "joint_limits": config.joint_limits, "compare": compare, "impl": config.impl}
     max_batch = args.max_batch or (1024 if env["platform"] == "cpu" else 131072)
     rows = _merged_rows(args.merge, env, settings)
     batch = args.min_batch

@@ -59,33 +59,36 @@ def result_path(name: str, env: dict) -> Path:
 
 
 # A solver setting on the command line: "S/L" = solver_iterations/ls_iterations, then optional
-# "@tol=T" (RobotConfig.solver_tolerance) and "@dt=D" (RobotConfig.timestep), e.g. "2/4@dt=0.005".
-SETTING_KEYS = {"tol": "solver_tolerance", "dt": "timestep"}
+# "@tol=T" (RobotConfig.solver_tolerance), "@dt=D" (RobotConfig.timestep) and "@impl=warp"
+# (RobotConfig.impl, MJX's implementation; default jax), e.g. "2/4@dt=0.005", "4/4@impl=warp".
+SETTING_KEYS = {"tol": "solver_tolerance", "dt": "timestep", "impl": "impl"}
 
 
 def parse_setting(text: str) -> dict:
-    """RobotConfig overrides of a setting string "S/L[@tol=T][@dt=D]" (ValueError if malformed)."""
+    """RobotConfig overrides of a setting string "S/L[@tol=T][@dt=D][@impl=I]" (ValueError if malformed)."""
     head, *extras = text.strip().split("@")
     solver, _, line_search = head.partition("/")
     if not solver.strip().isdigit() or not line_search.strip().isdigit():
-        raise ValueError(f"setting {text!r}: expected S/L, e.g. 2/4, then optional @tol=T or @dt=D")
+        raise ValueError(f"setting {text!r}: expected S/L, e.g. 2/4, then optional @tol=T, @dt=D or @impl=I")
     overrides = {"solver_iterations": int(solver), "ls_iterations": int(line_search)}
     for extra in extras:
         key, _, value = extra.partition("=")
         if key.strip() not in SETTING_KEYS:
             raise ValueError(f"setting {text!r}: unknown key {key!r}; use {', '.join(SETTING_KEYS)}")
-        overrides[SETTING_KEYS[key.strip()]] = float(value)
+        name = SETTING_KEYS[key.strip()]
+        overrides[name] = value.strip() if name == "impl" else float(value)
     return overrides
 
 
 def setting_label(config) -> str:
-    """The setting string of a RobotConfig: "S/L", with @tol / @dt where they differ from the defaults."""
+    """The setting string of a RobotConfig: "S/L", with @tol / @dt / @impl where they differ from the defaults."""
     from hte_jax.sim.robot import RobotConfig
 
     label = f"{config.solver_iterations}/{config.ls_iterations}"
     for key, name in SETTING_KEYS.items():
-        if getattr(config, name) != getattr(RobotConfig, name):
-            label += f"@{key}={getattr(config, name):g}"
+        value = getattr(config, name)
+        if value != getattr(RobotConfig, name):
+            label += f"@{key}={value}" if isinstance(value, str) else f"@{key}={value:g}"
     return label
 
 

@@ -241,7 +241,8 @@ def _split(sizes: dict, pose, valid, depth) -> dict[str, np.ndarray]:
 def _worker(args) -> dict:
     config = _config(args.worker)
     row = {"setting": args.worker, "solver_iterations": config.solver_iterations, "ls_iterations": config.ls_iterations,
-           "solver_tolerance": config.solver_tolerance, "timestep": config.timestep, "substeps": config.substeps}
+           "solver_tolerance": config.solver_tolerance, "timestep": config.timestep, "substeps": config.substeps,
+           "impl": config.impl}
     if not args.no_speed:
         row.update(_speed(config, args))
     began = time.perf_counter()

@@ -52,10 +52,10 @@ def main(argv=None) -> int:
         mesh = device_mesh(args)  # first: --distributed must start before jax touches the devices
         path = shipped_hbr_path() if args.hbr is None else resolve(args.hbr)
         hbr, top_task, meta = load_hbr(path)
+        solver = stored_solver(meta.get("training", {}).get("config", {}))
+        robot = load_robot(RobotConfig(**solver))  # the HBR's physics (a ConfigError if its backend is missing)
     if errors.failed:
         return 2
-    solver = stored_solver(meta.get("training", {}).get("config", {}))
-    robot = load_robot(RobotConfig(**solver))
     began = time.perf_counter()
     model = measure_steps(robot, hbr.middle_params, hbr.middle.filled, hbr.middle_task, standing_state(robot),
                           jax.random.PRNGKey(args.seed), starts=args.starts, chunk=args.chunk, mesh=mesh,

@@ -4,6 +4,7 @@ contact threshold is strict (5 %), so that its steps keep their lifted legs real
     python -m experiments.train_spare                                   # the shipped HBR, cpu preset
     python -m experiments.train_spare --hbr runs/hbr-gpu --preset gpu --out runs/spare-gpu
     python -m experiments.train_spare --out runs/spare --resume          # continue a killed run
+    python -m experiments.train_spare --hbr runs/hbr-gpu --preset gpu --impl warp   # MJX's Warp backend
     cp runs/spare-gpu/spare.npz runs/hbr-gpu/                            # used by default beside hbr.npz
 
 The variants that run steps from spare sets (`hte-spare`, `perfect-spare`, `hte_jax.hbr.spare`)
@@ -24,6 +25,7 @@ from hte_jax.flat.comparison import resolve
 from hte_jax.hbr.spare import SPARE_L, STRICT_CONTACT
 from hte_jax.hbr.store import load_hbr, shipped_hbr_path
 from hte_jax.hbr.training import PRESETS, preset, train_spare, with_overrides
+from hte_jax.qd.io import stored_config
 from hte_jax.sim.robot import SolverConfig, stored_solver
 
 
@@ -38,6 +40,8 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--threshold", type=float, default=STRICT_CONTACT, help="contact threshold (default 0.05)")
     p.add_argument("--l", type=float, default=SPARE_L, help="archive distance threshold (default 0.035)")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--impl", default=None, help="MJX implementation, jax or warp (default: the HBR's; "
+                                                "on --resume, the run's)")
     p.add_argument("--resume", action="store_true", help="continue the run in --out")
     p.add_argument("--no-progress", action="store_true")
     add_set_flag(p)
@@ -62,6 +66,11 @@ def _main(args) -> int:
         path = shipped_hbr_path() if args.hbr is None else resolve(args.hbr)
         hbr, _, meta = load_hbr(path)
         solver = stored_solver(meta.get("training", {}).get("config", {}))
+        stored = stored_config(args.out) if args.resume else None
+        if args.impl is not None:
+            solver["impl"] = args.impl
+        elif stored is not None:
+            solver["impl"] = stored_solver(stored.get("hbr_config", {}))["impl"]
         base = dataclasses.replace(preset(args.preset), seed=args.seed, solver=SolverConfig(**solver))
         base = with_overrides(base, set_overrides(args.set))  # the preset's other settings (middle.*, step_chunk)
         summary = train_spare(hbr, base, args.out, threshold=args.threshold, l=args.l, resume_run=args.resume,

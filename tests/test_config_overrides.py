@@ -194,7 +194,7 @@ OLD_FLAT = {"variant": "8d", "batch_size": 16, "init_size": 32, "generations": 2
 def test_configurations_stored_flat_read_as_the_nested_ones():
     """A configuration stored before the nesting (flat) reads as the same nested configuration as the
     nested layout does, and is stored again as it was (with the settings added since: the planner's two
-    rewards, the tilt reflex's release and rate, the maze)."""
+    rewards, the tilt reflex's release and rate, the maze, MJX's implementation)."""
     evaluation_config = with_overrides(evaluation.preset("gpu"), {"planner.iterations": 50, "solver.solver_iterations": 2,
                                                                   "reflex_tilt": 0.3})
     hbr = with_overrides(PRESETS["tiny"], {"top.selection": "density", "top.density_bins": 8, "solver_iterations": 6})
@@ -207,8 +207,8 @@ def test_configurations_stored_flat_read_as_the_nested_ones():
                                          "reflex_rate": 0.0, "maze": ""},
                  hbr_training.HBRConfig: HBR_ADDED}.get(cls, {})  # settings added since, at their defaults
         retired = evaluation.RETIRED if cls is evaluation.EvalConfig else {}  # settings of levers that left
-        assert config.to_dict() == {**{k: v for k, v in old.items() if k not in retired}, **added}
-    assert hbr_training.normalised_config(OLD_HBR) == {**OLD_HBR, **HBR_ADDED}
-    assert flat_training.normalised_config(OLD_FLAT) == OLD_FLAT
+        assert config.to_dict() == {**{k: v for k, v in old.items() if k not in retired}, **added, "impl": "jax"}
+    assert hbr_training.normalised_config(OLD_HBR) == {**OLD_HBR, **HBR_ADDED, "impl": "jax"}
+    assert flat_training.normalised_config(OLD_FLAT) == {**OLD_FLAT, "impl": "jax"}
     with pytest.raises(ConfigError, match="left hte-jax"):
         evaluation.EvalConfig.from_dict({**OLD_EVAL, "optimism": 1.0})

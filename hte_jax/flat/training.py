@@ -34,6 +34,7 @@ from hte_jax.qd.batched import BatchedMapElites
 from hte_jax.qd.loop import MapElitesConfig, QDState, run, start_or_resume
 from hte_jax.qd.metrics import projected_statistics
 from hte_jax.sim.damage import APROL_DAMAGES, damage_masks
+from hte_jax.sim.mjx_import import require_impl
 from hte_jax.sim.robot import RobotConfig, SolverConfig, load_robot, stored_solver
 from hte_jax.sim.rollout import standing_state
 
@@ -55,9 +56,9 @@ class FlatConfig:
     (init_size a multiple of batch_size). block_size: generations per jitted block (one progress
     tick, CSV row and checkpoint). mutation_rate / eta_m: polynomial mutation. seed: PRNG seed.
     bins: x-y cells per axis. contact_threshold: contact-bit threshold of the 8-D descriptor.
-    solver: the physics' Newton solver (`SolverConfig`, inlined: settings solver_iterations,
-    ls_iterations, solver_tolerance); a configuration stored without them ran 4 / 8 / 1e-8 and
-    resumes with that.
+    solver: the physics' Newton solver and MJX implementation (`SolverConfig`, inlined: settings
+    solver_iterations, ls_iterations, solver_tolerance, impl); a configuration stored without them
+    ran 4 / 8 / 1e-8 on "jax" and resumes with that.
     """
 
     variant: str
@@ -81,6 +82,9 @@ class FlatConfig:
         require_number("eta_m", self.eta_m, 0.0)
         self.task  # noqa: B018 - validates bins and contact_threshold
         self.map_elites_config()  # validates batch, init and mutation
+        if self.solver.impl == "warp" and len(self.damages) > 1:  # vmapped runs: Warp's contact buffer is per call
+            raise ConfigError(f"impl='warp' runs one repertoire per call, not the {len(self.damages)} "
+                              f"batched runs of variant {self.variant!r}: use impl='jax'")
 
     @property
     def robot(self) -> RobotConfig:
@@ -192,6 +196,7 @@ def train_flat(
     depend on it. In a multi-process run only process 0 writes files."""
     writer = jax.process_index() == 0
     out = Path(out_dir)
+    require_impl(config.robot.impl)  # before the run folder is made: a missing extra writes nothing
     if writer:
         out = io.prepare_run_dir(out_dir, config.to_dict(), resume_run, normalise=normalised_config)
     algo = flat_algorithm(config, mesh)

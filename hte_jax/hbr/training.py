@@ -38,6 +38,7 @@ from hte_jax.hbr.top import TopTask, evaluate_top, top_spec
 from hte_jax.qd import io
 from hte_jax.qd.loop import MapElites, MapElitesConfig, QDState, run, start_or_resume
 from hte_jax.qd.selection import SelectionConfig
+from hte_jax.sim.mjx_import import require_impl
 from hte_jax.sim.robot import Robot, RobotConfig, SolverConfig, load_robot, stored_solver
 from hte_jax.sim.rollout import standing_state
 
@@ -95,9 +96,9 @@ class HBRConfig:
       paper's fitness; `MiddleTask.purity`).
     bottom_l / middle_l: archive distance thresholds. top_bins: grid cells per axis.
     bottom_fitness: "commands" (measured joint commands) or "genes" (the original's gene sum).
-    solver: the physics' Newton solver (`SolverConfig`, inlined: settings solver_iterations,
-      ls_iterations, solver_tolerance); a configuration stored without them ran 4 / 8 / 1e-8 and
-      resumes with that.
+    solver: the physics' Newton solver and MJX implementation (`SolverConfig`, inlined: settings
+      solver_iterations, ls_iterations, solver_tolerance, impl); a configuration stored without them
+      ran 4 / 8 / 1e-8 on "jax" and resumes with that.
     step_starts: start states from which every middle elite's step is measured once the layers
       are trained (`composition.measure_steps`, stored in hbr.npz); 0: no step model.
     step_chunk: samples per jitted rollout of the step model (memory; on a CPU the block's size
@@ -258,6 +259,7 @@ def train_hbr(
     depend on it. In a multi-process run only process 0 writes files."""
     out = Path(out_dir)
     writer = jax.process_index() == 0
+    require_impl(config.robot.impl)  # before the run folder is made: a missing extra writes nothing
     if writer:
         io.prepare_run_dir(out, config.to_dict(), resume_run, normalise=normalised_config)
     robot = load_robot(config.robot)
@@ -329,6 +331,7 @@ def train_spare(hbr: HBR, base: HBRConfig, out_dir: str | Path, *, threshold: fl
     and returns the summary."""
     config = dataclasses.replace(base, contact_threshold=threshold, middle_l=l, contact_purity=0.0)
     out = Path(out_dir)
+    require_impl(config.robot.impl)  # before the run folder is made: a missing extra writes nothing
     io.prepare_run_dir(out, {"hbr_config": config.to_dict(), "bottom": bottom_fingerprint(hbr)}, resume_run,
                        normalise=_normalised_spare)
     robot = load_robot(config.robot)

@@ -1,24 +1,103 @@
-"""`mujoco.mjx`, imported without its warp notice.
+"""`mujoco.mjx`, imported without its warp notices; MJX's Warp backend started quietly on request.
 
 MJX 3.17 prints "Failed to import warp: ..." and "Failed to import mujoco_warp: ..." on stdout
-whenever the optional warp-lang package is absent. We use MJX's JAX implementation only, so the
-notice is noise a user cannot act on: those two lines are dropped; anything else the import prints
-is passed on unchanged.
+whenever the optional warp-lang package is absent. The JAX implementation (the default) does not
+need it, so the notice is noise a user cannot act on: those two lines are kept here
+(`WARP_IMPORT_ERRORS`) for the error that asking for the Warp backend without it gives, and not
+printed; anything else the import prints is passed on unchanged.
+
+The Warp backend (`require_impl("warp")`, the `warp` extra) announces itself when it starts (a
+banner, a line per compiled kernel module, on a machine without an NVIDIA driver a CUDA warning):
+Warp's log level is raised to warnings and that start's output is dropped, except lines that are
+not these notices.
 """
 
 from __future__ import annotations
 
 import contextlib
 import io
+import os
 import sys
+import tempfile
+
+from hte_jax.errors import ConfigError, require_choice
 
 WARP_NOTICES = ("Failed to import warp:", "Failed to import mujoco_warp:")
+# The physics implementations MJX offers that the project runs (`RobotConfig.impl`).
+IMPLS = ("jax", "warp")
+WARP_EXTRA = 'pip install -e ".[warp]"'
+# What Warp prints when it starts, none of which a user can act on (device list, kernel cache, the
+# missing CUDA driver of a CPU-only machine).
+_WARP_START = ("Warp ", "   ", "Warp CUDA warning: Could not find or load the NVIDIA CUDA driver")
 
 with contextlib.redirect_stdout(io.StringIO()) as _captured:
     from mujoco import mjx  # noqa: E402
 
+WARP_IMPORT_ERRORS = tuple(line for line in _captured.getvalue().splitlines() if line.startswith(WARP_NOTICES))
 _other = [line for line in _captured.getvalue().splitlines() if not line.startswith(WARP_NOTICES)]
 if _other:
     print("\n".join(_other), file=sys.stdout)
 
-__all__ = ["mjx"]
+_warp_started = False
+
+
+def warp_installed() -> bool:
+    """Whether MJX can run its Warp backend here (warp-lang and MJX's MuJoCo Warp both imported)."""
+    from mujoco.mjx import warp as mjx_warp
+
+    return bool(mjx_warp.WARP_INSTALLED) and mjx_warp.mujoco_warp is not None
+
+
+def require_impl(impl: str) -> None:
+    """ConfigError unless MJX's implementation `impl` ("jax" or "warp") can run here; the first
+    request for "warp" starts Warp quietly."""
+    require_choice("impl", impl, IMPLS)
+    if impl != "warp":
+        return
+    if not warp_installed():
+        reason = WARP_IMPORT_ERRORS[0] if WARP_IMPORT_ERRORS else "MJX's Warp backend did not import"
+        raise ConfigError(f"impl='warp' needs MJX's Warp backend, the warp extra: {WARP_EXTRA} ({reason})")
+    _start_warp()
+
+
+def _start_warp() -> None:
+    """`warp.init()` with Warp's informational output off and its start notices dropped."""
+    global _warp_started
+    if _warp_started:
+        return
+    import warp
+
+    warp.config.log_level = warp.LOG_WARNING  # no banner, no line per kernel module loaded
+    with _native_output() as lines:
+        warp.init()
+    kept = [line for line in lines if line.strip() and not line.startswith(_WARP_START)]
+    if kept:
+        print("\n".join(kept), file=sys.stderr)
+    _warp_started = True
+
+
+@contextlib.contextmanager
+def _native_output():
+    """Collects, as a list of lines, what is written to file descriptors 1 and 2 inside (native code's
+    printf included)."""
+    lines: list[str] = []
+    sys.stdout.flush()
+    sys.stderr.flush()
+    saved = (os.dup(1), os.dup(2))
+    with tempfile.TemporaryFile(mode="w+b") as sink:
+        try:
+            os.dup2(sink.fileno(), 1)
+            os.dup2(sink.fileno(), 2)
+            yield lines
+        finally:
+            sys.stdout.flush()
+            sys.stderr.flush()
+            os.dup2(saved[0], 1)
+            os.dup2(saved[1], 2)
+            os.close(saved[0])
+            os.close(saved[1])
+            sink.seek(0)
+            lines.extend(sink.read().decode(errors="replace").splitlines())
+
+
+__all__ = ["IMPLS", "WARP_EXTRA", "mjx", "require_impl", "warp_installed"]

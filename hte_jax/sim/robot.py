@@ -13,12 +13,14 @@ import math
 import os
 from pathlib import Path
 
+import jax
 import mujoco
+import numpy as np
 from flax import struct
-from hte_jax.sim.mjx_import import mjx
 
 from hte_jax import sharding
 from hte_jax.errors import ConfigError, require_choice, require_int, require_number
+from hte_jax.sim.mjx_import import IMPLS, mjx, require_impl
 
 NUM_LEGS = 6
 JOINTS_PER_LEG = 3
@@ -32,8 +34,8 @@ WALL_HEIGHT = 0.9
 WALL_CONTACTS = ("bumper", "links", "feet")
 DAMAGE_MODELS = ("raised", "locked")  # the pose of a damaged leg (poses in hte_jax.sim.damage)
 # The solver settings (`SolverConfig`) every configuration stored before they were settings (run
-# folders, checkpoints, shipped repertoires) ran with.
-LEGACY_SOLVER = (4, 8, 1e-8)
+# folders, checkpoints, shipped repertoires) ran with; MJX's JAX implementation ran them all.
+LEGACY_SOLVER = (4, 8, 1e-8, "jax")
 
 
 def assets_dir() -> Path:
@@ -57,6 +59,9 @@ class RobotConfig:
     solver_iterations / ls_iterations: Newton solver and line-search iterations (caps).
     solver_tolerance: the Newton loop of a rollout stops early once its cost improvement or its
       gradient (scaled by the mass-matrix trace) falls below this (MuJoCo's default 1e-8).
+    impl: MJX's implementation of the physics: "jax" (default; any device) or "warp" (MuJoCo Warp
+      through MJX: an NVIDIA GPU or the CPU, needs the `warp` extra, `pip install -e ".[warp]"`).
+      The same model, options, servo law, reflex and damages; the floating-point path differs.
     servo_gain: velocity-servo gain kv in N m s/rad (torque = kv (v_cmd - qdot), clipped).
     armature: reflected rotor inertia added to every leg joint, kg m^2.
     max_torque / max_joint_velocity: servo torque (N m) and commanded-velocity (rad/s) limits.
@@ -87,6 +92,7 @@ class RobotConfig:
     solver_iterations: int = 4
     ls_iterations: int = 4
     solver_tolerance: float = 1e-8
+    impl: str = "jax"
     servo_gain: float = 1.0
     armature: float = 0.01
     max_torque: float = 4.0
@@ -112,6 +118,7 @@ class RobotConfig:
         require_int("solver_iterations", self.solver_iterations)
         require_int("ls_iterations", self.ls_iterations)
         require_number("solver_tolerance", self.solver_tolerance, 0.0)
+        require_choice("impl", self.impl, IMPLS)
         require_number("armature", self.armature, 0.0)
         require_choice("wall_contact", self.wall_contact, WALL_CONTACTS)
         require_number("bumper_radius", self.bumper_radius, 0.0, open_low=True)
@@ -140,11 +147,14 @@ class SolverConfig:
 
     solver_iterations / ls_iterations: Newton solver and line-search iterations (caps).
     solver_tolerance: the Newton loop's early-stop tolerance (`RobotConfig.solver_tolerance`).
+    impl: MJX's implementation, "jax" or "warp" (`RobotConfig.impl`); whether it can run here is
+      checked when a robot is loaded (`load_robot`), so a configuration stored with "warp" still reads.
     """
 
     solver_iterations: int = RobotConfig.solver_iterations
     ls_iterations: int = RobotConfig.ls_iterations
     solver_tolerance: float = RobotConfig.solver_tolerance
+    impl: str = RobotConfig.impl
 
     def __post_init__(self):
         self.robot()  # RobotConfig validates the settings
@@ -289,7 +299,44 @@ def robot_info(model: mujoco.MjModel, config: RobotConfig) -> RobotInfo:
 
 
 def load_robot(config: RobotConfig = RobotConfig()) -> Robot:
-    """Compile the hexapod for `config`: its arrays uncommitted on the default JAX device, so that a
-    function spreading work over a mesh can take them there (`sharding`'s placement rule)."""
+    """Compile the hexapod for `config` in MJX's `config.impl` (a ConfigError naming the extra if that
+    is "warp" and the `warp` extra is missing): its arrays uncommitted on the default JAX device, so
+    that a function spreading work over a mesh can take them there (`sharding`'s placement rule)."""
+    require_impl(config.impl)
     model = mj_model(config)
-    return Robot(model=sharding.uncommitted(mjx.put_model(model)), info=robot_info(model, config))
+    mjx_model = mjx.put_model(model, impl=config.impl)
+    if config.impl == "warp":
+        mjx_model = without_solver_cap_notices(mjx_model)
+    return Robot(model=sharding.uncommitted(mjx_model), info=robot_info(model, config))
+
+
+def without_solver_cap_notices(model: mjx.Model) -> mjx.Model:
+    """A Warp-backend model that does not print "solver iterations limit reached" (nor its line-search
+    twin) whenever a step's Newton solve stops at its iteration cap: the caps are settings
+    (`solver_iterations`, `ls_iterations`) that MJX's JAX implementation applies silently. Warp's other
+    overflow notices (contact, constraint or broadphase buffers too small) stay on: they mean lost
+    contacts, which `warp_capacity` sizes the buffers to avoid."""
+    from mujoco.mjx.third_party.mujoco_warp import OverflowType
+
+    options = model.opt._impl
+    quiet = int(options.warn_overflow) & ~int(OverflowType.ITERATIONS | OverflowType.LS_ITERATIONS)
+    return model.replace(opt=model.opt.replace(_impl=options.replace(warn_overflow=quiet)))
+
+
+@functools.lru_cache(maxsize=16)
+def warp_capacity(config: RobotConfig) -> tuple[int, int]:
+    """(contacts, constraint rows) one robot can need at once under MJX's Warp backend, the sizes of
+    its per-batch contact buffer (`naconmax` = rows x contacts, shared by the batch) and per-robot
+    constraint rows (`njmax`). Counted from the JAX implementation's static layout (every candidate
+    geom pair at its most contacts), plus the 4 more contacts (and their rows) a box-box pair can
+    have in MuJoCo Warp (8, the JAX implementation keeps 4). MuJoCo Warp's defaults (48 contacts for
+    the whole batch) drop contacts beyond the first few robots: their feet sink through the floor."""
+    model = mj_model(config)
+    with jax.ensure_compile_time_eval():  # concrete even when first asked while tracing a rollout
+        layout = mjx.make_data(model, impl="jax")._impl
+    geoms = np.asarray(layout.contact.geom)
+    box_box = (model.geom_type[geoms] == mujoco.mjtGeom.mjGEOM_BOX).all(axis=1)
+    dims = np.asarray(layout.contact.dim)[box_box]
+    pyramidal = model.opt.cone == mujoco.mjtCone.mjCONE_PYRAMIDAL
+    extra_rows = np.where(dims == 1, 1, 2 * (dims - 1) if pyramidal else dims).sum()
+    return len(geoms) + int(box_box.sum()), int(layout.efc_J.shape[0] + extra_rows)

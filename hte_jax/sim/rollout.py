@@ -25,7 +25,7 @@ from hte_jax import sharding
 from hte_jax.errors import ConfigError
 from hte_jax.sim.controller import NUM_PARAMS, SAMPLES_PER_PERIOD, servo_command, target_table
 from hte_jax.sim.damage import apply_damage, damaged_joint_mask, damaged_pose
-from hte_jax.sim.robot import FOOT_RADIUS, NUM_JOINTS, NUM_LEGS, Robot, mj_model
+from hte_jax.sim.robot import FOOT_RADIUS, NUM_JOINTS, NUM_LEGS, Robot, mj_model, warp_capacity
 
 
 class InvalidReason(enum.IntFlag):
@@ -36,6 +36,7 @@ class InvalidReason(enum.IntFlag):
     FLIPPED = 4  # body tilted more than ValidityLimits.max_tilt
     HEIGHT = 8  # base height outside [min_base_height, max_base_height]
     BODY_ON_FLOOR = 16  # a corner of the body box below the floor (only feet collide with it)
+    WARP_OVERFLOW = 32  # MuJoCo Warp dropped contacts or constraint rows: a buffer too small (impl "warp")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -218,6 +219,17 @@ def check_state(qpos: jax.Array, qvel: jax.Array, limits: ValidityLimits) -> jax
     ).astype(jnp.int32)
 
 
+def warp_overflow(data: mjx.Data) -> jax.Array:
+    """`InvalidReason.WARP_OVERFLOW` (int32 scalar) if MuJoCo Warp has dropped contacts or constraint
+    rows of this robot since its data was made (buffers too small: physics no longer trustworthy),
+    else 0. Solver iteration caps (settings, not losses) do not count."""
+    from mujoco.mjx.third_party.mujoco_warp import OverflowType
+
+    lost = (OverflowType.NEFC | OverflowType.NJMAX_NNZ | OverflowType.BROADPHASE | OverflowType.NARROWPHASE
+            | OverflowType.CCD | OverflowType.NVMAX)
+    return jnp.where((data._impl.overflow & int(lost)) != 0, InvalidReason.WARP_OVERFLOW, 0).astype(jnp.int32)
+
+
 def _rollout_one(
     robot: Robot, spec: RolloutSpec, template: mjx.Data, tables: jax.Array, damage: jax.Array, init: SimState
 ):
@@ -253,7 +265,10 @@ def _rollout_one(
         stepped = data.replace(ctrl=command)
         for _ in range(config.substeps):
             stepped = mjx.step(robot.model, stepped)
-        new_reason = jnp.where(reason == 0, check_state(stepped.qpos, stepped.qvel, spec.limits), reason)
+        found = check_state(stepped.qpos, stepped.qvel, spec.limits)
+        if config.impl == "warp":
+            found = found | warp_overflow(stepped)
+        new_reason = jnp.where(reason == 0, found, reason)
         ok = new_reason == 0
         # Freeze an invalid individual at its last valid state (no NaN leaks out).
         stepped = stepped.replace(
@@ -340,12 +355,22 @@ def rollout(
     if init.qpos.ndim == 1:
         init = _broadcast(init, batch)
     tables = jax.vmap(jax.vmap(target_table))(params.astype(jnp.float32))  # (B, S, 100, 18)
-    template = mjx.make_data(robot.model)
+    template = empty_data(robot, batch)
 
     def run(shared, rows):
         return jax.vmap(functools.partial(_rollout_one, shared[0], spec, shared[1]))(*rows)
 
     return sharding.map_rows(run, (robot, template), (tables, damage, init))
+
+
+def empty_data(robot: Robot, rows: int) -> mjx.Data:
+    """The mjx.Data that `rows` robots simulated together start from, in the robot's MJX
+    implementation. The Warp backend keeps one contact buffer for the whole batch (sized for `rows`
+    robots, `warp_capacity`) and a constraint buffer per robot."""
+    if robot.config.impl == "jax":
+        return mjx.make_data(robot.model, impl="jax")
+    contacts, constraint_rows = warp_capacity(robot.config)
+    return mjx.make_data(mj_model(robot.config), impl="warp", naconmax=rows * contacts, njmax=constraint_rows)
 
 
 def standing_state(robot: Robot, damage: jax.Array | None = None, settle_steps: int = 100) -> SimState:
