@@ -87,6 +87,8 @@ from hte_jax.online.statistics import (
     protocol_statistics,
 )
 from hte_jax.qd.io import save_checkpoint, write_json
+from hte_jax.sharding import mesh_size
+from hte_jax.sim.mjx_import import require_impl
 from hte_jax.viz import gl
 
 SETTINGS = list(settings(EvalConfig))  # override keys, inlined settings (the planner's, the solver's) by their names
@@ -131,6 +133,7 @@ def _main(args, interrupt: Interruption) -> int:
         if args.show_config:
             print(json.dumps(config.to_dict(), indent=2))
             return 0
+        require_impl(config.robot.impl, mesh_size(mesh))  # its backend, here and on these devices
         out = Path(args.out)
         if writer:
             out.mkdir(parents=True, exist_ok=True)

@@ -25,7 +25,7 @@ from hte_jax.geometry import planar_pose
 from hte_jax.hbr.training import PRESETS, normalised_config
 from hte_jax.qd.io import prepare_run_dir
 from hte_jax.sim.damage import paper_damage_masks
-from hte_jax.sim.mjx_import import mjx, warp_installed
+from hte_jax.sim.mjx_import import mjx, require_impl, warp_installed
 from hte_jax.sim.robot import FOOT_RADIUS, RobotConfig, load_robot, mj_model
 from hte_jax.sim.rollout import InvalidReason, RolloutSpec, empty_data, rollout, standing_state
 
@@ -192,3 +192,12 @@ def test_benchmark_settings_name_the_implementation(monkeypatch):
     batch_size = benchmark_module("batch_size")
     args = batch_size._parse(["--impl", "warp", "--compare", "4/4"])
     assert batch_size._robot_config(args).impl == "warp" and batch_size._robot_config(args, args.compare).impl == "jax"
+
+
+def test_warp_is_refused_on_several_devices():
+    """MJX's Warp backend crashed XLA's compiler on a 2-GPU program (measured, docs/design.md):
+    asking for it on more than one device is a one-line error naming the way out, before Warp is
+    even looked for; one device, or the JAX implementation on several, passes this check."""
+    with pytest.raises(ConfigError, match=r"^impl='warp' runs on one device, not 2: pass --devices 1 or --impl jax$"):
+        require_impl("warp", 2)
+    require_impl("jax", 4)

@@ -34,6 +34,7 @@ from hte_jax.qd.batched import BatchedMapElites
 from hte_jax.qd.loop import MapElitesConfig, QDState, run, start_or_resume
 from hte_jax.qd.metrics import projected_statistics
 from hte_jax.sim.damage import APROL_DAMAGES, damage_masks
+from hte_jax.sharding import mesh_size
 from hte_jax.sim.mjx_import import require_impl
 from hte_jax.sim.robot import RobotConfig, SolverConfig, load_robot, stored_solver
 from hte_jax.sim.rollout import standing_state
@@ -196,7 +197,7 @@ def train_flat(
     depend on it. In a multi-process run only process 0 writes files."""
     writer = jax.process_index() == 0
     out = Path(out_dir)
-    require_impl(config.robot.impl)  # before the run folder is made: a missing extra writes nothing
+    require_impl(config.robot.impl, jax.device_count() if mesh is None else mesh_size(mesh))  # before the run folder
     if writer:
         out = io.prepare_run_dir(out_dir, config.to_dict(), resume_run, normalise=normalised_config)
     algo = flat_algorithm(config, mesh)

@@ -38,6 +38,7 @@ from hte_jax.hbr.top import TopTask, evaluate_top, top_spec
 from hte_jax.qd import io
 from hte_jax.qd.loop import MapElites, MapElitesConfig, QDState, run, start_or_resume
 from hte_jax.qd.selection import SelectionConfig
+from hte_jax.sharding import mesh_size
 from hte_jax.sim.mjx_import import require_impl
 from hte_jax.sim.robot import Robot, RobotConfig, SolverConfig, load_robot, stored_solver
 from hte_jax.sim.rollout import standing_state
@@ -259,7 +260,7 @@ def train_hbr(
     depend on it. In a multi-process run only process 0 writes files."""
     out = Path(out_dir)
     writer = jax.process_index() == 0
-    require_impl(config.robot.impl)  # before the run folder is made: a missing extra writes nothing
+    require_impl(config.robot.impl, jax.device_count() if mesh is None else mesh_size(mesh))  # before the run folder
     if writer:
         io.prepare_run_dir(out, config.to_dict(), resume_run, normalise=normalised_config)
     robot = load_robot(config.robot)
@@ -331,7 +332,7 @@ def train_spare(hbr: HBR, base: HBRConfig, out_dir: str | Path, *, threshold: fl
     and returns the summary."""
     config = dataclasses.replace(base, contact_threshold=threshold, middle_l=l, contact_purity=0.0)
     out = Path(out_dir)
-    require_impl(config.robot.impl)  # before the run folder is made: a missing extra writes nothing
+    require_impl(config.robot.impl, jax.device_count())  # before the run folder is made: a missing extra writes nothing
     io.prepare_run_dir(out, {"hbr_config": config.to_dict(), "bottom": bottom_fingerprint(hbr)}, resume_run,
                        normalise=_normalised_spare)
     robot = load_robot(config.robot)
