@@ -20,6 +20,7 @@ from hte_jax.errors import ConfigError
 from experiments.measure_steps import main as measure_main
 from hte_jax.qd.io import CheckpointError, prepare_run_dir, read_checkpoint, save_checkpoint
 from hte_jax.sim import load_robot, standing_state
+from tests.benchmark_runner import run_benchmark
 from tests.golden import HBR_ARGS, check
 
 LAYERS = ("bottom", "middle", "top")
@@ -104,6 +105,27 @@ def test_killed_run_resumes_bit_identical(tiny_run, tmp_path):
     for layer in LAYERS:
         strip = lambda rows: [{k: v for k, v in r.items() if k != "wall_time_s"} for r in rows]  # noqa: E731
         assert strip(_rows(out / layer / "metrics.csv")) == strip(_rows(tiny_run / layer / "metrics.csv"))
+
+
+def test_sigkilled_command_resumes_bit_identical(tiny_run, tmp_path):
+    """benchmarks/resume_kill.py on the command: `train_hbr --preset tiny` SIGKILLed in the bottom layer's
+    second block, its resume SIGKILLed between the middle layer's first checkpoint's temporary file and
+    its rename, then resumed to the end: the same hbr.npz, statistics and metrics as `tiny_run`, the
+    temporary file left by the kill in the way of nothing."""
+    out = tmp_path / "kill.json"
+    stdout = run_benchmark("resume_kill.py", "--scenarios", "bottom:block1+middle:write0", "--reference", str(tiny_run),
+                           "--work-dir", str(tmp_path / "work"), "--out", str(out))
+    (row,) = json.loads(out.read_text())["scenarios"]
+    first, second = row["kills"]
+    assert first["killed"] and first["folder"]["layers"]["bottom"]["generation"] == 1
+    assert first["landed"].startswith("bottom: ") and first["folder"]["layers"]["middle"]["generation"] is None
+    assert second["killed"] and second["landed"] == "middle: block 0's checkpoint: temp file written, not renamed"
+    (temporary,) = second["temporary_files"]
+    assert temporary.startswith("middle/.checkpoint.npz.tmp-") and second["folder"]["layers"]["middle"]["generation"] is None
+    assert set(row["temporary_files_at_end"]) <= {temporary}  # the resume left none of its own
+    assert row["resumes"] == 2 and row["arrays_compared"] >= 16 and row["arrays_differing"] == []
+    assert row["header_identical"] and row["statistics_identical"] and row["metrics_differing"] == []
+    assert row["identical"] and "1 of 1 scenarios identical" in stdout
 
 
 def test_cli_refuses_to_clobber_or_mix_configurations(tiny_run, capsys):

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import os
+import time
 import zipfile
 import zlib
 from collections.abc import Callable
@@ -29,6 +30,7 @@ FORMAT = "hte_jax.checkpoint"
 FORMAT_VERSION = 1
 _META = "__metadata__"
 _ZIP_MAGIC = b"PK\x03\x04"  # how every .npz (a zip archive) begins
+PAUSE_BEFORE_RENAME = "HTE_JAX_CHECKPOINT_PAUSE"  # seconds; tests and benchmarks only (`save_checkpoint`)
 
 
 class CheckpointError(ValueError):
@@ -45,7 +47,13 @@ def _flatten(tree) -> dict[str, np.ndarray]:
 
 
 def save_checkpoint(path: str | Path, tree: Any, metadata: dict | None = None, *, compress: bool = False) -> None:
-    """Atomically write `tree` (a pytree of arrays) and JSON-able `metadata` to `path` (zip-deflated if compress)."""
+    """Atomically write `tree` (a pytree of arrays) and JSON-able `metadata` to `path` (zip-deflated if compress).
+
+    For tests and `benchmarks/resume_kill.py` only: with the environment variable
+    HTE_JAX_CHECKPOINT_PAUSE set to a number of seconds, every write sleeps that long after the
+    temporary file is written and fsync-ed and before it is renamed over `path`, so that a kill
+    can land between the two.
+    """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     arrays = _flatten(tree)
@@ -62,6 +70,8 @@ def save_checkpoint(path: str | Path, tree: Any, metadata: dict | None = None, *
             save(handle, **arrays, **{_META: np.array(json.dumps(header))})
             handle.flush()
             os.fsync(handle.fileno())
+        if os.environ.get(PAUSE_BEFORE_RENAME):
+            time.sleep(float(os.environ[PAUSE_BEFORE_RENAME]))
         os.replace(tmp, path)
     finally:
         if tmp.exists():
