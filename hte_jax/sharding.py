@@ -39,7 +39,6 @@ rounding (`tests/test_sharding.py`).
 from __future__ import annotations
 
 import hashlib
-import re
 from collections.abc import Callable
 from typing import Any
 
@@ -108,11 +107,6 @@ def batch_sharding(mesh: Mesh, ndim: int = 1) -> NamedSharding:
 def replicated(mesh: Mesh) -> NamedSharding:
     """Every device holds the whole array."""
     return NamedSharding(mesh, PartitionSpec())
-
-
-def shard_batch(tree: Any, mesh: Mesh) -> Any:
-    """Inside jit: every leaf's leading axis (a multiple of the device count) split over the mesh."""
-    return jax.tree.map(lambda x: jax.lax.with_sharding_constraint(x, batch_sharding(mesh, x.ndim)), tree)
 
 
 def replicate(tree: Any, mesh: Mesh) -> Any:
@@ -198,48 +192,3 @@ def check_replicas(tree: Any, what: str = "state") -> None:
         everywhere = np.asarray(multihost_utils.process_allgather(local))
         if not (everywhere == everywhere[0]).all():
             raise ReplicaMismatchError(f"{what} differs between hosts: a non-deterministic kernel or a faulty device; stopping")
-
-
-COLLECTIVES = ("all-gather", "all-reduce", "collective-permute", "all-to-all", "reduce-scatter", "collective-broadcast")
-_COMPUTATION = re.compile(r"^(?:ENTRY\s+)?%?([\w.\-]+)\s.*\{\s*$")
-_CALLED = re.compile(r"(?:body|condition|calls|to_apply|branch_computations)=\{?([%\w.\-, ]+)\}?")
-_OPCODE = re.compile(r"=\s*[^=]*?\s([a-z][\w\-]*)\(")
-
-
-def collectives_in_loops(hlo_text: str) -> list[str]:
-    """The collective instructions (`COLLECTIVES`) of a compiled HLO module (`compiled.as_text()`)
-    that run inside a while loop's body or condition, or anything they call; [] when none does."""
-    computations: dict[str, list[str]] = {}
-    current = None
-    for line in hlo_text.splitlines():
-        match = _COMPUTATION.match(line)
-        if match and "=" not in line.split("{")[0].split("(")[0]:
-            current = match.group(1)
-            computations[current] = []
-        elif line.strip() == "}":
-            current = None
-        elif current is not None:
-            computations[current].append(line)
-
-    def callees(lines, keys=("body", "condition", "calls", "to_apply", "branch_computations")):
-        for line in lines:
-            for found in _CALLED.finditer(line):
-                for name in found.group(1).split(","):
-                    yield name.strip().lstrip("%")
-
-    loop_roots = {name for lines in computations.values() for line in lines if " while(" in line
-                  for name in callees([line])}
-    inside, todo = set(), list(loop_roots)
-    while todo:
-        name = todo.pop()
-        if name in inside or name not in computations:
-            continue
-        inside.add(name)
-        todo.extend(callees(computations[name]))
-    found = []
-    for name in sorted(inside):
-        for line in computations[name]:
-            opcode = _OPCODE.search(line)
-            if opcode and opcode.group(1).removesuffix("-start").removesuffix("-done") in COLLECTIVES:
-                found.append(f"{name}: {line.strip()[:160]}")
-    return found

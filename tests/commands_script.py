@@ -32,8 +32,9 @@ def commands(out: Path, render: bool) -> list[tuple[str, str, list[str]]]:
     """(name, module, argv) of every command, in the order they run."""
     hbr, seeds = out / "train_hbr", out / "seeds" / "0"
     quiet = ["--no-progress"]
-    planner = ["--damage", "leg1", "--replicates", "1", "--max-actions", "2", "--iterations", "10", "--roots", "1",
-               "--depth", "3", "--candidates", "10"]
+    # maze_eval keeps its default action cap (80): several episodes under that cap hung on 2 cores (issue 40)
+    planner = ["--damage", "leg1", "--replicates", "1", "--iterations", "10", "--roots", "1", "--depth", "3",
+               "--candidates", "10"]
     chunk = ["--set", f"step_chunk={STEP_CHUNK}"]
     # Compiling each MJX program for 2 devices is most of the cost: the HBR trains its layers'
     # generations (the crash of issue 36 came after them), the other trainings only their initial

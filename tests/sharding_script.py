@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import os
+import re
 import tempfile
 import time
 
@@ -32,6 +33,53 @@ BATCHED_DAMAGES = ("leg1", "legs1+4")  # an APROL-style BatchedMapElites of two 
 # agree bit for bit, 1, 2, 4, 8 and 24 each differ), so a batch of 6 on 4 devices (2 rows each)
 # could not be compared bit for bit; the episode batch (6 on 4 devices) is compared with a tolerance.
 BATCH = 12
+
+
+# HLO inspection (these checks only)
+COLLECTIVES = ("all-gather", "all-reduce", "collective-permute", "all-to-all", "reduce-scatter", "collective-broadcast")
+_COMPUTATION = re.compile(r"^(?:ENTRY\s+)?%?([\w.\-]+)\s.*\{\s*$")
+_CALLED = re.compile(r"(?:body|condition|calls|to_apply|branch_computations)=\{?([%\w.\-, ]+)\}?")
+_OPCODE = re.compile(r"=\s*[^=]*?\s([a-z][\w\-]*)\(")
+
+
+def collectives_in_loops(hlo_text: str) -> list[str]:
+    """The collective instructions (`COLLECTIVES`) of a compiled HLO module (`compiled.as_text()`)
+    that run inside a while loop's body or condition, or anything they call; [] when none does."""
+    computations: dict[str, list[str]] = {}
+    current = None
+    for line in hlo_text.splitlines():
+        match = _COMPUTATION.match(line)
+        if match and "=" not in line.split("{")[0].split("(")[0]:
+            current = match.group(1)
+            computations[current] = []
+        elif line.strip() == "}":
+            current = None
+        elif current is not None:
+            computations[current].append(line)
+
+    def callees(lines, keys=("body", "condition", "calls", "to_apply", "branch_computations")):
+        for line in lines:
+            for found in _CALLED.finditer(line):
+                for name in found.group(1).split(","):
+                    yield name.strip().lstrip("%")
+
+    loop_roots = {name for lines in computations.values() for line in lines if " while(" in line
+                  for name in callees([line])}
+    inside, todo = set(), list(loop_roots)
+    while todo:
+        name = todo.pop()
+        if name in inside or name not in computations:
+            continue
+        inside.add(name)
+        todo.extend(callees(computations[name]))
+    found = []
+    for name in sorted(inside):
+        for line in computations[name]:
+            opcode = _OPCODE.search(line)
+            if opcode and opcode.group(1).removesuffix("-start").removesuffix("-done") in COLLECTIVES:
+                found.append(f"{name}: {line.strip()[:160]}")
+    return found
+
 
 
 def tree_arrays(prefix: str, tree) -> dict[str, np.ndarray]:
@@ -120,8 +168,8 @@ def generation_hlo(algo, state) -> dict:
     compiled by its run: the compilation cache answers): the collectives inside while loops (the
     rollout's scan, the MJX solver's loops) and outside them."""
     text = type(algo).run_block.lower(algo, state, 1).compile().as_text()
-    inside = sharding.collectives_in_loops(text)
-    total = sum(text.count(f" {name}(") + text.count(f" {name}-start(") for name in sharding.COLLECTIVES)
+    inside = collectives_in_loops(text)
+    total = sum(text.count(f" {name}(") + text.count(f" {name}-start(") for name in COLLECTIVES)
     return {"hlo/collectives": np.array(inside, dtype=str), "hlo/outside": np.array(total - len(inside)),
             "hlo/loops": np.array(text.count(" while("))}
 

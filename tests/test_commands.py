@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from hte_jax.online.evaluation import EvalConfig
 from hte_jax.qd.io import read_checkpoint
 from tests.commands_script import STEP_CHUNK
 
@@ -98,3 +99,13 @@ def test_the_hbr_was_trained_and_its_step_model_measured_in_several_blocks_on_2_
     assert arrays["middle_step_mean"].shape == (arrays["middle_slots"].size, 3)
     measured = np.isfinite(arrays["middle_step_spread"])  # +inf: every start went invalid
     assert measured.any() and (arrays["middle_step_mean"][measured] != 0).any(axis=1).all()
+
+
+def test_maze_eval_ran_several_episodes_under_the_default_action_cap(commands):
+    """The shape that hung `maze_eval`'s defaults on 2 cores (issue 40): several episodes in one batch,
+    each with the GP and planner sized by the default cap of 80 actions, run to their end."""
+    out, _, _ = commands
+    summary = json.loads((out / "maze_eval" / "summary.json").read_text())
+    assert summary["max_actions"] == EvalConfig().max_actions == 80
+    records = json.loads((out / "maze_eval" / "episodes.json").read_text())["episodes"]
+    assert len(records) >= 4 and all(1 <= r["actions_taken"] <= 80 for r in records)
