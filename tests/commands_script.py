@@ -49,9 +49,9 @@ def commands(out: Path, render: bool) -> list[tuple[str, str, list[str]]]:
         ("measure_steps", "measure_steps", ["--hbr", str(hbr), "--out", str(out / "measure_steps" / "hbr.npz"),
                                             "--starts", "2", "--chunk", str(STEP_CHUNK), *quiet]),
         ("seed_folder", "", []),  # not a command: the repertoire seed folder maze_eval reads
-        ("maze_eval", "maze_eval", ["--repertoire-dir", str(seeds.parent), "--variant", "hte-spare,hte,rte,2d-rte",
+        ("maze_eval", "maze_eval", ["--repertoire-dir", str(seeds.parent), "--variant", "hte-spare,rte,2d-rte",
                                     *planner, "--out", str(out / "maze_eval"), *quiet]),
-        ("modulation", "modulation", ["--hbr", str(hbr), "--max-skills", "2", "--patterns", "candidates",
+        ("modulation", "modulation", ["--hbr", str(hbr), "--skills", "2", "--patterns", "candidates",
                                       "--chunk", "16", "--out", str(out / "modulation"), *quiet]),
         ("repertoire_stats", "repertoire_stats", ["--hbr", str(hbr), "--flat8d", str(out / "train_flat_8d"),
                                                   "--flat2d", str(out / "train_flat_2d"),

@@ -101,7 +101,7 @@ def test_ctrl_c_in_a_long_xla_call_ends_the_command_at_once(tmp_path, start, mon
     the command within seconds, with its one line after the log's and nothing written."""
     monkeypatch.setitem(QUIET_XLA, "JAX_LOG_COMPILES", "1")
     out = tmp_path / "modulation"
-    run = start("experiments.modulation", "--max-skills", "50", "--no-progress", "--out", str(out))
+    run = start("experiments.modulation", "--skills", "50", "--no-progress", "--out", str(out))
     log = []
     while not (log and "Finished jaxpr to MLIR module conversion jit(run_chunk)" in log[-1]):
         log.append(run.stderr.readline())

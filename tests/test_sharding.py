@@ -11,10 +11,11 @@ minutes more).
 
 Agreement across device counts on the CPU: the training runs use batches of 12 (12, 6 or 3 rows per
 device), whose rollouts XLA's CPU code computed bit for bit alike on the development machine; on
-CI's CPU 41 of 40 000 descriptor values of the 2-device run differed by one float32 ulp (2.4e-7,
-2026-11-26: how XLA vectorises 6 rows depends on the CPU's vector width). So the training runs'
-float results agree within `TRAINING_TOLERANCE` and their integer and boolean results (cells
-filled, genotype indices, counts) exactly. The episode batch of 6 on 4 devices holds 2 rows per device, and XLA's CPU code for a
+CI's CPU 41 of 40 000 descriptor values of the 2-device run differed by one float32 ulp (2.4e-7),
+and on the development machine later 3 of 20 000 fitnesses by up to 3.1e-5 (of -1.13) (2026-11-26:
+how XLA vectorises 6 rows depends on the CPU and its build). So the training runs' float results
+agree within `TRAINING_TOLERANCE` and their integer and boolean results (cells filled, genotype
+indices, counts) exactly. The episode batch of 6 on 4 devices holds 2 rows per device, and XLA's CPU code for a
 vmapped MJX step with 2 rows rounds differently from the one with 6 (measured on ONE device: 3, 5,
 6 and 12 rows agree, 1, 2, 4, 8 and 24 each differ, by up to 1.5e-3 after a 3 s rollout), so its
 float results are compared with a tolerance (`EPISODE_TOLERANCE`) and its integer and boolean
@@ -38,7 +39,7 @@ PARTS = ("batched", "hlo", "replica") + (("hbr", "flat", "episodes") if FULL els
 # 6 episodes of 2 actions, 4 devices vs 1: measured max |diff| 3.3e-4 on the GP's prediction errors,
 # 5e-6 on poses and trajectories
 EPISODE_TOLERANCE = 2e-3
-TRAINING_TOLERANCE = 1e-5  # a few float32 ulps of a descriptor or fitness near 1
+TRAINING_TOLERANCE = 2e-4  # a few float32 roundings of a fitness summed over a rollout, near 1
 full_only = pytest.mark.skipif(not FULL, reason="HTE_SHARDING_FULL=1 runs it (about 20 minutes on a 2-core CPU)")
 
 
