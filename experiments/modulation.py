@@ -3,7 +3,7 @@ the 64 contact patterns (or HTE's 36 candidates) held for their 3 steps, each st
 pattern's elites to the skill's end (`hte_jax.hbr.composition`; `--composition waypoints`: the
 paper's nearest elite to each waypoint).
 
-    python -m experiments.modulation                   # cpu preset: 48 skills spread over the map
+    python -m experiments.modulation                   # cpu preset: 48 skills spread over the map, 174 s on 2 cores
     python -m experiments.modulation --preset gpu      # every skill of the shipped HBR (the paper's figures)
     python -m experiments.modulation --skills all      # every skill, on any machine
     python -m experiments.modulation --hbr runs/hbr-gpu --skills 200 --seed 1   # another sample

@@ -1,6 +1,6 @@
 """Table 2 of the paper: repertoire size, effective x-y size and projected mean fitness, over seeds.
 
-    python -m experiments.repertoire_stats          # the shipped HBR and flat repertoires (assets/)
+    python -m experiments.repertoire_stats          # the shipped HBR and flat repertoires (assets/): 14 s
     python -m experiments.repertoire_stats --hbr runs/hbr-s0 runs/hbr-s1 runs/hbr-s2 \
         --flat8d runs/f8-s0 runs/f8-s1 runs/f8-s2 --flat2d runs/f2-s0 --out runs/table2
 

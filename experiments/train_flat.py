@@ -1,6 +1,6 @@
 """Train flat baseline repertoires: 2-D, 8-D, or APROL's 21 damaged 2-D repertoires in one batched run.
 
-    python -m experiments.train_flat --variant 2d                 # cpu preset, for a 2-core CPU
+    python -m experiments.train_flat --variant 2d                 # cpu preset: 272 s on a 2-core CPU
     python -m experiments.train_flat --variant 8d --preset gpu    # the HBR top layer's budget
     python -m experiments.train_flat --variant aprol --preset gpu # 21 damages, one jitted call per block
     python -m experiments.train_flat --variant 2d --out runs/f --resume   # continue a killed run
@@ -12,7 +12,7 @@ Writes config.json, checkpoint.npz, metrics.csv, repertoires.npz, summary.json a
 --out (default runs/flat-<variant>-<preset>). `--show-config` prints the resolved configuration.
 Bad values give a one-line error and exit status 2. A resumed run keeps the solver settings it was
 started with (4 / 8 for runs started before they were settings) unless they are given; a
-different value is then an error. Times on a 2-core CPU: benchmarks/cpu_commands.py.
+different value is then an error. Times: benchmarks/cpu_commands.py (2026-11-26).
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """Train a hierarchical behavioural repertoire: bottom, middle and top layers.
 
-    python -m experiments.train_hbr                       # cpu preset: a small HBR, for a 2-core CPU
-    python -m experiments.train_hbr --preset gpu          # the shipped HBR's budget, for one H100 / H200
+    python -m experiments.train_hbr                       # cpu preset: a small HBR, 629 s on a 2-core CPU
+    python -m experiments.train_hbr --preset gpu          # the shipped HBR's budget: 477 s on one H200
     python -m experiments.train_hbr --preset tiny         # a first look: every phase at tiny sizes
     python -m experiments.train_hbr --preset paper --out runs/paper   # the paper's budget
     python -m experiments.train_hbr --out runs/hbr --resume          # continue a killed run
@@ -12,7 +12,7 @@
 Writes config.json, per-layer checkpoints and metrics CSVs, hbr.npz, summary.json and plots/
 under --out (default runs/hbr-<preset>). Every preset value has a flag; `--show-config` prints
 the resolved configuration and exits. Bad values give a one-line error and exit status 2.
-Times on a 2-core CPU: benchmarks/cpu_commands.py.
+Times: benchmarks/cpu_commands.py (2026-11-26).
 A resumed run keeps the solver settings it was started with (4 / 8 for runs started before they
 were settings) unless they are given; a different value is then an error.
 """

@@ -178,8 +178,8 @@ def protocol_overrides(name: str) -> dict:
     return dict(PROTOCOLS[name])
 
 
-# cpu: 7 episodes per variant, minutes on 2 cores; gpu: the paper's 30 replicates with RTE's
-# original planner (1000 iterations x 4 trees); paper: HTE's original 6000 iterations x 32 trees.
+# cpu: 7 episodes per variant, 154 s on 2 cores (benchmarks/cpu_commands.py); gpu: the paper's 30
+# replicates with RTE's original planner (1000 iterations x 4 trees); paper: HTE's original 6000 iterations x 32 trees.
 PRESETS = {
     "cpu": EvalConfig(),
     "gpu": EvalConfig(replicates=30, planner=PlannerConfig(iterations=1000, roots=4)),
