@@ -23,15 +23,8 @@ import argparse
 import json
 import sys
 
-from experiments.cli import (
-    add_set_flag,
-    checkpoint_saved,
-    input_errors,
-    interruptible,
-    resumable_run,
-    resume_command,
-    set_overrides,
-)
+from experiments.cli import (add_set_flag, checkpoint_saved, input_errors, interruptible, resumable_run,
+                             resume_command, set_overrides)
 from experiments.devices import add_device_flags, device_mesh, is_writer
 from hte_jax.config import settings
 from hte_jax.hbr.training import LAYERS, PRESETS, HBRConfig, preset, train_hbr, with_overrides
