@@ -24,8 +24,8 @@ import numpy as np
 from jax.sharding import Mesh
 
 from hte_jax.config import config_dict, config_from_dict, inline
-from hte_jax.errors import ConfigError, require_int, require_number
 from hte_jax.config import with_overrides as _with_overrides
+from hte_jax.errors import ConfigError, require_int, require_number
 from hte_jax.flat.plots import plot_flat
 from hte_jax.flat.store import FlatRepertoires, save_flat
 from hte_jax.flat.task import QD_OFFSET, FlatTask, evaluate_flat, flat_spec
@@ -33,8 +33,8 @@ from hte_jax.qd import io
 from hte_jax.qd.batched import BatchedMapElites
 from hte_jax.qd.loop import MapElitesConfig, QDState, run, start_or_resume
 from hte_jax.qd.metrics import projected_statistics
-from hte_jax.sim.damage import APROL_DAMAGES, damage_masks
 from hte_jax.sharding import mesh_size
+from hte_jax.sim.damage import APROL_DAMAGES, damage_masks
 from hte_jax.sim.mjx_import import require_impl
 from hte_jax.sim.robot import RobotConfig, SolverConfig, load_robot, stored_solver
 from hte_jax.sim.rollout import standing_state

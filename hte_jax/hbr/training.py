@@ -22,8 +22,8 @@ import numpy as np
 from jax.sharding import Mesh
 
 from hte_jax.config import config_dict, config_from_dict, inline
-from hte_jax.errors import ConfigError, require_choice, require_int, require_number
 from hte_jax.config import with_overrides as _with_overrides
+from hte_jax.errors import ConfigError, require_choice, require_int, require_number
 from hte_jax.hbr import bottom as bottom_layer
 from hte_jax.hbr import middle as middle_layer
 from hte_jax.hbr.analysis import hbr_statistics
