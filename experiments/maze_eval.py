@@ -9,6 +9,7 @@
     python -m experiments.maze_eval --protocol paper --damage-model locked
     python -m experiments.maze_eval --protocol hte-jax --preset gpu  # our HTE (hte-spare) against RTE and 2D-RTE
     python -m experiments.maze_eval --protocol paper --preset gpu --repertoire-dir runs/seeds  # R seeds
+    python -m experiments.maze_eval --protocol paper --preset gpu --repertoire-dir runs/seeds --resume  # after a kill
     python -m experiments.maze_eval --variant hte --damage leg1 --video 1   # and a video of the episode
     python -m experiments.maze_eval --maze two_rooms --variant hte,rte   # another world (assets/mazes/ or a JSON file)
     python -m experiments.maze_eval --set planner.iterations=50 --set solver.ls_iterations=8  # dotted keys
@@ -21,7 +22,9 @@ hte-spare, perfect-spare, perfect-hte, hte, rte and 2d-rte on all 7, with --refl
 paper's 7), or names / indices (none, leg0..leg5 = 0..5, legs1+4 = 6, any legs<i>+<j>).
 --damage-model: raised (the damaged leg blocked in the air, default) or locked (standing pose).
 --repertoire-dir: one subfolder per repertoire seed, each with hbr.npz, flat2d.npz, flat8d.npz,
-aprol.npz (the paper: 4 seeds); a replication's score is the median over seeds.
+aprol.npz (the paper: 4 seeds; `python -m experiments.train_set` trains one); a replication's score
+is the median over seeds. --resume continues a killed run in --out: the batches it finished are read
+from their episodes_<k>.npz, the others run; the results equal an uninterrupted run's.
 Writes config.json, episodes.json (one record per episode), summary.json (per variant and
 damage), statistics.json (the paper's statistics: quartiles of the replication medians, failure
 rates, pairwise Wilcoxon-Mann-Whitney tests with Bonferroni correction), episodes_<k>.npz
@@ -44,12 +47,13 @@ import subprocess
 import sys
 import warnings
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 
 from tqdm.auto import tqdm
 
-from experiments.cli import Interruption, add_set_flag, input_errors, interruptible, set_overrides
+from experiments.cli import Interruption, add_set_flag, input_errors, interruptible, resume_command, set_overrides
 from experiments.devices import add_device_flags, device_mesh, is_writer
 from hte_jax.config import settings
 from hte_jax.errors import ConfigError, require_int
@@ -86,7 +90,7 @@ from hte_jax.online.statistics import (
     failure_reductions,
     protocol_statistics,
 )
-from hte_jax.qd.io import save_checkpoint, write_json
+from hte_jax.qd.io import prepare_run_dir, read_checkpoint, save_checkpoint, write_json
 from hte_jax.sharding import mesh_size
 from hte_jax.sim.mjx_import import require_impl
 from hte_jax.viz import gl
@@ -103,6 +107,8 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--protocol", default=None, help=f"one of {', '.join(PROTOCOLS)}: its variants on every damage (hte-jax: "
                    "ours against the baselines, with the tilt reflex); other flags override it")
     p.add_argument("--out", default="runs/maze-eval", help="output folder (default runs/maze-eval)")
+    p.add_argument("--resume", action="store_true",
+                   help="continue the run in --out: its finished batches (episodes_<k>.npz) are read, not run again")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--show-config", action="store_true", help="print the resolved configuration and exit")
     p.add_argument("--video", default="0", metavar="N",
@@ -118,10 +124,10 @@ def parser() -> argparse.ArgumentParser:
 def main(argv=None) -> int:
     args = parser().parse_args(argv)
     with interruptible() as interrupt:
-        return _main(args, interrupt)
+        return _main(args, interrupt, argv)
 
 
-def _main(args, interrupt: Interruption) -> int:
+def _main(args, interrupt: Interruption, argv) -> int:
     with input_errors() as errors:
         mesh = device_mesh(args)  # first: --distributed must start before jax touches the devices
         writer = is_writer()  # only process 0 of a multi-host run writes files
@@ -135,27 +141,45 @@ def _main(args, interrupt: Interruption) -> int:
             return 0
         require_impl(config.robot.impl, mesh_size(mesh))  # its backend, here and on these devices
         out = Path(args.out)
-        if writer:
+        stored = {"preset": args.preset, "protocol": args.protocol, **config.to_dict()}
+        if args.resume:
+            if not (out / "config.json").is_file():
+                raise ConfigError(f"--resume: {out} holds no run to resume (no config.json); leave out --resume to start one")
+            prepare_run_dir(out, stored, resume_run=True)  # ConfigError unless it is this run
+        elif writer:
             out.mkdir(parents=True, exist_ok=True)
-            write_json(out / "config.json", {"preset": args.preset, "protocol": args.protocol, **config.to_dict()})
-            interrupt.saved = f"wrote {out / 'config.json'} only"
+            for old in out.glob("episodes_*.npz"):  # an earlier run's batches: this run replaces them
+                old.unlink()
+            write_json(out / "config.json", stored)
+        interrupt.saved = f"wrote {out / 'config.json'} only"
+        interrupt.resume = resume_command("experiments.maze_eval", argv, out)
         maze = config.maze_task  # read once for every batch and plot
         records, curves, tracks = [], {}, {}
         earlier, recorded = {}, []  # episodes of each variant in earlier batches; (variant, episode) recorded
         planned = batches(config)
         for k, (seed, path, variants) in enumerate(planned):
             labels = [v for v, _, _ in batch_labels(config, variants)]
-            result = run_batch(config, path, variants, maze, progress=not args.no_progress, seed=seed,
-                               record=rows_to_record(labels, videos, earlier), record_every=RECORD_EVERY, mesh=mesh)
-            rows = episode_records(result, config.max_actions)
-            records += rows
+            to_record = rows_to_record(labels, videos, earlier)
             numbers = episode_numbers(labels, earlier)
             earlier = {v: earlier.get(v, 0) + labels.count(v) for v in {*earlier, *labels}}
+            batch_file = out / f"episodes_{k}.npz"
+            if args.resume and batch_file.is_file():
+                result, rows = _load_batch(batch_file, seed, batch_labels(config, variants))
+                records += rows
+                recorded += [(labels[row], numbers[row]) for row in to_record]
+                if writer:
+                    _plot_batch(out / "plots", result, curves, tracks, maze)
+                print(f"batch {k} ({'/'.join(variants)} on seed {seed}): read from {batch_file}")
+                continue
+            result = run_batch(config, path, variants, maze, progress=not args.no_progress, seed=seed,
+                               record=to_record, record_every=RECORD_EVERY, mesh=mesh)
+            rows = episode_records(result, config.max_actions)
+            records += rows
             if not writer:
                 continue
-            _save_batch(out / f"episodes_{k}.npz", result)
+            recorded += _save_replays(out, result, numbers, k)  # before the batch file: a read batch has its replays
+            _save_batch(batch_file, result, rows)
             interrupt.saved = f"wrote {_batch_files(k + 1, len(planned))} in {out}, no summary"
-            recorded += _save_replays(out, result, numbers, k)
             _plot_batch(out / "plots", result, curves, tracks, maze)
             print(f"batch {k} ({'/'.join(variants)} on seed {seed}: {result.repertoire['path']}, "
                   f"{result.repertoire['actions']} actions): "
@@ -274,7 +298,22 @@ def _print_statistics(statistics: dict) -> None:
             f"{name} {percent:.0f} %" for name, percent in reductions["percent"].items() if percent is not None))
 
 
-def _save_batch(path: Path, result) -> None:
+def _load_batch(path: Path, seed: int, labels: list[tuple[str, str, int]]):
+    """A finished batch read back from its episodes_<k>.npz: (what `_plot_batch` reads, its episode
+    records); ConfigError when the file holds another batch than the one planned (`labels`)."""
+    arrays, header = read_checkpoint(path)
+    saved = header.get("metadata", {})
+    if "records" not in saved or saved["seed"] != seed or [tuple(x) for x in zip(
+            saved["variants"], saved["damages"], saved["replicates"])] != labels:
+        raise ConfigError(f"--resume: {path} holds another batch than this run's; remove it to run that batch again")
+    history = SimpleNamespace(**{k: arrays[k] for k in ("predicted", "observed", "path", "path_length")})
+    episodes = SimpleNamespace(history=history, **{k: arrays[k] for k in ("trajectory", "taken", "reached", "broken")})
+    result = SimpleNamespace(episodes=episodes, seed=seed, variants=saved["variants"], damages=saved["damages"],
+                             replicates=saved["replicates"])
+    return result, saved["records"]
+
+
+def _save_batch(path: Path, result, records: list[dict]) -> None:
     ep = result.episodes
     arrays = {
         "trajectory": ep.trajectory, "taken": ep.taken, "reached": ep.reached, "broken": ep.broken,
@@ -285,7 +324,8 @@ def _save_batch(path: Path, result) -> None:
         "errors": ep.history.errors, "contacts": ep.history.contacts, "leg_travel": ep.history.leg_travel,
     }
     labels = {"seed": result.seed, "variants": result.variants, "damages": result.damages, "replicates": result.replicates,
-              "repertoire": result.repertoire, "plan_seconds": result.timings.plan, "act_seconds": result.timings.act}
+              "repertoire": result.repertoire, "plan_seconds": result.timings.plan, "act_seconds": result.timings.act,
+              "records": records}
     save_checkpoint(path, arrays, labels, compress=True)
 
 

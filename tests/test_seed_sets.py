@@ -1,0 +1,74 @@
+"""Seed sets through their commands: `train_set` (parts, resume, the budget-matched Flat-2D) and
+`maze_eval --resume` over a `--repertoire-dir` of seeds (a resumed run equals the whole run)."""
+
+import json
+import os
+import shutil
+
+import numpy as np
+
+from experiments.cli import EXIT_BAD_INPUT
+from experiments.maze_eval import main as maze_main
+from experiments.train_set import main as set_main
+from hte_jax.flat.store import load_flat, shipped_flat_path
+from hte_jax.qd.io import write_json
+
+
+def test_train_set_parts_resume_and_matched_budget(tmp_path, capsys):
+    out = tmp_path / "seed1"
+    args = ["--seed", "1", "--preset", "tiny", "--out", str(out), "--no-progress"]
+    assert set_main([*args, "--parts", "2d,bogus"]) == EXIT_BAD_INPUT
+    assert set_main([*args, "--impl", "cuda"]) == EXIT_BAD_INPUT
+    assert set_main([*args, "--resume"]) == EXIT_BAD_INPUT  # no set there yet
+    err = capsys.readouterr().err.splitlines()
+    assert err == ["error: unknown part(s) bogus; choose among hbr, spare, 2d, 8d, aprol, matched",
+                   "error: --impl must be jax or warp, got 'cuda'",
+                   f"error: --resume: {out} holds no set to resume"]
+
+    assert set_main([*args, "--parts", "2d"]) == 0
+    flat, _ = load_flat(out / "flat2d.npz")
+    assert flat.damages == ("none",) and int(np.asarray(flat.repertoire.filled).sum()) > 0
+    assert set_main([*args, "--parts", "2d"]) == EXIT_BAD_INPUT  # a set is there: --resume or another --out
+    assert set_main([*args, "--resume", "--parts", "matched"]) == EXIT_BAD_INPUT  # needs the HBR's budget
+    err = capsys.readouterr().err.splitlines()
+    assert err[0].startswith(f"error: {out} is not empty")
+    assert err[1] == "error: the matched Flat-2D needs the evaluations of part(s) hbr, spare: train them first"
+
+    # the budgets an HBR and its spare archive report (their runs are the commands' own tests)
+    for part in ("hbr", "spare"):
+        (out / "runs" / part).mkdir(parents=True)
+    write_json(out / "runs" / "hbr" / "part.json", {"evaluations": 192})
+    write_json(out / "runs" / "spare" / "part.json", {"evaluations": 96})
+    before = os.stat(out / "flat2d.npz").st_mtime_ns
+    assert set_main([*args, "--resume", "--parts", "2d,matched"]) == 0
+    assert os.stat(out / "flat2d.npz").st_mtime_ns == before  # a finished part is kept, not trained again
+    parts = json.loads((out / "set.json").read_text())["parts"]
+    assert parts["matched"]["evaluations"] == 288 == parts["hbr"]["evaluations"] + parts["spare"]["evaluations"]
+    assert parts["2d"]["evaluations"] < parts["matched"]["evaluations"] and parts["2d"]["impl"] == "jax"
+    assert (out / "matched" / "flat2d.npz").is_file()
+
+
+def test_maze_eval_resumes_a_killed_run_to_the_same_results(tmp_path, capsys):
+    seeds = tmp_path / "seeds"
+    for name in ("a", "b"):  # two seed folders holding one flat file: two batches of the same shapes
+        (seeds / name).mkdir(parents=True)
+        shutil.copyfile(shipped_flat_path("2d"), seeds / name / "flat2d.npz")
+    args = ["--variant", "2d-rte", "--damage", "leg1", "--max-actions", "2", "--repertoire-dir", str(seeds),
+            "--no-progress"]
+    whole, resumed = tmp_path / "whole", tmp_path / "resumed"
+    assert maze_main([*args, "--out", str(whole)]) == 0
+    shutil.copytree(whole, resumed)
+    for name in ("episodes_1.npz", "episodes.json", "statistics.json", "summary.json"):  # killed in batch 1
+        (resumed / name).unlink()
+    capsys.readouterr()
+    assert maze_main([*args, "--out", str(resumed), "--resume"]) == 0
+    assert f"batch 0 (2d-rte on seed 0): read from {resumed / 'episodes_0.npz'}" in capsys.readouterr().out
+    for name in ("episodes.json", "statistics.json", "summary.json"):
+        assert json.loads((resumed / name).read_text()) == json.loads((whole / name).read_text()), name
+    assert {r["seed"] for r in json.loads((resumed / "episodes.json").read_text())["episodes"]} == {0, 1}
+
+    assert maze_main([*args, "--out", str(tmp_path / "none"), "--resume"]) == EXIT_BAD_INPUT
+    assert maze_main([*args[:-1], "--damage", "leg2", "--out", str(resumed), "--resume"]) == EXIT_BAD_INPUT
+    err = capsys.readouterr().err.splitlines()
+    assert err[0].startswith(f"error: --resume: {tmp_path / 'none'} holds no run to resume")
+    assert err[1] == f"error: {resumed} was started with a different configuration (differs in: damages)"
