@@ -1,7 +1,8 @@
 """Session-wide settings: a persistent XLA compilation cache shared by all tests of a session (and
 by pytest-xdist workers), in-memory compiled programs released after each test module, the
 controllers of an HBR's middle elites computed once per test process, the benchmark-script
-tests run last, and the OpenGL backend of the tests that draw frames (`gl_env`).
+tests run last, the OpenGL backend of the tests that draw frames (`gl_env`), and the fixtures
+several modules share (the default robot, the shipped HBR).
 
 MJX programs take 15-30 s to compile on a CPU; tests that build the same program again (a
 resumed training run, a re-simulation, a benchmark script re-running a training preset) then
@@ -67,6 +68,14 @@ def gl_env():
     if os.environ.get(REQUIRE_GL) == "1":
         pytest.fail(f"{REQUIRE_GL}=1 and no frame can be drawn: {reason}", pytrace=False)
     pytest.skip(f"needs OpenGL: {reason}")
+
+
+@pytest.fixture(scope="session")
+def robot():
+    """The default robot (`load_robot()`), loaded once per test process."""
+    from hte_jax.sim import load_robot
+
+    return load_robot()
 
 
 @pytest.fixture(scope="session")

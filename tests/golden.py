@@ -21,6 +21,7 @@ that is meant to alter results (a new shipped HBR, a new default), with
 
 from __future__ import annotations
 
+import importlib
 import json
 import platform
 import shutil
@@ -41,6 +42,8 @@ MAZE_ARGS = ["--variant", "hte,rte", "--damage", "none,leg1", "--replicates", "1
              "--iterations", "200", "--roots", "2", "--no-progress"]
 # golden name -> the run's output file it keeps
 OUTPUTS = {"hbr_tiny": "hbr.npz", "flat8d_tiny": "repertoires.npz", "maze_short": "episodes_0.npz"}
+# golden name -> (the command of experiments/ that makes it, its arguments)
+RUNS = {"hbr_tiny": ("train_hbr", HBR_ARGS), "flat8d_tiny": ("train_flat", FLAT_ARGS), "maze_short": ("maze_eval", MAZE_ARGS)}
 _VECTOR_FLAGS = ("avx512f", "avx2", "avx", "sse4_2", "neon", "asimd")
 
 
@@ -100,20 +103,36 @@ def check(name: str, run_dir: Path) -> None:
         np.testing.assert_array_equal(produced[key], value, err_msg=f"{name}/{key} differs from the golden output")
 
 
+def run(name: str, out: Path) -> int:
+    """Make the run whose output golden `name` keeps (its command's `main`, in this process) in
+    folder `out`; its exit status. The tests' fixtures compare these runs, `record` stores them."""
+    command, args = RUNS[name]
+    main = getattr(importlib.import_module(f"experiments.{command}"), "main")
+    return main([*args, "--out", str(out)])
+
+
+def run_fixture(name: str):
+    """A module-scoped pytest fixture: the folder of `run(name)`, made once per test module (the
+    test fails if the command does)."""
+
+    @pytest.fixture(scope="module")
+    def made(tmp_path_factory) -> Path:
+        out = tmp_path_factory.mktemp(name) / "run"
+        assert run(name, out) == 0, f"the {name} run failed"
+        return out
+
+    return made
+
+
 def record() -> None:
     """Run the three commands and store their outputs and the toolchain in this toolchain's folder."""
-    from experiments.maze_eval import main as maze_main
-    from experiments.train_flat import main as flat_main
-    from experiments.train_hbr import main as hbr_main
-
     chain = toolchain()
     folder = GOLDEN_DIR / f"{chain['machine']}-{chain['vector']}-{chain['cpu']}"  # always this CPU model's own
     folder.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory() as tmp:
-        runs = {"hbr_tiny": (hbr_main, HBR_ARGS), "flat8d_tiny": (flat_main, FLAT_ARGS), "maze_short": (maze_main, MAZE_ARGS)}
-        for name, (main, args) in runs.items():
+        for name in RUNS:
             out = Path(tmp) / name
-            if main([*args, "--out", str(out)]) != 0:
+            if run(name, out) != 0:
                 sys.exit(f"error: the {name} run failed; nothing recorded")
             shutil.copyfile(out / OUTPUTS[name], folder / f"{name}.npz")
     (folder / "toolchain.json").write_text(json.dumps(toolchain(), indent=2) + "\n")

@@ -1,5 +1,6 @@
-"""Multi-device checks of `hte_jax.sharding`, run in a subprocess with 4 forced CPU devices (the
-rest of the suite keeps one device); `tests/test_sharding.py` starts it and reads its output.
+"""Multi-device checks of `hte_jax.sharding`, run in a subprocess with as many forced CPU devices as
+its largest device count (the rest of the suite keeps one device); `tests/test_sharding.py` starts
+it and reads its output.
 
 python -m tests.sharding_script OUT.npz [--devices 1,2,4] [--parts hbr,flat,batched,episodes,hlo,replica]
 
@@ -7,7 +8,8 @@ Writes OUT.npz: for every part and device count N, the arrays of its result, nam
 "<part>/<N>/<array>"; "hlo/collectives" lists the collectives found inside while loops of the
 compiled generation of the batched run on the most devices (none expected), "hlo/outside" counts the
 collectives of that program outside loops (the gather of the results: some expected),
-"replica/error" the message of the replica check on a deliberately inconsistent array,
+"replica/error" the message of the replica check on a deliberately inconsistent array (replicated
+over every visible device),
 "seconds/<part>" the wall time of each part. Every setting is the smallest that still runs
 the code path: the whole script must stay within a few minutes on a 2-core CPU.
 """
@@ -175,9 +177,10 @@ def generation_hlo(algo, state) -> dict:
 
 
 def replica_error() -> dict:
-    """The replica check on an array whose 4 device copies differ in one element."""
-    mesh = sharding.batch_mesh(4)
-    copies = [jax.device_put(np.full(8, 1.0 if i != 2 else 2.0, np.float32), d) for i, d in enumerate(mesh.devices)]
+    """The replica check on an array whose device copies (one per visible device) differ in one element."""
+    mesh = sharding.batch_mesh(jax.device_count())
+    last = len(mesh.devices) - 1
+    copies = [jax.device_put(np.full(8, 1.0 if i != last else 2.0, np.float32), d) for i, d in enumerate(mesh.devices)]
     broken = jax.make_array_from_single_device_arrays((8,), sharding.replicated(mesh), copies)
     healthy = sharding.put_replicated(np.ones(8, np.float32), mesh)
     sharding.check_replicas({"ok": healthy})
@@ -188,13 +191,18 @@ def replica_error() -> dict:
     return {"replica/error": np.array("")}
 
 
-def main():
+def parse_args(argv=None) -> argparse.Namespace:
     parser = argparse.ArgumentParser()
     parser.add_argument("out")
     parser.add_argument("--devices", default="1,2,4")
     parser.add_argument("--parts", default=",".join(PARTS))
-    args = parser.parse_args()
-    counts = [int(n) for n in args.devices.split(",")]
+    args = parser.parse_args(argv)
+    args.counts = [int(n) for n in args.devices.split(",")]
+    return args
+
+
+def main(args: argparse.Namespace):
+    counts = args.counts
     parts = args.parts.split(",")
     arrays: dict[str, np.ndarray] = {}
     seconds: dict[str, float] = {}
@@ -227,8 +235,10 @@ def main():
 
 
 if __name__ == "__main__":
-    # before jax starts its backend: 4 forced CPU devices (set here, so importing this module for its
-    # configurations changes nothing)
-    os.environ["XLA_FLAGS"] = os.environ.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=4"
+    arguments = parse_args()
+    # before jax starts its backend: as many forced CPU devices as the largest count asked for (set
+    # here, so importing this module for its configurations changes nothing)
+    others = [f for f in os.environ.get("XLA_FLAGS", "").split() if not f.startswith("--xla_force_host_platform")]
+    os.environ["XLA_FLAGS"] = " ".join([*others, f"--xla_force_host_platform_device_count={max(arguments.counts)}"])
     os.environ.setdefault("JAX_PLATFORMS", "cpu")
-    main()
+    main(arguments)

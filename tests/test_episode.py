@@ -15,21 +15,17 @@ from hte_jax.online.episode import SECONDS_PER_ACTION
 from hte_jax.online.rules import CANDIDATE_PATTERNS
 from hte_jax.online.maze import PAPER_MAZE
 from hte_jax.qd.io import read_checkpoint
-from tests.golden import MAZE_ARGS, check
+from tests import golden
 
 MAX_ACTIONS = 30
-assert MAZE_ARGS[MAZE_ARGS.index("--max-actions") + 1] == str(MAX_ACTIONS)
+assert golden.MAZE_ARGS[golden.MAZE_ARGS.index("--max-actions") + 1] == str(MAX_ACTIONS)
 
 
-@pytest.fixture(scope="module")
-def run(tmp_path_factory):
-    out = tmp_path_factory.mktemp("maze") / "hbr"
-    assert maze_main([*MAZE_ARGS, "--out", str(out)]) == 0
-    return out
+run = golden.run_fixture("maze_short")
 
 
 def test_short_run_matches_the_golden_output(run):
-    check("maze_short", run)
+    golden.check("maze_short", run)
 
 
 def _records(run):

@@ -23,25 +23,16 @@ from hte_jax.qd.io import CheckpointError, read_checkpoint, save_checkpoint
 from hte_jax.qd.loop import MapElitesConfig
 from hte_jax.qd.metrics import projected_statistics
 from hte_jax.qd.tasks import planar_arm
-from hte_jax.sim import load_robot, standing_state
+from hte_jax.sim import standing_state
 from hte_jax.sim.damage import APROL_DAMAGES, damage_masks, parse_damage
-from tests.golden import FLAT_ARGS, check
+from tests import golden
 
 
-@pytest.fixture(scope="module")
-def robot():
-    return load_robot()
-
-
-@pytest.fixture(scope="module")
-def flat8d_run(tmp_path_factory):
-    out = tmp_path_factory.mktemp("flat") / "8d"
-    assert flat_main([*FLAT_ARGS, "--out", str(out)]) == 0
-    return out
+flat8d_run = golden.run_fixture("flat8d_tiny")
 
 
 def test_tiny_8d_run_matches_the_golden_output(flat8d_run):
-    check("flat8d_tiny", flat8d_run)
+    golden.check("flat8d_tiny", flat8d_run)
 
 
 def test_standing_still_is_the_centre_cell_with_every_healthy_foot_down(robot):

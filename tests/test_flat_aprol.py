@@ -14,13 +14,8 @@ from experiments.train_flat import main as flat_main
 from hte_jax.flat.store import load_flat
 from hte_jax.flat.task import evaluate_flat
 from hte_jax.flat.training import preset
-from hte_jax.sim import load_robot, standing_state
+from hte_jax.sim import standing_state
 from hte_jax.sim.damage import APROL_DAMAGES
-
-
-@pytest.fixture(scope="module")
-def robot():
-    return load_robot()
 
 
 @pytest.fixture(scope="module")

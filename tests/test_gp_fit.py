@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 from scipy.optimize import minimize
 
-from hte_jax.online.gp import HTE_KERNEL, RTE_KERNEL, Kernel, add_observation, empty_gp
+from hte_jax.online.gp import HTE_KERNEL, RTE_KERNEL, Kernel, empty_gp
 from hte_jax.online.gp_fit import fit_kernel, kernel_of, kernel_params, log_marginal_likelihood
-from tests.test_gp import _numpy_kernel
+from tests.test_gp import _fill, _numpy_kernel
 
 
 def _numpy_lml(kernel, x, y, prior):
@@ -22,13 +22,6 @@ def _numpy_lml(kernel, x, y, prior):
     _, log_det = np.linalg.slogdet(gram)
     quad = np.einsum("no,no->", r, np.linalg.solve(gram, r))
     return -0.5 * quad - 0.5 * r.shape[1] * (log_det + len(x) * math.log(2 * math.pi))
-
-
-def _fill(capacity, x, y, prior):
-    data = empty_gp(capacity, x.shape[1], y.shape[1])
-    for i in range(len(x)):
-        data = add_observation(data, jnp.asarray(x[i]), jnp.asarray(y[i]), jnp.asarray(prior[i]))
-    return data
 
 
 @pytest.mark.parametrize("kernel, dim, scale", [(RTE_KERNEL, 2, 0.1), (HTE_KERNEL, 9, 1.0)])

@@ -19,16 +19,11 @@ from hte_jax.hbr.training import PRESETS, normalised_config, preset, train_hbr, 
 from hte_jax.errors import ConfigError
 from experiments.measure_steps import main as measure_main
 from hte_jax.qd.io import CheckpointError, prepare_run_dir, read_checkpoint, save_checkpoint
-from hte_jax.sim import load_robot, standing_state
+from hte_jax.sim import standing_state
 from tests.benchmark_runner import run_benchmark
-from tests.golden import HBR_ARGS, check
+from tests import golden
 
 LAYERS = ("bottom", "middle", "top")
-
-
-@pytest.fixture(scope="module")
-def robot():
-    return load_robot()
 
 
 @pytest.fixture(scope="module")
@@ -36,11 +31,7 @@ def start(robot):
     return standing_state(robot)
 
 
-@pytest.fixture(scope="module")
-def tiny_run(tmp_path_factory):
-    out = tmp_path_factory.mktemp("hbr") / "tiny"
-    assert train_main([*HBR_ARGS, "--out", str(out)]) == 0
-    return out
+tiny_run = golden.run_fixture("hbr_tiny")
 
 
 def _rows(path):
@@ -81,7 +72,7 @@ def test_tiny_preset_writes_a_complete_hbr(tiny_run):
 
 
 def test_tiny_run_matches_the_golden_output(tiny_run):
-    check("hbr_tiny", tiny_run)
+    golden.check("hbr_tiny", tiny_run)
 
 
 def test_killed_run_resumes_bit_identical(tiny_run, tmp_path):

@@ -20,34 +20,21 @@ from hte_jax.sim.robot import RobotConfig, build_spec, load_robot, mj_model, wit
 from hte_jax.sim.rollout import (InvalidReason, RolloutSpec, initial_state, reflex_braced, rollout, standing_state,
                                  up_z_drop_rate)
 
+
+def _gait(amplitude, hip, lift):
+    """The 36 controller parameters of a gait: per leg (amplitude, phase, duty 0.5) of the hip
+    then of the vertical signal, the hip's phase from `hip`, the vertical one's from `lift`."""
+    return np.array([[amplitude, h, 0.5, amplitude, v, 0.5] for h, v in zip(hip, lift)], np.float32).reshape(36)
+
+
 # Tripod gait of the 36-parameter controller, per leg (a, p, d) hip then (a, p, d) vertical.
 # Legs 0, 2, 4 lift together, 1, 3, 5 half a period later; the hip swing leads the vertical
 # signal by a quarter period, mirrored between the right (0-2) and left (3-5) sides; half
 # amplitudes (hip +-pi/16, femur +-pi/8) keep the body within a few degrees of level.
-TRIPOD = np.array(
-    [
-        [0.5, 0.75, 0.5, 0.5, 0.0, 0.5],
-        [0.5, 0.25, 0.5, 0.5, 0.5, 0.5],
-        [0.5, 0.75, 0.5, 0.5, 0.0, 0.5],
-        [0.5, 0.75, 0.5, 0.5, 0.5, 0.5],
-        [0.5, 0.25, 0.5, 0.5, 0.0, 0.5],
-        [0.5, 0.75, 0.5, 0.5, 0.5, 0.5],
-    ],
-    np.float32,
-).reshape(36)
+TRIPOD = _gait(0.5, hip=(0.75, 0.25, 0.75, 0.75, 0.25, 0.75), lift=(0.0, 0.5, 0.0, 0.5, 0.0, 0.5))
 # A wave gait: leg L lifts at phase L/6, so at most three legs are in the air and the
 # robot keeps walking with any one leg (or both middle legs) blocked in the air.
-WAVE = np.array(
-    [
-        [1.0, 0.25, 0.5, 1.0, 0.0, 0.5],
-        [1.0, 0.42, 0.5, 1.0, 0.17, 0.5],
-        [1.0, 0.58, 0.5, 1.0, 0.33, 0.5],
-        [1.0, 0.25, 0.5, 1.0, 0.5, 0.5],
-        [1.0, 0.42, 0.5, 1.0, 0.67, 0.5],
-        [1.0, 0.58, 0.5, 1.0, 0.83, 0.5],
-    ],
-    np.float32,
-).reshape(36)
+WAVE = _gait(1.0, hip=(0.25, 0.42, 0.58, 0.25, 0.42, 0.58), lift=(0.0, 0.17, 0.33, 0.5, 0.67, 0.83))
 
 SPEC = RolloutSpec(num_steps=300, pose_steps=tuple(range(0, 301, 10)), record_feet=True, record_joints=True,
                    record_joint_travel=True)
@@ -79,11 +66,6 @@ def _corrupt(params, init):
     qvel[EXPLODED, 6:] = 500.0
     qvel[NAN_STATE, 0] = np.nan
     return params, init.replace(qpos=jnp.asarray(qpos), qvel=jnp.asarray(qvel))
-
-
-@pytest.fixture(scope="module")
-def robot():
-    return load_robot()
 
 
 @pytest.fixture(scope="module")
