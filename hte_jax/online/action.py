@@ -1,22 +1,17 @@
 """One action of B robots: a 3 s skill, then 1 s of the neutral pose (all controller parameters 0).
 
-A flat repertoire's skill is its 36-parameter controller run for 3 s. An HBR's skill is a
-top-layer genotype run one 1 s step at a time by `hbr_step`: the episodes' pattern rules choose
-the step's contact pattern (`rules`), the middle elite is planned or looked up among that
-pattern's elites, the robot runs it for one second, and the rules learn from what it did.
+A flat skill is its 36-parameter controller run for 3 s. An HBR skill runs one 1 s step at a time
+(`hbr_step`): the episodes' pattern rules choose the step's contact pattern, a middle elite of that
+pattern runs for one second, and the rules learn from what it did.
 
-The robots are a strategy object, so that the same action and step code drives every robot:
-`SimulatedRobots` are B robots in MJX (the step runs inside the episode's jitted program, the
-steps in a `lax.scan`); `external.ExecutorRobot` is one robot driven from the host (a real robot,
-or native MuJoCo), whose traceable parts run as jitted calls around each second. A robot provides
-`pose(state)`, `second(state, hbr, elite, found, alive)` (one step's second), `neutral(state)`,
-`flat(state, params)` (a flat skill and the neutral second), `steps(step, carry, xs)` (how
-steps follow each other) and `staged(fn)` (how traceable code runs).
+The robots are a strategy object, so one action code drives every robot: `SimulatedRobots` (B robots
+in MJX, inside the episode's jitted program) or `external.ExecutorRobot` (one robot driven from the
+host, its traceable parts jitted around each second). A robot provides `pose(state)`,
+`second(state, hbr, elite, found, alive)`, `neutral(state)`, `flat(state, params)`,
+`steps(step, carry, xs)` (how steps follow each other) and `staged(fn)` (how traceable code runs).
 
-Rollouts of the online phase use `ONLINE_LIMITS`: the robot of the online phase has its body
-collide with the floor, so a body on the floor is no longer an error, and only a robot tilted past
-90 degrees (on its side or back: it cannot get up), a non-finite or an exploding state ends an
-episode. After a step a robot went invalid in, its later steps choose no pattern and run nothing.
+`ONLINE_LIMITS`: the body may touch the floor; only a robot tilted past 90 degrees (it cannot get up),
+a non-finite or an exploding state ends an episode. Steps after a robot went invalid run nothing.
 """
 
 from __future__ import annotations
@@ -45,14 +40,10 @@ ONLINE_LIMITS = ValidityLimits(max_tilt=math.pi / 2, min_base_height=0.0, body_o
 
 @struct.dataclass
 class Second:
-    """What B robots did in one second.
-
-    state: SimState (B, ...) after it (None for a host-driven robot). pose: (B, 3) world planar pose
-    after it. displacement: (B, 3) (x, y, yaw) in the frame of the pose before it. valid: (B,) bool.
-    invalid_reason: (B,) int32 `InvalidReason` bits (0 if valid). contact_fraction: (B, 6) share of
-    the second each foot was on the floor. leg_travel: (B, 6) rad each leg's joints moved. qpos:
-    (B, F, 25) the state every k control steps (recording), or None.
-    """
+    """What B robots did in one second. state: SimState (B, ...) after it (None for a host-driven robot).
+    pose: (B, 3) world planar pose after it. displacement: (B, 3) (x, y, yaw) in the frame before it.
+    valid: (B,) bool. invalid_reason: (B,) int32 `InvalidReason` bits. contact_fraction: (B, 6) share of
+    the second each foot was down. leg_travel: (B, 6) rad each leg's joints moved. qpos: (B, F, 25) or None."""
 
     state: SimState | None
     pose: jax.Array
@@ -66,19 +57,13 @@ class Second:
 
 @struct.dataclass
 class ActionOutcome:
-    """B robots after one action (3 s skill + 1 s neutral).
-
-    state: SimState (B, ...) at the end (None for a host-driven robot). valid: (B,) bool, no second
-    of the action went invalid. invalid_reason: (B,) int32 `InvalidReason` bits of the action (0 if
-    valid). poses: (B, 4, 3) world planar pose after each second. displacement: (B, 3) (dx, dy, dyaw)
-    in the pre-action frame. patterns: (B, 3) int32 contact pattern asked for at each step (-1: any,
-    for flat skills, and for steps after the robot went invalid). middle_index: (B, 3) int32
-    executed middle elite (-1 for flat skills and steps not run). errors: (B, 3, 3) relative error
-    (x, y, yaw) of each step (0 for flat skills). contacts: (B, 3, 6) share of each step each foot was
-    on the floor; leg_travel: (B, 3, 6) rad each leg's joints moved in each step (0 for flat skills). rules: the rules after this action's
-    observations (None for flat skills). qpos: (B, F, 25) the state every k = `record_every`
-    control steps of the action from its start (F = 400 / k), or None (not recorded).
-    """
+    """B robots after one action. state: SimState (B, ...) at the end (None for a host-driven robot).
+    valid: (B,) bool. invalid_reason: (B,) int32 `InvalidReason` bits. poses: (B, 4, 3) world planar pose
+    after each second. displacement: (B, 3) (dx, dy, dyaw) in the pre-action frame. Per step (0 or -1 for
+    flat skills and steps not run): patterns (B, 3) int32 (-1: any), middle_index (B, 3) int32, errors
+    (B, 3, 3) relative (x, y, yaw), contacts (B, 3, 6) share each foot was down, leg_travel (B, 3, 6) rad.
+    rules: after the action (None for flat skills). qpos: (B, 400 / k, 25) every k = `record_every`
+    control steps from the start, or None."""
 
     state: SimState | None
     valid: jax.Array
@@ -128,10 +113,8 @@ class SimulatedRobots:
             leg_travel=zeros, qpos=result.qpos)
 
     def flat(self, state: SimState, params: jax.Array) -> tuple[Second, jax.Array]:
-        """The controllers `params` (B, 36) for 3 s, then the neutral second, in one rollout (a
-        controller's clock restarts each second; its period is 1 s, so 3 seconds are one 3 s run).
-        Returns the last second's `Second` (its displacement: the whole action's) and the poses
-        (B, 4, 3) after each second."""
+        """The controllers `params` (B, 36) for 3 s, then the neutral second, in one rollout (the period
+        is 1 s). Returns the last `Second` (displacement: the whole action's) and poses (B, 4, 3)."""
         segments = jnp.stack([params] * STEPS_PER_SKILL + [jnp.zeros_like(params)], axis=1)  # (B, 4, 36)
         total = SECONDS_PER_ACTION * STEP_CONTROL_STEPS
         spec = RolloutSpec(num_steps=total, pose_steps=tuple(range(0, total + 1, STEP_CONTROL_STEPS)),
@@ -155,11 +138,9 @@ def skill_targets(skills: Skills, index: jax.Array, origin: jax.Array) -> tuple[
 
 def choose_step(skills: Skills, rules: RuleBatch, here: jax.Array, target: jax.Array, goal: jax.Array,
                 step: jax.Array, taken: jax.Array, keys: jax.Array, alive: jax.Array):
-    """Before step `step` (0-2) of B HBR skills, robots at world poses `here` (B, 3) heading for the
-    step's waypoint `target` (B, 3) and the skill's end `goal` (B, 3): the contact pattern (B,) int32
-    each episode's rule picks (-1 where the robot is no longer `alive`), the middle elite (B,) to run
-    and whether it has that pattern (B,) bool. taken: (B,) actions already taken (GP-UCB's t =
-    1 + step + 3 taken). keys: (B, 2) this step's PRNG keys."""
+    """Before step `step` (0-2), robots at world poses `here` (B, 3) heading for `target` (B, 3), then `goal`
+    (B, 3): each rule's pattern (B,) int32 (-1 unless `alive`), the middle elite (B,) and whether it has that
+    pattern (B,) bool. taken: (B,) actions so far (GP-UCB's t = 1 + step + 3 taken). keys: (B, 2)."""
     hbr = skills.hbr
     task = hbr.middle_task
     desired = task.normalise(relative_pose(here, target))
@@ -177,18 +158,15 @@ def choose_step(skills: Skills, rules: RuleBatch, here: jax.Array, target: jax.A
 
 
 def learn_step(skills: Skills, rules: RuleBatch, elite: jax.Array, second: Second) -> tuple[RuleBatch, jax.Array]:
-    """The rules learn from the step the middle elites `elite` (B,) made (`second`); returns them
-    and the step's relative errors (B, 3) (`secondary.relative_error`)."""
+    """The rules after learning from the step of middle elites `elite` (B,), and its relative errors (B, 3)."""
     observation = StepObservation(hbr=skills.hbr, elite=elite, observed=skills.hbr.middle_task.normalise(second.displacement),
                                   contact_fraction=second.contact_fraction, leg_travel=second.leg_travel)
     return learn_rules(rules, observation), relative_error_of(observation)
 
 
 def hbr_step(robots, skills: Skills, goal: jax.Array, taken: jax.Array, carry, xs):
-    """One 1 s step of B HBR skills on `robots`: choose (`choose_step`), run one second, learn
-    (`learn_step`). carry: (state, rules, alive (B,) bool); xs: (target (B, 3), step () int32,
-    keys (B, 2)). Returns the carry and the step's record (pattern, elite run or -1, relative
-    errors, invalid reason, pose after, contact fractions, leg travel, qpos or None)."""
+    """One 1 s step of B HBR skills: choose, run, learn. carry: (state, rules, alive (B,) bool); xs: (target
+    (B, 3), step () int32, keys (B, 2)). Returns the carry and the step's record."""
     state, rules, alive = carry
     target, step, keys = xs
     pattern, elite, found = robots.staged(choose_step)(skills, rules, robots.pose(state), target, goal, step, taken,
@@ -202,10 +180,8 @@ def hbr_step(robots, skills: Skills, goal: jax.Array, taken: jax.Array, carry, x
 
 def hbr_action(robots, skills: Skills, state: SimState | None, rules: RuleBatch, action: jax.Array, taken: jax.Array,
                keys: jax.Array) -> ActionOutcome:
-    """Run the HBR skills `action` (B,) of B episodes step by step from their robots' `state`,
-    choosing each step's contact pattern by each episode's rule (`rules`: what they know so far;
-    GP-UCB's t = 1 + step + 3 x the actions `taken` (B,)), then 1 s neutral. keys: (B, 2) the
-    action's execution keys (each step's are split from them)."""
+    """Run HBR skills `action` (B,) step by step from `state`, each step's pattern chosen by the episode's
+    rule, then 1 s neutral. taken: (B,) actions so far. keys: (B, 2) (each step's are split from them)."""
     origin = robots.pose(state)
     targets, goal = robots.staged(skill_targets)(skills, action, origin)  # (B, 3, 3), (B, 3)
     step_keys = jnp.swapaxes(jax.vmap(lambda k: jax.random.split(k, STEPS_PER_SKILL))(keys), 0, 1)  # (3, B, 2)
@@ -218,19 +194,12 @@ def hbr_action(robots, skills: Skills, state: SimState | None, rules: RuleBatch,
         steps = jnp.swapaxes(qpos, 0, 1)
         qpos = jnp.concatenate([steps.reshape(steps.shape[0], -1, steps.shape[-1]), rest.qpos], axis=1)
     return ActionOutcome(
-        state=rest.state,
-        valid=(reasons == 0).all(axis=0) & rest.valid,
+        state=rest.state, valid=(reasons == 0).all(axis=0) & rest.valid,
         invalid_reason=jnp.bitwise_or.reduce(reasons, axis=0) | rest.invalid_reason,
         poses=jnp.concatenate([jnp.swapaxes(poses, 0, 1), rest.pose[:, None]], axis=1),
-        displacement=relative_pose(origin, rest.pose),
-        patterns=patterns.T,
-        middle_index=middle.T,
-        errors=jnp.swapaxes(errors, 0, 1),
-        contacts=jnp.swapaxes(contacts, 0, 1),
-        leg_travel=jnp.swapaxes(travel, 0, 1),
-        rules=rules,
-        qpos=qpos,
-    )
+        displacement=relative_pose(origin, rest.pose), patterns=patterns.T, middle_index=middle.T,
+        errors=jnp.swapaxes(errors, 0, 1), contacts=jnp.swapaxes(contacts, 0, 1),
+        leg_travel=jnp.swapaxes(travel, 0, 1), rules=rules, qpos=qpos)
 
 
 def flat_action(robots, state: SimState | None, params: jax.Array) -> ActionOutcome:
@@ -238,16 +207,9 @@ def flat_action(robots, state: SimState | None, params: jax.Array) -> ActionOutc
     last, poses = robots.flat(state, params)
     batch = params.shape[0]
     return ActionOutcome(
-        state=last.state,
-        valid=last.valid,
-        invalid_reason=last.invalid_reason,
-        poses=poses,
-        displacement=last.displacement,
-        patterns=jnp.full((batch, STEPS_PER_SKILL), ANY_PATTERN, jnp.int32),
+        state=last.state, valid=last.valid, invalid_reason=last.invalid_reason, poses=poses,
+        displacement=last.displacement, patterns=jnp.full((batch, STEPS_PER_SKILL), ANY_PATTERN, jnp.int32),
         middle_index=jnp.full((batch, STEPS_PER_SKILL), -1, jnp.int32),
         errors=jnp.zeros((batch, STEPS_PER_SKILL, ERROR_DIM), jnp.float32),
         contacts=jnp.zeros((batch, STEPS_PER_SKILL, NUM_LEGS), jnp.float32),
-        leg_travel=jnp.zeros((batch, STEPS_PER_SKILL, NUM_LEGS), jnp.float32),
-        rules=None,
-        qpos=last.qpos,
-    )
+        leg_travel=jnp.zeros((batch, STEPS_PER_SKILL, NUM_LEGS), jnp.float32), rules=None, qpos=last.qpos)

@@ -1,23 +1,14 @@
 """Reset-free adaptation episodes in the maze, B at once (paper section 4; `docs/original_code.md` §7, §9).
 
-Each action: the RTE GP predicts every action's outcome (repertoire prior + observed
-corrections), MCTS plans from the robot's measured pose on those predictions, the chosen skill
-runs on the simulated damaged robot from wherever it stands (`action`), and the measured
-displacement (dx, dy, dyaw) in the pre-action frame is added to the RTE GP. An episode ends when
-the robot is within the goal radius after an action (success), after `max_actions` actions
-(failure) or when its simulation goes invalid (a flipped robot: failure). Wall contacts do not
-end an episode; a robot standing where the planner's disc overlaps a wall plans from the nearest
-free +-0.5 m offset.
+Each action: the RTE GP predicts every skill's outcome (repertoire prior + observed corrections), MCTS
+plans from the measured pose, the chosen skill runs on the damaged robot from wherever it stands, and
+the measured displacement (dx, dy, dyaw) in the pre-action frame is added to the GP. An episode ends at
+the goal (success), after `max_actions` or when its simulation goes invalid (failure). Wall contacts do
+not end it; a robot whose planner disc overlaps a wall plans from the nearest free +-0.5 m offset.
+With APROL's K repertoires each has its own RTE GP and `aprol.select_entry` picks the executed skill.
 
-With APROL's K repertoires (`Skills.num_maps` > 1) every repertoire has its own RTE GP; the
-planner plans with the repertoire chosen last, and the executed skill is then chosen among all
-repertoires' skills by `aprol.select_entry`.
-
-`plan_step` and `act_step` are jitted over the whole batch; `run_episodes` calls them once per
-action until every episode has ended, so planning latency can be measured on its own. `act_step`
-runs the action on the MJX robots (`action.SimulatedRobots`) and then calls `record_action`, the
-bookkeeping that an episode driven through an executor (`external.py`, a robot simulated
-elsewhere or real) shares with it.
+`plan_step` and `act_step` are jitted over the batch (so planning latency is measured on its own);
+`record_action` is the bookkeeping an executor-driven episode (`external.py`) shares with `act_step`.
 """
 
 from __future__ import annotations
@@ -59,11 +50,8 @@ from hte_jax.sim.rollout import SimState
 
 @dataclasses.dataclass(frozen=True)
 class AdaptationConfig:
-    """Settings of an adaptation run (hashable: a static jit argument).
-
-    max_actions: actions before an episode counts as failed (paper 80).
-    planner: MCTS settings. grid: the planner's distance-field grid.
-    """
+    """Settings of an adaptation run (hashable: a static jit argument). max_actions: actions before an
+    episode fails (paper 80). planner: MCTS settings. grid: the planner's distance-field grid."""
 
     max_actions: int = 80
     planner: PlannerConfig = PlannerConfig()
@@ -77,15 +65,12 @@ class AdaptationConfig:
 class History:
     """What happened at each action of B episodes, L = max_actions, D = planner depth.
 
-    action: (B, L) int32 executed action (-1 after the episode ended). map: (B, L) int32 its
-    repertoire (0 unless APROL). planned: (B, L) int32 the planner's action. start: (B, L, 3) the pose
-    the planner started from. predicted: (B, L, 3) the GP's predicted displacement of the chosen
-    action. observed: (B, L, 3) the measured displacement. value: (B, L) the plan's value.
-    path: (B, L, D + 1, 3) the planned path (world frame). path_length: (B, L) int32.
-    patterns: (B, L, 3) int32 contact pattern of each step (-1: any). errors: (B, L, 3, 3)
-    relative errors of each step (x, y, yaw). contacts: (B, L, 3, 6) share of each step each foot was
-    sensed on the floor. leg_travel: (B, L, 3, 6) rad each leg's joints moved in each step (both 0
-    for flat skills: what the leg senses of `rules.SensedLegs` read).
+    action: (B, L) int32 executed action (-1 after the end). map: (B, L) int32 its repertoire (0 unless
+    APROL). planned: (B, L) int32 the planner's action. start: (B, L, 3) the planner's start pose.
+    predicted, observed: (B, L, 3) the GP's and the measured displacement. value: (B, L) the plan's value.
+    path: (B, L, D + 1, 3) the planned path (world frame); path_length: (B, L) int32. Per step: patterns
+    (B, L, 3) int32 (-1: any), errors (B, L, 3, 3) relative (x, y, yaw), contacts (B, L, 3, 6) share each
+    foot was down, leg_travel (B, L, 3, 6) rad (both 0 for flat skills).
     """
 
     action: jax.Array
@@ -107,14 +92,11 @@ class History:
 class Episodes:
     """B adaptation episodes.
 
-    sim: SimState (B, ...) the simulated robots, or None when an executor drives them (`external.py`).
-    damage: (B, 6) bool, what the simulator does to each robot (no rule but an oracle's `init`
-    sees it). rte: GPData (B, K, L, D, 4), the action model of each of the K repertoires. belief:
-    MapBelief (B, K), APROL's belief about them. rules: RuleBatch, each episode's pattern rule and
-    what the rules have learnt (`rules`). key: (B, 2) PRNG keys.
-    taken: (B,) int32 actions so far. reached: (B,) bool at the goal. broken: (B,) bool the
-    simulation went invalid; reason: (B,) int32 its `InvalidReason` bits (0 if not broken). trajectory: (B, 4 L + 1, 3) world pose (x, y, yaw) every second,
-    the last pose repeated after the end. history: History.
+    sim: SimState (B, ...), or None when an executor drives the robots. damage: (B, 6) bool (only an
+    oracle's `init` sees it). rte: GPData (B, K, L, D, 4), each repertoire's action model. belief:
+    MapBelief (B, K). rules: RuleBatch. key: (B, 2) PRNG keys. taken: (B,) int32 actions so far. reached:
+    (B,) bool at the goal. broken: (B,) bool went invalid; reason: (B,) int32 its `InvalidReason` bits.
+    trajectory: (B, 4 L + 1, 3) world pose every second (the last repeated after the end). history: History.
     """
 
     sim: SimState
@@ -146,13 +128,9 @@ def start_episodes(
     config: AdaptationConfig, skills: Skills, start: SimState | jax.Array, damages: np.ndarray,
     rules: tuple[PatternRule, ...], which: np.ndarray, key: jax.Array,
 ) -> Episodes:
-    """B fresh episodes: robots `start` with `damages` (B, 6), episode b running the pattern rule
-    `rules[which[b]]` (`variants.batch_rules`; flat skills ignore it). start: SimState (B, ...) of
-    simulated robots, or the world planar poses (B, 3) of robots an executor drives (`external.py`;
-    `Episodes.sim` is then None).
-
-    With K > 1 repertoires each episode starts planning with a uniformly drawn one.
-    """
+    """B fresh episodes of robots with `damages` (B, 6), episode b running `rules[which[b]]`. start: SimState
+    (B, ...) of simulated robots, or the world planar poses (B, 3) of executor-driven ones (no `sim`).
+    With K > 1 repertoires each episode starts planning with a uniformly drawn one."""
     damages = np.asarray(damages, bool)
     batch, length = damages.shape[0], config.max_actions
     depth = config.planner.depth
@@ -164,50 +142,32 @@ def start_episodes(
         return jax.tree.map(lambda x: jnp.broadcast_to(x, (*lead, *x.shape)), gp)
 
     first_map = jax.random.randint(jax.random.fold_in(key, 1), (batch,), 0, maps)
-
     history = History(
-        action=jnp.full((batch, length), -1, jnp.int32),
-        map=jnp.full((batch, length), -1, jnp.int32),
-        planned=jnp.full((batch, length), -1, jnp.int32),
-        start=jnp.zeros((batch, length, 3), jnp.float32),
-        predicted=jnp.zeros((batch, length, 3), jnp.float32),
-        observed=jnp.zeros((batch, length, 3), jnp.float32),
-        value=jnp.zeros((batch, length), jnp.float32),
-        path=jnp.zeros((batch, length, depth + 1, 3), jnp.float32),
+        action=jnp.full((batch, length), -1, jnp.int32), map=jnp.full((batch, length), -1, jnp.int32),
+        planned=jnp.full((batch, length), -1, jnp.int32), start=jnp.zeros((batch, length, 3), jnp.float32),
+        predicted=jnp.zeros((batch, length, 3), jnp.float32), observed=jnp.zeros((batch, length, 3), jnp.float32),
+        value=jnp.zeros((batch, length), jnp.float32), path=jnp.zeros((batch, length, depth + 1, 3), jnp.float32),
         path_length=jnp.zeros((batch, length), jnp.int32),
         patterns=jnp.full((batch, length, STEPS_PER_SKILL), -1, jnp.int32),
         errors=jnp.zeros((batch, length, STEPS_PER_SKILL, ERROR_DIM), jnp.float32),
         contacts=jnp.zeros((batch, length, STEPS_PER_SKILL, NUM_LEGS), jnp.float32),
-        leg_travel=jnp.zeros((batch, length, STEPS_PER_SKILL, NUM_LEGS), jnp.float32),
-    )
+        leg_travel=jnp.zeros((batch, length, STEPS_PER_SKILL, NUM_LEGS), jnp.float32))
     return Episodes(
-        sim=start if simulated else None,
-        damage=jnp.asarray(damages),
+        sim=start if simulated else None, damage=jnp.asarray(damages),
         rte=stacked(empty_gp(length, skills.actions.inputs.shape[-1], OUTCOME_DIM), batch, maps),
-        belief=jax.vmap(lambda k: initial_belief(maps, k))(first_map),
-        rules=start_rules(rules, which, damages, length),
-        key=jax.random.split(key, batch),
-        taken=jnp.zeros(batch, jnp.int32),
-        reached=jnp.zeros(batch, bool),
-        broken=jnp.zeros(batch, bool),
-        reason=jnp.zeros(batch, jnp.int32),
-        trajectory=jnp.broadcast_to(pose[:, None, :], (batch, SECONDS_PER_ACTION * length + 1, 3)),
-        history=history,
-    )
+        belief=jax.vmap(lambda k: initial_belief(maps, k))(first_map), rules=start_rules(rules, which, damages, length),
+        key=jax.random.split(key, batch), taken=jnp.zeros(batch, jnp.int32), reached=jnp.zeros(batch, bool),
+        broken=jnp.zeros(batch, bool), reason=jnp.zeros(batch, jnp.int32),
+        trajectory=jnp.broadcast_to(pose[:, None, :], (batch, SECONDS_PER_ACTION * length + 1, 3)), history=history)
 
 
 @struct.dataclass
 class Decision:
-    """The next action of B episodes.
-
-    plan: PlanResult with leading B (its action indexes the planning repertoire). map, action: (B,)
-    int32 the repertoire and skill to execute (APROL may pick another than the plan's; otherwise
-    map 0 and the plan's action). start: (B, 3) pose the planner started from. predicted: (B, 3)
-    the GP's predicted displacement of the executed skill. keys: (B, 3, 2) the keys the action
-    drew: the episode's next key, the plan's and the execution's.
-    prior: (B, 4) the GP's prior outcome of the executed skill (what its observation is learnt
-    against).
-    """
+    """The next action of B episodes. plan: PlanResult with leading B (its action indexes the planning
+    repertoire). map, action: (B,) int32 the repertoire and skill to execute (APROL may pick another).
+    start: (B, 3) the planner's start pose. predicted: (B, 3) the GP's displacement of the executed skill.
+    keys: (B, 3, 2) the episode's next key, the plan's and the execution's. prior: (B, 4) the GP's prior
+    outcome of the executed skill (what its observation is learnt against)."""
 
     plan: PlanResult
     map: jax.Array
@@ -220,8 +180,8 @@ class Decision:
 
 @functools.partial(jax.jit, static_argnames=("maze", "config"))
 def plan_step(maze: Maze, config: AdaptationConfig, skills: Skills, field: jax.Array, episodes: Episodes) -> Decision:
-    """Plan the next action of every episode on the RTE GP's predictions (with K repertoires: plan
-    with the current one, then let APROL choose the skill to execute among all of them)."""
+    """Plan every episode's next action on the RTE GP's predictions (with K repertoires: plan with the
+    current one, then APROL chooses the skill among all of them)."""
     maps = skills.map_actions
 
     def predict_maps(gps):
@@ -255,40 +215,35 @@ def plan_step(maze: Maze, config: AdaptationConfig, skills: Skills, field: jax.A
 @functools.partial(jax.jit, static_argnames=("maze", "config", "record_every"))
 def act_step(maze: Maze, config: AdaptationConfig, robot: Robot, skills: Skills, episodes: Episodes,
              decision: Decision, record_every: int = 0) -> tuple[Episodes, jax.Array | None]:
-    """Execute every active episode's planned action on its MJX robot (`action.SimulatedRobots`
-    with `robot`, the maze's `Robot`), learn from it, and record it.
-
-    Returns the episodes and, when `record_every` = k > 0 (k divides 100), the state of every robot
-    every k control steps of the action, (B, 400 / k, 25) from its start (None when k = 0: the
-    program is then the one without recording).
-    """
+    """Execute every active episode's action on its MJX robot (`robot`: the maze's), learn and record it.
+    Returns the episodes and, for `record_every` = k > 0 (k divides 100), every robot's state every k
+    control steps of the action, (B, 400 / k, 25) (None when k = 0)."""
     if record_every and (not isinstance(record_every, int) or STEP_CONTROL_STEPS % record_every):
         raise ConfigError(f"record_every must divide {STEP_CONTROL_STEPS}, got {record_every!r}")
-    robots = SimulatedRobots(robot, episodes.damage, record_every)
-    if skills.hierarchical:
-        outcome = hbr_action(robots, skills, episodes.sim, episodes.rules, decision.action, episodes.taken,
-                             decision.keys[:, 2])
-    else:
-        outcome = flat_action(robots, episodes.sim, skills.map_genotypes[decision.map, decision.action])
+    outcome = execute(SimulatedRobots(robot, episodes.damage, record_every), skills, episodes, decision)
     return record_action(maze, config, skills, episodes, decision, outcome), outcome.qpos
+
+
+def execute(robots, skills: Skills, episodes: Episodes, decision: Decision) -> ActionOutcome:
+    """Every episode's decided skill run on `robots` (`action.SimulatedRobots` or `external.ExecutorRobot`)."""
+    if skills.hierarchical:
+        return hbr_action(robots, skills, episodes.sim, episodes.rules, decision.action, episodes.taken,
+                          decision.keys[:, 2])
+    return flat_action(robots, episodes.sim, skills.map_genotypes[decision.map, decision.action])
 
 
 @functools.partial(jax.jit, static_argnames=("maze", "config"))
 def record_action(maze: Maze, config: AdaptationConfig, skills: Skills, episodes: Episodes, decision: Decision,
                   outcome: ActionOutcome) -> Episodes:
-    """Every active episode after its executed action `outcome` (B, ...): the chosen repertoire's RTE
-    GP and APROL belief learn the displacement, the history and trajectory record it, and an episode
-    ends at the goal, when its robot went invalid or at `max_actions`. Ended episodes are unchanged.
-    `act_step` calls it after simulating; an executor's episode (`external.py`) after driving its robot.
-    """
+    """Every active episode after its executed action `outcome` (B, ...): the chosen repertoire's RTE GP
+    and APROL belief learn it, history and trajectory record it, and the episode may end (at the goal,
+    invalid or at `max_actions`). Ended episodes are unchanged."""
     active = ~episodes.done
     index, chosen_map = decision.action, decision.map
     keys = decision.keys
     maps = skills.map_actions
 
     def learn(gps, belief, k, i, displacement, prior):
-        """The chosen repertoire's GP (against the prior it planned with) and APROL belief learn
-        what its skill did."""
         chosen = jax.tree.map(lambda x: x[k], maps)
         gp = add_observation(jax.tree.map(lambda x: x[k], gps), chosen.inputs[i], outcome_of(displacement), prior)
         gps = jax.tree.map(lambda all_, one: all_.at[k].set(one), gps, gp)
@@ -298,27 +253,15 @@ def record_action(maze: Maze, config: AdaptationConfig, skills: Skills, episodes
     rules = episodes.rules if outcome.rules is None else outcome.rules
 
     def keep(new, old):
-        """New values for active episodes, old ones for ended episodes."""
         return jax.tree.map(lambda n, o: jnp.where(active.reshape(-1, *([1] * (n.ndim - 1))), n, o), new, old)
 
     rows = jnp.arange(index.shape[0])
     slot = jnp.minimum(episodes.taken, config.max_actions - 1)
-    h = episodes.history
-    recorded = History(
-        action=h.action.at[rows, slot].set(index),
-        map=h.map.at[rows, slot].set(chosen_map),
-        planned=h.planned.at[rows, slot].set(decision.plan.action),
-        start=h.start.at[rows, slot].set(decision.start),
-        predicted=h.predicted.at[rows, slot].set(decision.predicted),
-        observed=h.observed.at[rows, slot].set(outcome.displacement),
-        value=h.value.at[rows, slot].set(decision.plan.value),
-        path=h.path.at[rows, slot].set(decision.plan.path),
-        path_length=h.path_length.at[rows, slot].set(decision.plan.path_length),
-        patterns=h.patterns.at[rows, slot].set(outcome.patterns),
-        errors=h.errors.at[rows, slot].set(outcome.errors),
-        contacts=h.contacts.at[rows, slot].set(outcome.contacts),
-        leg_travel=h.leg_travel.at[rows, slot].set(outcome.leg_travel),
-    )
+    planned = decision.plan
+    recorded = jax.tree.map(lambda old, new: old.at[rows, slot].set(new), episodes.history, History(
+        action=index, map=chosen_map, planned=planned.action, start=decision.start, predicted=decision.predicted,
+        observed=outcome.displacement, value=planned.value, path=planned.path, path_length=planned.path_length,
+        patterns=outcome.patterns, errors=outcome.errors, contacts=outcome.contacts, leg_travel=outcome.leg_travel))
     first = SECONDS_PER_ACTION * episodes.taken + 1
     trajectory = episodes.trajectory
     for second in range(SECONDS_PER_ACTION):
@@ -328,18 +271,9 @@ def record_action(maze: Maze, config: AdaptationConfig, skills: Skills, episodes
     trajectory = jnp.where(later[..., None], outcome.poses[:, -1:, :], trajectory)
     end = outcome.poses[:, -1]  # the pose after the neutral second
     updated = episodes.replace(
-        sim=outcome.state,
-        rte=rte,
-        belief=belief,
-        rules=rules,
-        key=keys[:, 0],
-        taken=episodes.taken + 1,
-        reached=reached_goal(maze, end[:, :2]) & outcome.valid,
-        broken=~outcome.valid,
-        reason=outcome.invalid_reason,
-        trajectory=trajectory,
-        history=recorded,
-    )
+        sim=outcome.state, rte=rte, belief=belief, rules=rules, key=keys[:, 0], taken=episodes.taken + 1,
+        reached=reached_goal(maze, end[:, :2]) & outcome.valid, broken=~outcome.valid,
+        reason=outcome.invalid_reason, trajectory=trajectory, history=recorded)
     return keep(updated, episodes)
 
 
@@ -353,8 +287,7 @@ class RunTimings:
 
 
 def pad_episodes(episodes: Episodes, size: int) -> Episodes:
-    """The batch grown to `size` rows with copies of its last episode marked ended (`broken`), so
-    that the steps leave them as they are (`record_action`); `run_episodes` drops them at the end."""
+    """The batch grown to `size` rows with copies of its last episode marked ended (`broken`)."""
     batch = episodes.taken.shape[0]
     padded = sharding.pad_rows(episodes, size)
     return padded.replace(broken=padded.broken | (jnp.arange(size) >= batch))
@@ -362,10 +295,8 @@ def pad_episodes(episodes: Episodes, size: int) -> Episodes:
 
 @functools.lru_cache(maxsize=32)
 def sharded_steps(maze: Maze, config: AdaptationConfig, mesh: Mesh, record_every: int):
-    """(plan, act): `plan_step` and `act_step` with the episode axis split over `mesh` and the skills,
-    robot and distance field replicated: every device runs its episodes' planner and rollouts on its
-    own, no collective inside. plan(skills, field, episodes) -> Decision; act(robot, skills, episodes,
-    decision) -> (episodes, states)."""
+    """(plan, act): `plan_step` and `act_step` with the episode axis split over `mesh` (no collective
+    inside). plan(skills, field, episodes) -> Decision; act(robot, skills, episodes, decision)."""
     rows, whole = PartitionSpec(sharding.BATCH_AXIS), PartitionSpec()
 
     def plan(skills, field, episodes):
@@ -381,23 +312,12 @@ def sharded_steps(maze: Maze, config: AdaptationConfig, mesh: Mesh, record_every
             jax.jit(split(act, in_specs=(whole, whole, rows, rows))))
 
 
-def run_episodes(
-    maze: Maze,
-    config: AdaptationConfig,
-    robot: Robot,
-    skills: Skills,
-    episodes: Episodes,
-    progress: bool = True,
-    description: str = "episodes",
-    max_steps: int | None = None,
-    recorder: Recorder | None = None,
-    mesh: Mesh | None = None,
-) -> tuple[Episodes, RunTimings]:
-    """Run the batch until every episode has ended (or for `max_steps` actions); returns the
-    episodes and timings. recorder: collects the states of its rows during every action (the
-    step program then also returns states; without a recorder it is the one without recording).
-    mesh: the devices the episodes are spread over (`sharding.batch_mesh`; None: all visible), the
-    batch padded to a multiple of their count (`pad_episodes`); episodes do not depend on it."""
+def run_episodes(maze: Maze, config: AdaptationConfig, robot: Robot, skills: Skills, episodes: Episodes,
+                 progress: bool = True, description: str = "episodes", max_steps: int | None = None,
+                 recorder: Recorder | None = None, mesh: Mesh | None = None) -> tuple[Episodes, RunTimings]:
+    """Run the batch until every episode has ended (or for `max_steps` actions); returns the episodes and
+    timings. recorder: collects its rows' states during every action. mesh: the devices the episodes are
+    spread over (None: all visible; the batch is padded to a multiple of their count)."""
     mesh = sharding.batch_mesh() if mesh is None else mesh
     batch = episodes.taken.shape[0]
     # Commit every input to the mesh: jit keys its cache on committed-ness, so uncommitted first

@@ -1,15 +1,10 @@
-"""Jitted Gaussian processes on fixed-capacity, masked observation buffers (`docs/original_code.md` §7).
+"""Gaussian processes on fixed-capacity, masked observation buffers (`docs/original_code.md` §7).
 
-A `GPData` buffer has room for `capacity` observations and a mask of the filled rows, so adding
-points never changes an array shape and never retraces. Padded rows are decoupled from the real
-ones (zero covariance, unit diagonal), which makes the posterior exactly that of the unpadded GP.
-When the buffer is full the oldest observation is overwritten (ring buffer).
-
-Outputs share one kernel (as in limbo): the posterior variance is the same for every output.
-The prior mean is either given per observation and per query (RTE: the repertoire's prediction)
-or the mean of the observed targets (limbo's `mean::Data`, HTE's secondary GP).
-Linear algebra runs in float32 under `jax.default_matmul_precision("highest")`: GPU tensor cores
-would otherwise round matrix products to TF32.
+A `GPData` buffer has room for `capacity` observations and a mask of the filled rows, so adding points
+never retraces. Padded rows are decoupled (zero covariance, unit diagonal): the posterior is exactly the
+unpadded GP's. A full buffer overwrites its oldest observation. Outputs share one kernel (as in limbo).
+The prior mean is given per observation and query (RTE: the repertoire's prediction) or the targets'
+mean (limbo's `mean::Data`). Matrix products run at "highest" precision (GPU tensor cores: TF32).
 """
 
 from __future__ import annotations
@@ -27,11 +22,8 @@ KERNELS = ("squared_exponential", "matern52")
 
 @dataclasses.dataclass(frozen=True)
 class Kernel:
-    """A stationary kernel k(a, b) = variance * f(|a - b| / length_scale), observation noise `noise`.
-
-    kind: "squared_exponential" (limbo Exp: exp(-r^2 / 2)) or "matern52"
-    ((1 + sqrt5 r + 5 r^2 / 3) exp(-sqrt5 r)).
-    """
+    """A stationary kernel k(a, b) = variance * f(|a - b| / length_scale), observation noise `noise`. kind:
+    "squared_exponential" (limbo Exp: exp(-r^2 / 2)) or "matern52" ((1 + sqrt5 r + 5 r^2 / 3) exp(-sqrt5 r))."""
 
     kind: str
     length_scale: float
@@ -50,8 +42,7 @@ class Kernel:
 
 
 def covariance(kind: str, length_scale, variance, a: jax.Array, b: jax.Array) -> jax.Array:
-    """(A, D), (B, D) -> (A, B) covariances of a `Kernel` of this kind; length_scale and variance
-    may be traced (the kernel fit, `gp_fit.py`, differentiates through them)."""
+    """(A, D), (B, D) -> (A, B) covariances; length_scale and variance may be traced (`gp_fit.py`)."""
     diff = a[:, None, :] - b[None, :, :]
     r2 = jnp.sum(diff * diff, axis=-1) / length_scale**2
     if kind == "squared_exponential":
@@ -68,12 +59,9 @@ HTE_KERNEL = Kernel("matern52", length_scale=1.0, variance=0.05, noise=0.001)
 
 @struct.dataclass
 class GPData:
-    """Observations of a GP with N = capacity slots, inputs of size D, outputs of size O.
-
-    inputs: (N, D) float32. targets: (N, O) float32 observed values.
-    prior: (N, O) float32 prior mean at each input (ignored when the GP uses the data mean).
-    mask: (N,) bool filled slots. count: () int32 observations ever added (next slot = count % N).
-    """
+    """Observations of a GP with N = capacity slots. inputs: (N, D) float32. targets: (N, O) float32.
+    prior: (N, O) float32 prior mean at each input (ignored under the data mean). mask: (N,) bool filled
+    slots. count: () int32 observations ever added (next slot = count % N)."""
 
     inputs: jax.Array
     targets: jax.Array
@@ -88,13 +76,10 @@ class GPData:
 
 def empty_gp(capacity: int, input_dim: int, output_dim: int) -> GPData:
     require_int("GP capacity", capacity)
-    return GPData(
-        inputs=jnp.zeros((capacity, input_dim), jnp.float32),
-        targets=jnp.zeros((capacity, output_dim), jnp.float32),
-        prior=jnp.zeros((capacity, output_dim), jnp.float32),
-        mask=jnp.zeros((capacity,), bool),
-        count=jnp.int32(0),
-    )
+    return GPData(inputs=jnp.zeros((capacity, input_dim), jnp.float32),
+                  targets=jnp.zeros((capacity, output_dim), jnp.float32),
+                  prior=jnp.zeros((capacity, output_dim), jnp.float32), mask=jnp.zeros((capacity,), bool),
+                  count=jnp.int32(0))
 
 
 def add_observation(data: GPData, x: jax.Array, y: jax.Array, prior: jax.Array | None = None) -> GPData:
@@ -125,12 +110,8 @@ def _factor_and_solve(gram: jax.Array, rhs: jax.Array) -> jax.Array:
 def whitened(gram: jax.Array, rhs: jax.Array) -> jax.Array:
     """L^-1 rhs (N, M) for the Cholesky factor L of the positive-definite gram (N, N).
 
-    Batched (under `vmap`), the CPU runs it one matrix at a time (`lax.map`), other platforms as
-    one batched call. jaxlib 0.10's CPU LAPACK kernels split a batch over XLA's intra-op thread
-    pool and block until it is done; two such kernels running at once (as the batched GPs of one
-    episode step do) can occupy every pool thread of a 2-core machine while they wait, and the
-    process hangs (`docs/design.md`, GPs). One matrix per call never uses the pool and computes
-    the same bits.
+    Under `vmap` the CPU runs one matrix at a time: jaxlib 0.10's batched CPU LAPACK kernels block on
+    XLA's intra-op pool, and two at once can hang a 2-core machine (`docs/design.md`, GPs). Same bits.
     """
     return _factor_and_solve(gram, rhs)
 
@@ -146,14 +127,10 @@ def _whitened_batched(axis_size: int, in_batched: list[bool], gram: jax.Array, r
     return jax.lax.platform_dependent(gram, rhs, cpu=one_at_a_time, default=jax.vmap(_factor_and_solve)), True
 
 
-def posterior(
-    kernel: Kernel, data: GPData, queries: jax.Array, query_prior: jax.Array | None = None
-) -> tuple[jax.Array, jax.Array]:
-    """Posterior mean (Q, O) and variance (Q,) at queries (Q, D).
-
-    query_prior (Q, O): the prior mean at the queries, with `data.prior` at the observations;
-    None: the prior mean is the mean of the observed targets everywhere (limbo `mean::Data`).
-    """
+def posterior(kernel: Kernel, data: GPData, queries: jax.Array,
+              query_prior: jax.Array | None = None) -> tuple[jax.Array, jax.Array]:
+    """Posterior mean (Q, O) and variance (Q,) at queries (Q, D). query_prior (Q, O): the prior mean at the
+    queries (`data.prior` at the observations); None: the observed targets' mean everywhere."""
     with jax.default_matmul_precision("highest"):
         mask = data.mask
         if query_prior is None:

@@ -1,17 +1,10 @@
 """Pattern rules: how an adaptation variant picks the contact pattern of each 1 s step of a skill.
 
-A rule is one object that owns its state, in the shape of the QD emitters (`qd.emitters`):
-- `init(damages, max_actions) -> state`: its state for B new episodes (damages (B, 6); only an
-  oracle may read them: the robot does not know its damage);
-- `choose(state, context) -> (pattern (B,) int32, spare (B,) bool)`: the pattern of the next step
-  (-1: any pattern, RTE's nearest elite) and whether its steps run from the pattern's spare set
-  (`hbr.spare`: the elites that keep the lifted legs off the floor);
-- `learn(state, observation) -> state`: what it takes from the executed step.
-States are pytrees (`flax.struct` dataclasses) with a leading (B,) episode axis.
-
-Rules are frozen dataclasses (static, hashable): an episode batch holds the tuple of its variants'
-rules (`RuleBatch`), every episode runs one of them, and a step computes only those rules.
-`docs/extending.md` adds a rule.
+A rule is a frozen dataclass that owns its state (a pytree with a leading (B,) episode axis):
+- `init(damages (B, 6), max_actions) -> state` (only an oracle may read the damages);
+- `choose(state, context) -> (pattern (B,) int32 (-1: any), spare (B,) bool: run it from its spare set)`;
+- `learn(state, observation) -> state`.
+A batch holds its variants' rules (`RuleBatch`); a step computes only those. `docs/extending.md` adds one.
 """
 
 from __future__ import annotations
@@ -39,11 +32,8 @@ DESCRIPTOR_DIM = 9  # a middle elite's descriptor: x, y, yaw, 6 contact bits
 
 @struct.dataclass
 class StepContext:
-    """What B robots know before one 1 s step.
-
-    hbr: the HBR. desired: (B, 3) normalised primary step wanted. t: (B,) int32 steps so far + 1
-    (GP-UCB's t). keys: (B, 2) PRNG keys of this step.
-    """
+    """What B robots know before one 1 s step. hbr: the HBR. desired: (B, 3) normalised primary step
+    wanted. t: (B,) int32 steps so far + 1 (GP-UCB's t). keys: (B, 2) PRNG keys of this step."""
 
     hbr: HBR
     desired: jax.Array
@@ -53,12 +43,9 @@ class StepContext:
 
 @struct.dataclass
 class StepObservation:
-    """What B robots observed in one executed step.
-
-    hbr: the HBR. elite: (B,) int32 middle elite executed. observed: (B, 3) normalised primary
-    descriptor of the step the robot made. contact_fraction: (B, 6) share of the second each foot
-    was sensed on the floor. leg_travel: (B, 6) rad each leg's joints moved.
-    """
+    """What B robots observed in one executed step. hbr: the HBR. elite: (B,) int32 middle elite executed.
+    observed: (B, 3) normalised primary descriptor of the step made. contact_fraction: (B, 6) share of the
+    second each foot was sensed down. leg_travel: (B, 6) rad each leg's joints moved."""
 
     hbr: HBR
     elite: jax.Array
@@ -91,10 +78,8 @@ def _never(context: StepContext) -> jax.Array:
 
 
 def candidate_elites(hbr: HBR, desired: jax.Array, patterns: np.ndarray = CANDIDATE_PATTERNS):
-    """For desired primary steps (B, 3): the middle elite each of `patterns` (C,) would execute.
-
-    Returns index (B, C) and found (B, C) (False where the repertoire has no elite with that pattern).
-    """
+    """For desired primary steps (B, 3): the middle elite index (B, C) each of `patterns` (C,) would execute
+    and found (B, C) (False where the repertoire has no elite with that pattern)."""
     batch, count = desired.shape[0], patterns.size
     queries = jnp.repeat(desired, count, axis=0)
     wanted = jnp.tile(jnp.asarray(patterns), batch)
@@ -181,12 +166,9 @@ class RandomPattern(PatternRule):
 
 @struct.dataclass
 class LegSense:
-    """What the robot sensed of its legs, summed over the episode (`sensing`).
-
-    contacts: (B, 2, 6) seconds each leg was sensed on the floor (row 0) and expected on it by the
-    executed elites' stored contact fractions (row 1). motion: (B, 2, 6) rad each leg's joints
-    moved (row 0) and were commanded to move by the executed elites' controllers (row 1).
-    """
+    """What the robot sensed of its legs, summed over the episode (`sensing`). contacts: (B, 2, 6) seconds
+    each leg was sensed down (row 0) and expected down by the executed elites (row 1). motion: (B, 2, 6)
+    rad each leg's joints moved (row 0) and were commanded to move (row 1)."""
 
     contacts: jax.Array
     motion: jax.Array
@@ -219,11 +201,8 @@ class SensedLegs(PatternRule):
 
 @struct.dataclass
 class RuleBatch:
-    """The pattern rules of B episodes: `rules` (static) is the batch's tuple of rule objects.
-
-    which: (B,) int32 each episode's rule (an index into `rules`). states: one state per rule,
-    each with a leading (B,) axis (a rule's state is kept for every row; only its rows use it).
-    """
+    """The pattern rules of B episodes. rules (static): the batch's rule objects. which: (B,) int32 each
+    episode's index into them. states: one per rule, each kept for all (B,) rows (only its rows use it)."""
 
     which: jax.Array
     states: tuple

@@ -1,11 +1,8 @@
-"""HTE's secondary descriptor: the paper's error measure and GP-UCB choice of contact pattern
-(`docs/original_code.md` §7.3).
+"""HTE's secondary descriptor: the paper's error measure and GP-UCB pattern choice (`docs/original_code.md` §7.3).
 
-Before each 1 s step the robot picks, among the allowed contact patterns, the one whose middle
-elite is predicted to deviate least from its stored primary descriptor. A GP (Matern-5/2,
-input: the elite's 9-D descriptor, output: the three relative errors of x, y, yaw) learns the
-errors on the damaged robot; the score of a candidate is ||exp(-k max(0, mu))||_2 + beta_t var
-(k = 4, 4, 3), with the GP-UCB schedule beta_t of the original.
+Before each 1 s step the robot picks the allowed pattern whose middle elite is predicted to deviate least
+from its stored primary descriptor. A Matern-5/2 GP (the elite's 9-D descriptor -> relative errors of x,
+y, yaw) learns the errors; a candidate scores ||exp(-k max(0, mu))||_2 + beta_t var (k = 4, 4, 3).
 """
 
 from __future__ import annotations
@@ -30,14 +27,13 @@ def legs_down(pattern: int) -> list[int]:
 
 
 def allowed_patterns() -> np.ndarray:
-    """The original's 36 candidate patterns, ascending: at least three feet down, and not three
-    consecutive legs around the body ring 0-1-2-3-4-5-0 (the robot cannot stand on those)."""
+    """The original's 36 candidate patterns, ascending: at least three feet down, and not three consecutive
+    legs around the body ring 0-1-2-3-4-5-0 (the robot cannot stand on those)."""
     allowed = []
     for pattern in range(NUM_PATTERNS):
         down = legs_down(pattern)
-        consecutive = len(down) == 3 and any(
-            set(down) == {i % NUM_LEGS, (i + 1) % NUM_LEGS, (i + 2) % NUM_LEGS} for i in range(NUM_LEGS)
-        )
+        consecutive = len(down) == 3 and any(set(down) == {i % NUM_LEGS, (i + 1) % NUM_LEGS, (i + 2) % NUM_LEGS}
+                                             for i in range(NUM_LEGS))
         if len(down) >= 3 and not consecutive:
             allowed.append(pattern)
     return np.asarray(allowed, np.int32)
