@@ -1,17 +1,7 @@
-"""One action of B robots: a 3 s skill, then 1 s of the neutral pose (all controller parameters 0).
+"""One action of B robots: a 3 s skill, then 1 s of the neutral pose (`docs/design.md`, Reset-free episodes).
 
-A flat skill is its 36-parameter controller run for 3 s. An HBR skill runs one 1 s step at a time
-(`hbr_step`): the episodes' pattern rules choose the step's contact pattern, a middle elite of that
-pattern runs for one second, and the rules learn from what it did.
-
-The robots are a strategy object, so one action code drives every robot: `SimulatedRobots` (B robots
-in MJX, inside the episode's jitted program) or `external.ExecutorRobot` (one robot driven from the
-host, its traceable parts jitted around each second). A robot provides `pose(state)`,
-`second(state, hbr, elite, found, alive)`, `neutral(state)`, `flat(state, params)`,
-`steps(step, carry, xs)` (how steps follow each other) and `staged(fn)` (how traceable code runs).
-
-`ONLINE_LIMITS`: the body may touch the floor; only a robot tilted past 90 degrees (it cannot get up),
-a non-finite or an exploding state ends an episode. Steps after a robot went invalid run nothing.
+The robots are a strategy object with `pose`, `second`, `neutral`, `flat`, `steps` and `staged`:
+`SimulatedRobots` (MJX, inside the episode's jit) or `external.ExecutorRobot` (driven from the host).
 """
 
 from __future__ import annotations
@@ -81,8 +71,8 @@ class ActionOutcome:
 
 @dataclasses.dataclass(frozen=True)
 class SimulatedRobots:
-    """B damaged robots in MJX (`robot`, with the maze's walls; damage (B, 6) bool); record_every:
-    k > 0 also returns the state every k control steps (k divides 100)."""
+    """B damaged robots in MJX (damage (B, 6) bool); record_every: k > 0 also returns the state every k
+    control steps (k divides 100)."""
 
     robot: Robot
     damage: jax.Array
@@ -129,8 +119,8 @@ class SimulatedRobots:
 
 
 def skill_targets(skills: Skills, index: jax.Array, origin: jax.Array) -> tuple[jax.Array, jax.Array]:
-    """HBR skills `index` (B,) started at world poses `origin` (B, 3): their world waypoints (B, 3, 3),
-    one per step, and their stored end poses (B, 3) (what a planned step plans towards)."""
+    """HBR skills `index` (B,) started at world poses `origin` (B, 3): their world waypoints (B, 3, 3), one
+    per step, and their stored end poses (B, 3)."""
     targets = compose_pose(origin[:, None, :], skill_waypoints(skills.hbr.middle_task, skills.genotypes[index]))
     goal = compose_pose(origin, displacement_of(skills.actions.prior[index]))
     return targets, goal

@@ -1,15 +1,10 @@
-"""APROL (Kaushik et al. 2020) in the maze: K prior repertoires, one RTE GP each (`docs/original_code.md` §8).
-
-The planner plans with the repertoire chosen last; its plan asks for the planned skill's GP-predicted
-displacement. Every skill a of every repertoire k then scores log L(k, a) + log P(k),
+"""APROL (Kaushik et al. 2020) in the maze: K prior repertoires, one RTE GP each, and the choice of the
+executed skill by log L(k, a) + log P(k) (`docs/design.md`, APROL, with the fixes against the original).
 
     log L(k, a) = sum over x, y of [-1/2 log(2 pi var) - (mu - goal)^2 / (2 var)],
     P(k) = (m_k + u_k) / sum_j (m_j + u_j),   u_k = c sqrt(2 ln N / n_k),   N = sum_j n_j,
 
-with mu, var repertoire k's GP posterior at a, m_k its mean closeness exp(-5 |predicted - observed|)
-and n_k its trial count. The best skill runs; only its repertoire's GP and belief learn.
-Fixed against the original (docs/design.md): n_k grows with every trial; closeness and likelihood
-compare metres with metres; every repertoire starts with one trial, and episodes on a random one.
+mu, var: repertoire k's GP posterior at skill a; m_k: its mean closeness; n_k: its trial count.
 """
 
 from __future__ import annotations

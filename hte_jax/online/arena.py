@@ -1,8 +1,5 @@
-"""The maze in MJX: a robot model with the maze's walls, and damaged robots standing at the start.
-
-The robot touches the walls (0.9 m high boxes) with a bumper sphere of the planner's robot radius
-(`RobotConfig.wall_contact`), so a wall stops it exactly where the planner's disc would touch it. Its
-body also collides with the floor: a robot that tips lands on its body and goes on, as in the original.
+"""The maze in MJX: a robot model with the maze's walls (met by a bumper of the planner's robot radius),
+and damaged robots standing at the start (`docs/design.md`, The maze in MJX).
 """
 
 from __future__ import annotations

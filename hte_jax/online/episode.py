@@ -1,14 +1,8 @@
-"""Reset-free adaptation episodes in the maze, B at once (paper section 4; `docs/original_code.md` §7, §9).
+"""Reset-free adaptation episodes in the maze, B at once (paper section 4; `docs/design.md`, Online adaptation).
 
-Each action: the RTE GP predicts every skill's outcome (repertoire prior + observed corrections), MCTS
-plans from the measured pose, the chosen skill runs on the damaged robot from wherever it stands, and
-the measured displacement (dx, dy, dyaw) in the pre-action frame is added to the GP. An episode ends at
-the goal (success), after `max_actions` or when its simulation goes invalid (failure). Wall contacts do
-not end it; a robot whose planner disc overlaps a wall plans from the nearest free +-0.5 m offset.
-With APROL's K repertoires each has its own RTE GP and `aprol.select_entry` picks the executed skill.
-
-`plan_step` and `act_step` are jitted over the batch (so planning latency is measured on its own);
-`record_action` is the bookkeeping an executor-driven episode (`external.py`) shares with `act_step`.
+Each action: the RTE GP predicts every skill's outcome, MCTS plans from the measured pose, the skill runs
+from wherever the robot stands, and the GP learns the measured displacement. An episode ends at the goal,
+after `max_actions` or when the robot goes invalid.
 """
 
 from __future__ import annotations
@@ -27,14 +21,8 @@ from tqdm.auto import tqdm
 from hte_jax import sharding
 from hte_jax.errors import ConfigError, require_int
 from hte_jax.hbr.hierarchy import STEPS_PER_SKILL, state_pose
-from hte_jax.online.action import (
-    SECONDS_PER_ACTION,
-    STEP_CONTROL_STEPS,
-    ActionOutcome,
-    SimulatedRobots,
-    flat_action,
-    hbr_action,
-)
+from hte_jax.online.action import (SECONDS_PER_ACTION, STEP_CONTROL_STEPS, ActionOutcome, SimulatedRobots,
+                                   flat_action, hbr_action)
 from hte_jax.online.aprol import MapBelief, closeness, initial_belief, select_entry, update_belief
 from hte_jax.online.gp import GPData, add_observation, empty_gp
 from hte_jax.online.maze import GridSpec, Maze, distance_field, planning_start, reached_goal
@@ -124,10 +112,8 @@ class Episodes:
         return state_pose(self.sim)
 
 
-def start_episodes(
-    config: AdaptationConfig, skills: Skills, start: SimState | jax.Array, damages: np.ndarray,
-    rules: tuple[PatternRule, ...], which: np.ndarray, key: jax.Array,
-) -> Episodes:
+def start_episodes(config: AdaptationConfig, skills: Skills, start: SimState | jax.Array, damages: np.ndarray,
+                   rules: tuple[PatternRule, ...], which: np.ndarray, key: jax.Array) -> Episodes:
     """B fresh episodes of robots with `damages` (B, 6), episode b running `rules[which[b]]`. start: SimState
     (B, ...) of simulated robots, or the world planar poses (B, 3) of executor-driven ones (no `sim`).
     With K > 1 repertoires each episode starts planning with a uniformly drawn one."""
@@ -137,10 +123,6 @@ def start_episodes(
     simulated = isinstance(start, SimState)
     pose = state_pose(start) if simulated else jnp.asarray(start, jnp.float32)
     maps = skills.num_maps
-
-    def stacked(gp, *lead):
-        return jax.tree.map(lambda x: jnp.broadcast_to(x, (*lead, *x.shape)), gp)
-
     first_map = jax.random.randint(jax.random.fold_in(key, 1), (batch,), 0, maps)
     history = History(
         action=jnp.full((batch, length), -1, jnp.int32), map=jnp.full((batch, length), -1, jnp.int32),
@@ -154,7 +136,8 @@ def start_episodes(
         leg_travel=jnp.zeros((batch, length, STEPS_PER_SKILL, NUM_LEGS), jnp.float32))
     return Episodes(
         sim=start if simulated else None, damage=jnp.asarray(damages),
-        rte=stacked(empty_gp(length, skills.actions.inputs.shape[-1], OUTCOME_DIM), batch, maps),
+        rte=jax.tree.map(lambda x: jnp.broadcast_to(x, (batch, maps, *x.shape)),
+                         empty_gp(length, skills.actions.inputs.shape[-1], OUTCOME_DIM)),
         belief=jax.vmap(lambda k: initial_belief(maps, k))(first_map), rules=start_rules(rules, which, damages, length),
         key=jax.random.split(key, batch), taken=jnp.zeros(batch, jnp.int32), reached=jnp.zeros(batch, bool),
         broken=jnp.zeros(batch, bool), reason=jnp.zeros(batch, jnp.int32),
@@ -183,11 +166,7 @@ def plan_step(maze: Maze, config: AdaptationConfig, skills: Skills, field: jax.A
     """Plan every episode's next action on the RTE GP's predictions (with K repertoires: plan with the
     current one, then APROL chooses the skill among all of them)."""
     maps = skills.map_actions
-
-    def predict_maps(gps):
-        return jax.vmap(predict)(gps, maps)  # (K, A, 4), (K, A)
-
-    mean, variance = jax.vmap(predict_maps)(episodes.rte)  # (B, K, A, 4), (B, K, A)
+    mean, variance = jax.vmap(lambda gps: jax.vmap(predict)(gps, maps))(episodes.rte)  # (B, K, A, 4), (B, K, A)
     rows = jnp.arange(mean.shape[0])
     current = episodes.belief.current
     displacement = displacement_of(mean[rows, current])  # (B, A, 3)
@@ -196,9 +175,8 @@ def plan_step(maze: Maze, config: AdaptationConfig, skills: Skills, field: jax.A
     start = jnp.concatenate([planning_start(maze, pose[:, :2]), pose[:, 2:]], axis=-1)
     keys = jax.vmap(lambda k: jax.random.split(k, 3))(episodes.key)  # (B, 3, 2): next, plan, act
 
-    def one(displacement, usable, key, state):
-        world = world_of(displacement, usable, field)
-        return plan(maze, config.grid, config.planner, world, key, state)
+    def one(moves, mask, key, state):
+        return plan(maze, config.grid, config.planner, world_of(moves, mask, field), key, state)
 
     result = jax.vmap(one)(displacement, usable, keys[:, 1], start)
     if skills.num_maps > 1:
@@ -251,10 +229,6 @@ def record_action(maze: Maze, config: AdaptationConfig, skills: Skills, episodes
 
     rte, belief = jax.vmap(learn)(episodes.rte, episodes.belief, chosen_map, index, outcome.displacement, decision.prior)
     rules = episodes.rules if outcome.rules is None else outcome.rules
-
-    def keep(new, old):
-        return jax.tree.map(lambda n, o: jnp.where(active.reshape(-1, *([1] * (n.ndim - 1))), n, o), new, old)
-
     rows = jnp.arange(index.shape[0])
     slot = jnp.minimum(episodes.taken, config.max_actions - 1)
     planned = decision.plan
@@ -274,7 +248,8 @@ def record_action(maze: Maze, config: AdaptationConfig, skills: Skills, episodes
         sim=outcome.state, rte=rte, belief=belief, rules=rules, key=keys[:, 0], taken=episodes.taken + 1,
         reached=reached_goal(maze, end[:, :2]) & outcome.valid, broken=~outcome.valid,
         reason=outcome.invalid_reason, trajectory=trajectory, history=recorded)
-    return keep(updated, episodes)
+    return jax.tree.map(lambda new, old: jnp.where(active.reshape(-1, *([1] * (new.ndim - 1))), new, old),
+                        updated, episodes)  # ended episodes unchanged
 
 
 @dataclasses.dataclass

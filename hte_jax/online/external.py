@@ -1,11 +1,5 @@
-"""Adaptation episodes on a robot this library does not simulate: the executor interface.
-
-An `Executor` is all the online loop needs from a robot, real or simulated elsewhere: its world planar
-pose, and running 36-parameter controllers for one second each, reporting its pose, each foot's floor
-contact and whether it went invalid. `run_episode` runs one episode of any variant with the code of the
-batched MJX episodes, the robot driven through the executor one Python call per second of an HBR skill.
-`MujocoExecutor` is native MuJoCo (C, float64) as the stand-in for hardware: the same model, damage,
-controller tables, servo law, contact test and validity limits as the MJX rollout.
+"""Adaptation episodes on a robot this library does not simulate, driven through an `Executor`; and
+`MujocoExecutor`, native MuJoCo as the stand-in for hardware (`docs/design.md`, Executors).
 """
 
 from __future__ import annotations

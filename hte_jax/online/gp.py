@@ -1,10 +1,7 @@
-"""Gaussian processes on fixed-capacity, masked observation buffers (`docs/original_code.md` §7).
+"""Gaussian processes on fixed-capacity, masked observation buffers (`docs/design.md`, GPs).
 
-A `GPData` buffer has room for `capacity` observations and a mask of the filled rows, so adding points
-never retraces. Padded rows are decoupled (zero covariance, unit diagonal): the posterior is exactly the
-unpadded GP's. A full buffer overwrites its oldest observation. Outputs share one kernel (as in limbo).
-The prior mean is given per observation and query (RTE: the repertoire's prediction) or the targets'
-mean (limbo's `mean::Data`). Matrix products run at "highest" precision (GPU tensor cores: TF32).
+Padded rows are decoupled (zero covariance, unit diagonal), so the posterior is the unpadded GP's and
+adding points never retraces; a full buffer overwrites its oldest observation. Outputs share one kernel.
 """
 
 from __future__ import annotations

@@ -1,8 +1,5 @@
-"""Fitting a GP kernel's hyper-parameters by maximising the log marginal likelihood (issue 22).
-
-A buffer's likelihood is that of its filled rows (padded rows decoupled as in `gp.posterior`); outputs
-are independent GPs sharing one kernel, each on the residual target - prior. `fit_kernel` maximises the
-summed likelihood of E buffers with Adam on the log hyper-parameters (a researchers' tool, not online).
+"""Fitting a GP kernel's hyper-parameters by maximising the log marginal likelihood of masked buffers
+(issue 22; `docs/design.md`, Kernel fit). A researchers' tool: the online loop keeps the paper's kernel.
 """
 
 from __future__ import annotations

@@ -1,9 +1,5 @@
-"""The maze of the paper's experiment (`docs/original_code.md` §9) and the planner's 2-D geometry.
-
-Obstacles are axis-aligned boxes (x1, y1, x2, y2); `load_maze` reads a JSON file or a maze shipped in
-assets/mazes/. The planner's robot is a disc: a point collides when the disc overlaps a box, a move when
-the swept disc does (exact). `distance_field`: breadth-first grid steps from every cell to the goal's
-through free cells (8-connected, unit cost, as the original's A*), the guide of the planner's expansion.
+"""The maze of the paper's experiment and the planner's 2-D geometry (`docs/design.md`, Maze): boxes
+(x1, y1, x2, y2), a disc-shaped robot, and the grid distance field that guides the planner's expansion.
 """
 
 from __future__ import annotations

@@ -1,12 +1,6 @@
-"""RTE's planner: Monte-Carlo tree search over the repertoire's actions, jitted and batched (`docs/original_code.md` §7.2).
-
-`search` grows a tree one `simulate` at a time: `select` descends by UCT to a leaf or a node that should
-widen (progressive widening), `expand` gives it the child of the best of `candidates` random actions by the
-maze's distance field, `evaluate` runs a random rollout from it, `backup` adds the discounted return along
-the path. A transition composes the state with the action's GP-predicted displacement (the original's
-outcome noise, at most 0.01 m, is left out); leaving the map or colliding, and reaching the goal, end a
-branch with their rewards. `plan` sums the root statistics of `roots` independent trees per action and
-returns the best mean value. Sizes are fixed: a tree holds iterations + 1 nodes of at most K children.
+"""RTE's planner: Monte-Carlo tree search over the repertoire's actions, jitted and batched (`docs/design.md`,
+Planner). A simulation is `select`, `expand`, `evaluate` and `backup` on one fixed-size tree, written for
+vmap (an expansion that does not happen writes out of range); `plan` merges `roots` trees at the root.
 """
 
 from __future__ import annotations
@@ -144,10 +138,10 @@ def _sample_actions(key, world: World, num: int) -> jax.Array:
     return world.usable[jax.random.randint(key, (num,), 0, jnp.maximum(world.count, 1))]
 
 
-def _rollout_return(maze: Maze, config: PlannerConfig, world: World, key: jax.Array, state: jax.Array,
-                    alive: jax.Array, depth: jax.Array) -> jax.Array:
-    """Discounted return of a uniform random rollout from `state` at tree depth `depth` (until a terminal
-    transition or the depth limit); every step's reward at once, only the pose composition sequential."""
+def evaluate(maze: Maze, config: PlannerConfig, world: World, key: jax.Array, tree: Tree, leaf: jax.Array) -> jax.Array:
+    """() float32 the leaf's estimated return: a uniform random rollout's from its state and depth (0 if
+    terminal), until a terminal transition or the depth limit; only the pose composition is sequential."""
+    state, alive, depth = tree.state[leaf], ~tree.terminal[leaf], tree.depth[leaf]
     steps = config.depth
     actions = _sample_actions(key, world, steps)
 
@@ -161,10 +155,6 @@ def _rollout_return(maze: Maze, config: PlannerConfig, world: World, key: jax.Ar
     earlier_terminal = jnp.cumsum(terminal) - terminal  # terminal transitions before step k
     go = alive & (depth + k < config.depth) & (earlier_terminal == 0)
     return jnp.sum(jnp.where(go, config.gamma ** k.astype(jnp.float32) * reward, 0.0))
-
-
-# The search steps work on one tree and are written for vmap: an expansion is computed whether or not it
-# happens (written through the out-of-range index M when not), the back-up is one scatter.
 
 
 def is_leaf(config: PlannerConfig, tree: Tree, node: jax.Array) -> jax.Array:
@@ -240,11 +230,6 @@ def expand(maze: Maze, grid: GridSpec, config: PlannerConfig, world: World, key:
     return tree, path.extended(new, grow)
 
 
-def evaluate(maze: Maze, config: PlannerConfig, world: World, key: jax.Array, tree: Tree, leaf: jax.Array) -> jax.Array:
-    """() float32 the leaf's estimated return: a random rollout's from its state and depth (0 if terminal)."""
-    return _rollout_return(maze, config, world, key, tree.state[leaf], ~tree.terminal[leaf], tree.depth[leaf])
-
-
 def backup(config: PlannerConfig, tree: Tree, path: Path, value: jax.Array) -> Tree:
     """One more visit at every node of the path, and to each below the root its discounted return
     g_k = reward_k + gamma g_(k+1), with g after the last node = `value` (() float32)."""
@@ -261,10 +246,8 @@ def backup(config: PlannerConfig, tree: Tree, path: Path, value: jax.Array) -> T
     _, returns = jax.lax.scan(back, value, jnp.arange(depth_limit, -1, -1), unroll=True)
     returns = returns[::-1]
     target = jnp.where(below_root, path.nodes, capacity)
-    return tree.replace(
-        visits=tree.visits.at[target].add(1, mode="drop").at[0].add(1),
-        value=tree.value.at[target].add(returns, mode="drop"),
-    )
+    return tree.replace(visits=tree.visits.at[target].add(1, mode="drop").at[0].add(1),
+                        value=tree.value.at[target].add(returns, mode="drop"))
 
 
 def simulate(maze: Maze, grid: GridSpec, config: PlannerConfig, world: World, key_expand: jax.Array,
@@ -346,10 +329,5 @@ def plan(maze: Maze, grid: GridSpec, config: PlannerConfig, world: World, key: j
 def world_of(displacement: jax.Array, mask: jax.Array, field: jax.Array) -> World:
     """A World from predicted displacements (A, 3), usable actions (A,) and a distance field (jittable)."""
     mask = jnp.asarray(mask, bool)
-    return World(
-        displacement=jnp.asarray(displacement, jnp.float32),
-        mask=mask,
-        field=field,
-        usable=jnp.argsort(~mask, stable=True).astype(jnp.int32),
-        count=mask.sum().astype(jnp.int32),
-    )
+    return World(displacement=jnp.asarray(displacement, jnp.float32), mask=mask, field=field,
+                 usable=jnp.argsort(~mask, stable=True).astype(jnp.int32), count=mask.sum().astype(jnp.int32))

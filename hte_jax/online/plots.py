@@ -1,5 +1,4 @@
-"""Figures of adaptation runs: the maze with trajectories and planned paths, GP prediction error
-over actions, and the actions each variant needed."""
+"""Figures of adaptation runs: mazes with trajectories, GP prediction error, actions per variant."""
 
 from __future__ import annotations
 

@@ -1,9 +1,6 @@
-"""Recording chosen episodes for replay (`python -m experiments.render episode`).
-
-A `Recorder` collects on the host the states of the batch rows asked for while `run_episodes` runs.
-`replay_of` assembles one episode's `Replay`: its states and what a video annotates. A replay file
-(`save_replay`) is a checkpoint (`hte_jax.qd.io`) of the arrays of `Replay`, its labels as metadata;
-a run folder keeps them as `replays/<variant>_ep<I>.npz`, I counting the variant's episodes in order.
+"""Recording chosen episodes for replay (`python -m experiments.render episode`): a `Recorder` collects
+their states during `run_episodes`; `replay_of` makes one episode's `Replay`, kept in a run folder as
+`replays/<variant>_ep<I>.npz` (a `qd.io` checkpoint; I counts the variant's episodes in run order).
 """
 
 from __future__ import annotations

@@ -1,10 +1,8 @@
 """Pattern rules: how an adaptation variant picks the contact pattern of each 1 s step of a skill.
 
 A rule is a frozen dataclass that owns its state (a pytree with a leading (B,) episode axis):
-- `init(damages (B, 6), max_actions) -> state` (only an oracle may read the damages);
-- `choose(state, context) -> (pattern (B,) int32 (-1: any), spare (B,) bool: run it from its spare set)`;
-- `learn(state, observation) -> state`.
-A batch holds its variants' rules (`RuleBatch`); a step computes only those. `docs/extending.md` adds one.
+`init(damages (B, 6), max_actions) -> state` (only an oracle reads the damages), `choose(state, context)
+-> (pattern (B,) int32, -1: any; spare (B,) bool)` and `learn(state, observation) -> state`.
 """
 
 from __future__ import annotations

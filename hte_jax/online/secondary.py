@@ -1,8 +1,5 @@
-"""HTE's secondary descriptor: the paper's error measure and GP-UCB pattern choice (`docs/original_code.md` §7.3).
-
-Before each 1 s step the robot picks the allowed pattern whose middle elite is predicted to deviate least
-from its stored primary descriptor. A Matern-5/2 GP (the elite's 9-D descriptor -> relative errors of x,
-y, yaw) learns the errors; a candidate scores ||exp(-k max(0, mu))||_2 + beta_t var (k = 4, 4, 3).
+"""HTE's secondary descriptor: the paper's error measure and GP-UCB score of contact patterns
+(`docs/design.md`, Secondary descriptor).
 """
 
 from __future__ import annotations

@@ -1,8 +1,5 @@
-"""What a robot senses of its own legs: which ones it should stop using (ours, not the paper's).
-
-After each step the robot sums, per leg, the seconds its foot was sensed down beside those the executed
-elites expected, and the radians its joints moved beside those commanded. A leg off the floor when it
-should be down is unusable (`unusable_legs`); one moving much less than commanded is stuck (`stuck_legs`).
+"""What a robot senses of its own legs: which ones it should stop using (ours, not the paper's;
+`docs/design.md`, Sensing the legs). contacts and motion: (..., 2, 6), sensed (row 0) beside expected.
 """
 
 from __future__ import annotations

@@ -1,8 +1,6 @@
-"""The skills an episode plans with, and RTE's GP model of their outcome (`docs/original_code.md` §7.1).
-
-An action is one elite of a repertoire (an HBR's top-layer skill or a flat controller). Its GP input is
-the elite's normalised descriptor (2-D, or 8-D for Flat-8D); its outcome is (dx, dy, cos dtheta, sin
-dtheta) in the pre-action frame, with the repertoire's stored final position and heading as prior mean.
+"""The skills an episode plans with, and RTE's GP model of their outcome (`docs/original_code.md` §7.1):
+input the elite's normalised descriptor, outcome (dx, dy, cos dtheta, sin dtheta) in the pre-action
+frame, prior mean the repertoire's stored final position and heading.
 """
 
 from __future__ import annotations

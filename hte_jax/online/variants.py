@@ -1,6 +1,5 @@
-"""The adaptation variants, one table entry each: the repertoire an episode plans with (the HBR or a
-shipped flat one) and, for the HBR, the pattern rule (`rules`). Ours beside the paper's: `hte-spare`,
-`perfect-spare` (`docs/results.md`; levers that did not win: `docs/levers.md`). `add_variant` adds one.
+"""The adaptation variants, one table entry each: the repertoire an episode plans with and, for the
+HBR, the pattern rule (`docs/design.md`, The variant table; `add_variant` adds one).
 """
 
 from __future__ import annotations
