@@ -30,10 +30,9 @@ ONLINE_LIMITS = ValidityLimits(max_tilt=math.pi / 2, min_base_height=0.0, body_o
 
 @struct.dataclass
 class Second:
-    """What B robots did in one second. state: SimState (B, ...) after it (None for a host-driven robot).
-    pose: (B, 3) world planar pose after it. displacement: (B, 3) (x, y, yaw) in the frame before it.
-    valid: (B,) bool. invalid_reason: (B,) int32 `InvalidReason` bits. contact_fraction: (B, 6) share of
-    the second each foot was down. leg_travel: (B, 6) rad each leg's joints moved. qpos: (B, F, 25) or None."""
+    """What B robots did in one second: state SimState (B, ...) (None if host-driven), pose (B, 3) world, displacement
+    (B, 3) in the frame before, valid (B,), invalid_reason (B,) int32, contact_fraction (B, 6) share of the second
+    each foot was down, leg_travel (B, 6) rad, qpos (B, F, 25) or None."""
 
     state: SimState | None
     pose: jax.Array
@@ -47,13 +46,10 @@ class Second:
 
 @struct.dataclass
 class ActionOutcome:
-    """B robots after one action. state: SimState (B, ...) at the end (None for a host-driven robot).
-    valid: (B,) bool. invalid_reason: (B,) int32 `InvalidReason` bits. poses: (B, 4, 3) world planar pose
-    after each second. displacement: (B, 3) (dx, dy, dyaw) in the pre-action frame. Per step (0 or -1 for
-    flat skills and steps not run): patterns (B, 3) int32 (-1: any), middle_index (B, 3) int32, errors
-    (B, 3, 3) relative (x, y, yaw), contacts (B, 3, 6) share each foot was down, leg_travel (B, 3, 6) rad.
-    rules: after the action (None for flat skills). qpos: (B, 400 / k, 25) every k = `record_every`
-    control steps from the start, or None."""
+    """B robots after one action: state (as `Second`), valid (B,), invalid_reason (B,) int32, poses (B, 4, 3) after
+    each second, displacement (B, 3) in the pre-action frame; per step (-1 or 0 for flat skills and steps not run)
+    patterns (B, 3) int32, middle_index (B, 3) int32, errors (B, 3, 3) relative, contacts and leg_travel (B, 3, 6);
+    rules after it (None for flat skills); qpos (B, 400 / k, 25) every k = `record_every` control steps, or None."""
 
     state: SimState | None
     valid: jax.Array
@@ -71,8 +67,7 @@ class ActionOutcome:
 
 @dataclasses.dataclass(frozen=True)
 class SimulatedRobots:
-    """B damaged robots in MJX (damage (B, 6) bool); record_every: k > 0 also returns the state every k
-    control steps (k divides 100)."""
+    """B robots in MJX with damage (B, 6) bool; record_every k > 0 (dividing 100) records the state every k steps."""
 
     robot: Robot
     damage: jax.Array
@@ -103,8 +98,8 @@ class SimulatedRobots:
             leg_travel=zeros, qpos=result.qpos)
 
     def flat(self, state: SimState, params: jax.Array) -> tuple[Second, jax.Array]:
-        """The controllers `params` (B, 36) for 3 s, then the neutral second, in one rollout (the period
-        is 1 s). Returns the last `Second` (displacement: the whole action's) and poses (B, 4, 3)."""
+        """Controllers `params` (B, 36) for 3 s, then the neutral second, in one rollout: the last `Second`
+        (displacement: the whole action's) and the poses (B, 4, 3)."""
         segments = jnp.stack([params] * STEPS_PER_SKILL + [jnp.zeros_like(params)], axis=1)  # (B, 4, 36)
         total = SECONDS_PER_ACTION * STEP_CONTROL_STEPS
         spec = RolloutSpec(num_steps=total, pose_steps=tuple(range(0, total + 1, STEP_CONTROL_STEPS)),
@@ -119,8 +114,7 @@ class SimulatedRobots:
 
 
 def skill_targets(skills: Skills, index: jax.Array, origin: jax.Array) -> tuple[jax.Array, jax.Array]:
-    """HBR skills `index` (B,) started at world poses `origin` (B, 3): their world waypoints (B, 3, 3), one
-    per step, and their stored end poses (B, 3)."""
+    """World waypoints (B, 3, 3) and stored end poses (B, 3) of HBR skills `index` (B,) from poses `origin` (B, 3)."""
     targets = compose_pose(origin[:, None, :], skill_waypoints(skills.hbr.middle_task, skills.genotypes[index]))
     goal = compose_pose(origin, displacement_of(skills.actions.prior[index]))
     return targets, goal
@@ -170,8 +164,7 @@ def hbr_step(robots, skills: Skills, goal: jax.Array, taken: jax.Array, carry, x
 
 def hbr_action(robots, skills: Skills, state: SimState | None, rules: RuleBatch, action: jax.Array, taken: jax.Array,
                keys: jax.Array) -> ActionOutcome:
-    """Run HBR skills `action` (B,) step by step from `state`, each step's pattern chosen by the episode's
-    rule, then 1 s neutral. taken: (B,) actions so far. keys: (B, 2) (each step's are split from them)."""
+    """Run HBR skills `action` (B,) step by step from `state`, then 1 s neutral; keys (B, 2) are split per step."""
     origin = robots.pose(state)
     targets, goal = robots.staged(skill_targets)(skills, action, origin)  # (B, 3, 3), (B, 3)
     step_keys = jnp.swapaxes(jax.vmap(lambda k: jax.random.split(k, STEPS_PER_SKILL))(keys), 0, 1)  # (3, B, 2)

@@ -51,15 +51,10 @@ class AdaptationConfig:
 
 @struct.dataclass
 class History:
-    """What happened at each action of B episodes, L = max_actions, D = planner depth.
-
-    action: (B, L) int32 executed action (-1 after the end). map: (B, L) int32 its repertoire (0 unless
-    APROL). planned: (B, L) int32 the planner's action. start: (B, L, 3) the planner's start pose.
-    predicted, observed: (B, L, 3) the GP's and the measured displacement. value: (B, L) the plan's value.
-    path: (B, L, D + 1, 3) the planned path (world frame); path_length: (B, L) int32. Per step: patterns
-    (B, L, 3) int32 (-1: any), errors (B, L, 3, 3) relative (x, y, yaw), contacts (B, L, 3, 6) share each
-    foot was down, leg_travel (B, L, 3, 6) rad (both 0 for flat skills).
-    """
+    """What happened at each action of B episodes (L = max_actions, D = planner depth): action, map (its
+    repertoire) and planned (B, L) int32 (-1 after the end); start, predicted and observed (B, L, 3) (the
+    planner's start pose, the GP's and the measured displacement); value (B, L); path (B, L, D + 1, 3) and
+    path_length (B, L) int32; the `ActionOutcome` step records patterns, errors, contacts and leg_travel."""
 
     action: jax.Array
     map: jax.Array
@@ -78,14 +73,10 @@ class History:
 
 @struct.dataclass
 class Episodes:
-    """B adaptation episodes.
-
-    sim: SimState (B, ...), or None when an executor drives the robots. damage: (B, 6) bool (only an
-    oracle's `init` sees it). rte: GPData (B, K, L, D, 4), each repertoire's action model. belief:
-    MapBelief (B, K). rules: RuleBatch. key: (B, 2) PRNG keys. taken: (B,) int32 actions so far. reached:
-    (B,) bool at the goal. broken: (B,) bool went invalid; reason: (B,) int32 its `InvalidReason` bits.
-    trajectory: (B, 4 L + 1, 3) world pose every second (the last repeated after the end). history: History.
-    """
+    """B adaptation episodes: sim SimState (B, ...) (None when an executor drives the robots), damage (B, 6)
+    bool, rte GPData (B, K, L, D, 4) per repertoire, belief MapBelief (B, K), rules, key (B, 2), taken (B,)
+    int32, reached and broken (B,) bool, reason (B,) int32 `InvalidReason` bits, trajectory (B, 4 L + 1, 3)
+    world pose every second (the last repeated after the end), history."""
 
     sim: SimState
     damage: jax.Array
@@ -114,15 +105,12 @@ class Episodes:
 
 def start_episodes(config: AdaptationConfig, skills: Skills, start: SimState | jax.Array, damages: np.ndarray,
                    rules: tuple[PatternRule, ...], which: np.ndarray, key: jax.Array) -> Episodes:
-    """B fresh episodes of robots with `damages` (B, 6), episode b running `rules[which[b]]`. start: SimState
-    (B, ...) of simulated robots, or the world planar poses (B, 3) of executor-driven ones (no `sim`).
-    With K > 1 repertoires each episode starts planning with a uniformly drawn one."""
+    """B fresh episodes of robots `start` (SimState (B, ...), or world poses (B, 3) of executor-driven robots)
+    with `damages` (B, 6), episode b running `rules[which[b]]` and planning first with a random repertoire."""
     damages = np.asarray(damages, bool)
-    batch, length = damages.shape[0], config.max_actions
-    depth = config.planner.depth
+    batch, length, depth, maps = damages.shape[0], config.max_actions, config.planner.depth, skills.num_maps
     simulated = isinstance(start, SimState)
     pose = state_pose(start) if simulated else jnp.asarray(start, jnp.float32)
-    maps = skills.num_maps
     first_map = jax.random.randint(jax.random.fold_in(key, 1), (batch,), 0, maps)
     history = History(
         action=jnp.full((batch, length), -1, jnp.int32), map=jnp.full((batch, length), -1, jnp.int32),
@@ -146,11 +134,9 @@ def start_episodes(config: AdaptationConfig, skills: Skills, start: SimState | j
 
 @struct.dataclass
 class Decision:
-    """The next action of B episodes. plan: PlanResult with leading B (its action indexes the planning
-    repertoire). map, action: (B,) int32 the repertoire and skill to execute (APROL may pick another).
-    start: (B, 3) the planner's start pose. predicted: (B, 3) the GP's displacement of the executed skill.
-    keys: (B, 3, 2) the episode's next key, the plan's and the execution's. prior: (B, 4) the GP's prior
-    outcome of the executed skill (what its observation is learnt against)."""
+    """The next action of B episodes: plan PlanResult (B,), map and action (B,) int32 to execute, start (B, 3)
+    the planner's start pose, predicted (B, 3) and prior (B, 4) the GP's displacement and prior outcome of the
+    executed skill, keys (B, 3, 2) the episode's next key, the plan's and the execution's."""
 
     plan: PlanResult
     map: jax.Array
@@ -163,12 +149,10 @@ class Decision:
 
 @functools.partial(jax.jit, static_argnames=("maze", "config"))
 def plan_step(maze: Maze, config: AdaptationConfig, skills: Skills, field: jax.Array, episodes: Episodes) -> Decision:
-    """Plan every episode's next action on the RTE GP's predictions (with K repertoires: plan with the
-    current one, then APROL chooses the skill among all of them)."""
+    """Plan every episode's next action on its RTE GP's predictions (APROL then picks among all repertoires)."""
     maps = skills.map_actions
     mean, variance = jax.vmap(lambda gps: jax.vmap(predict)(gps, maps))(episodes.rte)  # (B, K, A, 4), (B, K, A)
-    rows = jnp.arange(mean.shape[0])
-    current = episodes.belief.current
+    rows, current = jnp.arange(mean.shape[0]), episodes.belief.current
     displacement = displacement_of(mean[rows, current])  # (B, A, 3)
     usable = maps.mask[current]  # (B, A)
     pose = episodes.pose
@@ -193,9 +177,8 @@ def plan_step(maze: Maze, config: AdaptationConfig, skills: Skills, field: jax.A
 @functools.partial(jax.jit, static_argnames=("maze", "config", "record_every"))
 def act_step(maze: Maze, config: AdaptationConfig, robot: Robot, skills: Skills, episodes: Episodes,
              decision: Decision, record_every: int = 0) -> tuple[Episodes, jax.Array | None]:
-    """Execute every active episode's action on its MJX robot (`robot`: the maze's), learn and record it.
-    Returns the episodes and, for `record_every` = k > 0 (k divides 100), every robot's state every k
-    control steps of the action, (B, 400 / k, 25) (None when k = 0)."""
+    """Execute every active episode's action on its MJX robot, learn and record it. Returns the episodes and
+    the states (B, 400 / k, 25) every k = `record_every` control steps (None when k = 0)."""
     if record_every and (not isinstance(record_every, int) or STEP_CONTROL_STEPS % record_every):
         raise ConfigError(f"record_every must divide {STEP_CONTROL_STEPS}, got {record_every!r}")
     outcome = execute(SimulatedRobots(robot, episodes.damage, record_every), skills, episodes, decision)
@@ -213,13 +196,9 @@ def execute(robots, skills: Skills, episodes: Episodes, decision: Decision) -> A
 @functools.partial(jax.jit, static_argnames=("maze", "config"))
 def record_action(maze: Maze, config: AdaptationConfig, skills: Skills, episodes: Episodes, decision: Decision,
                   outcome: ActionOutcome) -> Episodes:
-    """Every active episode after its executed action `outcome` (B, ...): the chosen repertoire's RTE GP
-    and APROL belief learn it, history and trajectory record it, and the episode may end (at the goal,
-    invalid or at `max_actions`). Ended episodes are unchanged."""
+    """Every active episode after its executed `outcome` (B, ...): GP and belief learn it, history records it."""
     active = ~episodes.done
-    index, chosen_map = decision.action, decision.map
-    keys = decision.keys
-    maps = skills.map_actions
+    index, chosen_map, maps = decision.action, decision.map, skills.map_actions
 
     def learn(gps, belief, k, i, displacement, prior):
         chosen = jax.tree.map(lambda x: x[k], maps)
@@ -243,10 +222,9 @@ def record_action(maze: Maze, config: AdaptationConfig, skills: Skills, episodes
     # Later slots hold the latest pose until they are written (the plot shows a still robot).
     later = jnp.arange(trajectory.shape[1])[None, :] >= (first + SECONDS_PER_ACTION)[:, None]
     trajectory = jnp.where(later[..., None], outcome.poses[:, -1:, :], trajectory)
-    end = outcome.poses[:, -1]  # the pose after the neutral second
     updated = episodes.replace(
-        sim=outcome.state, rte=rte, belief=belief, rules=rules, key=keys[:, 0], taken=episodes.taken + 1,
-        reached=reached_goal(maze, end[:, :2]) & outcome.valid, broken=~outcome.valid,
+        sim=outcome.state, rte=rte, belief=belief, rules=rules, key=decision.keys[:, 0], taken=episodes.taken + 1,
+        reached=reached_goal(maze, outcome.poses[:, -1, :2]) & outcome.valid, broken=~outcome.valid,
         reason=outcome.invalid_reason, trajectory=trajectory, history=recorded)
     return jax.tree.map(lambda new, old: jnp.where(active.reshape(-1, *([1] * (new.ndim - 1))), new, old),
                         updated, episodes)  # ended episodes unchanged
@@ -270,8 +248,7 @@ def pad_episodes(episodes: Episodes, size: int) -> Episodes:
 
 @functools.lru_cache(maxsize=32)
 def sharded_steps(maze: Maze, config: AdaptationConfig, mesh: Mesh, record_every: int):
-    """(plan, act): `plan_step` and `act_step` with the episode axis split over `mesh` (no collective
-    inside). plan(skills, field, episodes) -> Decision; act(robot, skills, episodes, decision)."""
+    """(plan, act): `plan_step` and `act_step` with the episode axis split over `mesh` (no collective inside)."""
     rows, whole = PartitionSpec(sharding.BATCH_AXIS), PartitionSpec()
 
     def plan(skills, field, episodes):
@@ -290,9 +267,8 @@ def sharded_steps(maze: Maze, config: AdaptationConfig, mesh: Mesh, record_every
 def run_episodes(maze: Maze, config: AdaptationConfig, robot: Robot, skills: Skills, episodes: Episodes,
                  progress: bool = True, description: str = "episodes", max_steps: int | None = None,
                  recorder: Recorder | None = None, mesh: Mesh | None = None) -> tuple[Episodes, RunTimings]:
-    """Run the batch until every episode has ended (or for `max_steps` actions); returns the episodes and
-    timings. recorder: collects its rows' states during every action. mesh: the devices the episodes are
-    spread over (None: all visible; the batch is padded to a multiple of their count)."""
+    """Run the batch until every episode has ended (or for `max_steps` actions). recorder: collects its rows'
+    states. mesh: the devices the episodes are spread over (None: all visible)."""
     mesh = sharding.batch_mesh() if mesh is None else mesh
     batch = episodes.taken.shape[0]
     # Commit every input to the mesh: jit keys its cache on committed-ness, so uncommitted first

@@ -29,13 +29,9 @@ from hte_jax.sim.rollout import RolloutSpec, SimState, ValidityLimits, check_sta
 
 @struct.dataclass
 class Seconds:
-    """What a robot reports after running S one-second controllers.
-
-    poses: (S, 3) float32 world planar pose (x, y, heading) after each second. contacts: (S, 6) float32
-    share of each second each foot was down. invalid_reason: int `InvalidReason` bits (0: fine); an
-    invalid robot stops where it was last valid (later seconds repeat that pose, with no contact).
-    leg_travel: (S, 6) float32 rad each leg's joints moved (sum of |angle changes|), or None (not sensed).
-    """
+    """What a robot reports after S one-second controllers: poses (S, 3) float32 world (x, y, heading) after each,
+    contacts (S, 6) float32 share each foot was down, invalid_reason int `InvalidReason` bits (later seconds repeat
+    the last valid pose, no contact), leg_travel (S, 6) float32 rad each leg's joints moved, or None."""
 
     poses: np.ndarray
     contacts: np.ndarray
@@ -54,9 +50,8 @@ class Executor(Protocol):
 
 
 class ExecutorRobot:
-    """One robot driven from the host through `executor` (the robots of `action`): steps in a Python loop,
-    their traceable parts jitted, each second one `executor.run` call. An invalid robot is not driven
-    again: later seconds report its pose, no contact and the same reason."""
+    """One robot driven from the host through `executor` (the robots of `action`), one `executor.run` per
+    second; an invalid robot is not driven again (later seconds report its pose and reason)."""
 
     def __init__(self, executor: Executor):
         self.executor, self.reason = executor, 0
@@ -118,9 +113,8 @@ class ExecutorRobot:
 
 def run_episode(maze: Maze, config: AdaptationConfig, skills: Skills, executor: Executor, variant: str = "hte",
                 key: jax.Array | None = None, damage: np.ndarray | None = None) -> Episodes:
-    """One adaptation episode of `variant` on the robot `executor` drives, from where it stands, as
-    `Episodes` with B = 1 (no `sim`). key: default PRNGKey(0). damage: (6,) bool, the true damage, which
-    only Perfect HTE's oracle reads (default: intact)."""
+    """One episode of `variant` on the robot `executor` drives, from where it stands, as `Episodes` (B = 1, no
+    `sim`). damage: (6,) bool, the true damage that only Perfect HTE's oracle reads (default: intact)."""
     chosen = variant_named(variant)
     chosen.check_skills(skills)
     damage = np.zeros(NUM_LEGS, bool) if damage is None else np.asarray(damage, bool)
@@ -147,14 +141,8 @@ def _reasons(qpos: jax.Array, qvel: jax.Array, limits: ValidityLimits) -> jax.Ar
 
 
 class MujocoExecutor:
-    """One hexapod in native MuJoCo (C): the stand-in for a real robot. config: the robot (e.g.
-    `arena.maze_config(maze)`). damage: (6,) bool legs held in the damaged pose. start: unbatched
-    SimState. limits: when the robot is invalid (default `action.ONLINE_LIMITS`).
-
-    Each second is the MJX rollout's 100 control steps (joint targets, velocity servo, tilt reflex,
-    `mj_step`, foot contact within `RolloutSpec.contact_tolerance`); every state is checked as the
-    rollout checks it, and at the first invalid one the robot is put back to the state before and stops.
-    """
+    """One hexapod in native MuJoCo, run second by second as the MJX rollout runs it (damage (6,) bool, start an
+    unbatched SimState); at its first invalid state (`limits`) it is put back to the state before and stops."""
 
     def __init__(self, config: RobotConfig, damage: np.ndarray, start: SimState,
                  limits: ValidityLimits = ONLINE_LIMITS):
@@ -200,10 +188,7 @@ class MujocoExecutor:
     def run(self, params: np.ndarray) -> Seconds:
         params = np.asarray(params, np.float32).reshape(-1, NUM_PARAMS)
         tables = np.asarray(_target_tables(jnp.asarray(params)), np.float64)  # (S, 100, 18)
-        count = tables.shape[0]
-        poses = np.zeros((count, 3), np.float32)
-        contacts = np.zeros((count, NUM_LEGS), np.float32)
-        travel = np.zeros((count, NUM_LEGS), np.float32)
+        poses, contacts, travel = (np.zeros((tables.shape[0], size), np.float32) for size in (3, NUM_LEGS, NUM_LEGS))
         reason = 0
         for second, table in enumerate(tables):
             if not reason:
@@ -211,13 +196,12 @@ class MujocoExecutor:
             poses[second] = self.pose()
         return Seconds(poses=poses, contacts=contacts, invalid_reason=reason, leg_travel=travel)
 
-    def _second(self, table: np.ndarray) -> tuple[int, np.ndarray]:
+    def _second(self, table: np.ndarray) -> tuple[int, np.ndarray, np.ndarray]:
         """One second of joint targets `table` (100, 18): (invalid reason, contact fractions (6,), leg travel (6,))."""
         model, data = self.model, self.data
         steps, substeps = STEP_CONTROL_STEPS, self.config.substeps
-        before = self.state()
-        qpos, qvel = np.zeros((steps, model.nq)), np.zeros((steps, model.nv))
-        warm = np.zeros((steps, model.nv))
+        qpos, qvel, warm = (np.zeros((steps + 1, size)) for size in (model.nq, model.nv, model.nv))
+        qpos[0], qvel[0], warm[0] = data.qpos, data.qvel, data.qacc_warmstart  # row k + 1: after control step k
         touching = np.zeros((steps, NUM_LEGS), bool)
         tolerance = RolloutSpec.contact_tolerance
         braced = np.False_
@@ -233,17 +217,13 @@ class MujocoExecutor:
                 mujoco.mj_step(model, data)
             # geom_xpos comes from the step's forward pass: the feet at the start of the step, as in MJX.
             touching[k] = data.geom_xpos[self.feet, 2] - FOOT_RADIUS < tolerance
-            qpos[k], qvel[k], warm[k] = data.qpos, data.qvel, data.qacc_warmstart
-        reasons = np.asarray(_reasons(jnp.asarray(qpos, jnp.float32), jnp.asarray(qvel, jnp.float32), self.limits))
+            qpos[k + 1], qvel[k + 1], warm[k + 1] = data.qpos, data.qvel, data.qacc_warmstart
+        reasons = np.asarray(_reasons(jnp.asarray(qpos[1:], jnp.float32), jnp.asarray(qvel[1:], jnp.float32),
+                                      self.limits))
         bad = np.flatnonzero(reasons)
-        angles = np.concatenate([before.qpos[None, self.joints], qpos[:, self.joints]])  # (101, 18)
-        moved = np.abs(np.diff(angles, axis=0))  # (100, 18) per control step
-        if not bad.size:
-            return 0, touching.mean(axis=0), moved.sum(axis=0).reshape(NUM_LEGS, -1).sum(axis=-1)
-        first = int(bad[0])
-        if first:
-            self._set(qpos[first - 1], qvel[first - 1], warm[first - 1])
-        else:
-            self._set(before.qpos, before.qvel, before.qacc_warmstart)
-        return (int(reasons[first]), touching[:first].sum(axis=0) / steps,
-                moved[:first].sum(axis=0).reshape(NUM_LEGS, -1).sum(axis=-1))
+        valid = int(bad[0]) if bad.size else steps  # control steps before the first invalid state
+        if bad.size:  # back to the last valid state
+            self._set(qpos[valid], qvel[valid], warm[valid])
+        moved = np.abs(np.diff(qpos[: valid + 1, self.joints], axis=0))  # (valid, 18) per control step
+        return (int(reasons[valid]) if bad.size else 0, touching[:valid].sum(axis=0) / steps,
+                moved.sum(axis=0).reshape(NUM_LEGS, -1).sum(axis=-1))

@@ -105,11 +105,8 @@ def _factor_and_solve(gram: jax.Array, rhs: jax.Array) -> jax.Array:
 
 @jax.custom_batching.custom_vmap
 def whitened(gram: jax.Array, rhs: jax.Array) -> jax.Array:
-    """L^-1 rhs (N, M) for the Cholesky factor L of the positive-definite gram (N, N).
-
-    Under `vmap` the CPU runs one matrix at a time: jaxlib 0.10's batched CPU LAPACK kernels block on
-    XLA's intra-op pool, and two at once can hang a 2-core machine (`docs/design.md`, GPs). Same bits.
-    """
+    """L^-1 rhs (N, M) for the Cholesky factor L of gram (N, N); batched, the CPU solves one matrix at a time
+    (batched LAPACK calls can hang a 2-core machine: `docs/design.md`, GPs)."""
     return _factor_and_solve(gram, rhs)
 
 
@@ -117,11 +114,8 @@ def whitened(gram: jax.Array, rhs: jax.Array) -> jax.Array:
 def _whitened_batched(axis_size: int, in_batched: list[bool], gram: jax.Array, rhs: jax.Array):
     gram, rhs = (x if batched else jnp.broadcast_to(x, (axis_size, *x.shape))
                  for x, batched in zip((gram, rhs), in_batched))
-
-    def one_at_a_time(gram, rhs):
-        return jax.lax.map(lambda pair: whitened(*pair), (gram, rhs))
-
-    return jax.lax.platform_dependent(gram, rhs, cpu=one_at_a_time, default=jax.vmap(_factor_and_solve)), True
+    return jax.lax.platform_dependent(gram, rhs, cpu=lambda *pair: jax.lax.map(lambda one: whitened(*one), pair),
+                                      default=jax.vmap(_factor_and_solve)), True
 
 
 def posterior(kernel: Kernel, data: GPData, queries: jax.Array,
@@ -136,8 +130,7 @@ def posterior(kernel: Kernel, data: GPData, queries: jax.Array,
             query_prior = jnp.broadcast_to(constant, (queries.shape[0], constant.shape[0]))
         else:
             residual = data.targets - data.prior
-        pair = mask[:, None] & mask[None, :]
-        gram = jnp.where(pair, kernel(data.inputs, data.inputs), 0.0)
+        gram = jnp.where(mask[:, None] & mask[None, :], kernel(data.inputs, data.inputs), 0.0)
         gram = gram + jnp.diag(jnp.where(mask, kernel.noise, 1.0))
         residual = jnp.where(mask[:, None], residual, 0.0)
         cross = jnp.where(mask[None, :], kernel(queries.astype(jnp.float32), data.inputs), 0.0)  # (Q, N)

@@ -135,8 +135,7 @@ def _segment_crosses_box(a: jax.Array, b: jax.Array, boxes: np.ndarray) -> jax.A
 
 
 def segment_box_distance(a: jax.Array, b: jax.Array, boxes: np.ndarray) -> jax.Array:
-    """(..., 2) segment ends, (K, 4) boxes -> (..., K) distance between segment and box (0 if they meet):
-    disjoint convex shapes are closest at a vertex of one of them (a segment end or a box corner)."""
+    """(..., 2) segment ends, (K, 4) boxes -> (..., K) distance (0 if they meet; else at an end or a corner)."""
     ends = jnp.minimum(point_box_distance(a, boxes), point_box_distance(b, boxes))
     corners = jnp.stack([boxes[:, [0, 1]], boxes[:, [0, 3]], boxes[:, [2, 1]], boxes[:, [2, 3]]], axis=1)  # (K, 4, 2)
     flat = jnp.asarray(corners.reshape(-1, 2))

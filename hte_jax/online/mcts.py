@@ -20,10 +20,8 @@ from hte_jax.online.maze import GridSpec, Maze, in_bounds, move_collides, point_
 
 @dataclasses.dataclass(frozen=True)
 class PlannerConfig:
-    """MCTS settings (the original's values as defaults, except iterations and roots: 6000 x 32 there).
-    iterations: simulations per tree. roots: independent trees per decision. exploration: UCT c. widening:
-    progressive-widening exponent a. gamma: discount. depth: longest simulated path. candidates: random
-    actions ranked at each expansion. collision_reward / goal_reward: terminal rewards."""
+    """MCTS settings, the original's but iterations x roots (6000 x 32 there): UCT c `exploration`, progressive
+    widening exponent a, discount gamma, `depth` the longest path, `candidates` ranked at each expansion."""
 
     iterations: int = 1000
     roots: int = 4
@@ -49,13 +47,9 @@ class PlannerConfig:
 
 @struct.dataclass
 class Tree:
-    """One search tree, M = iterations + 1 nodes (node 0 is the root), K = max children.
-
-    state: (M, 3) x, y, yaw. parent, action: (M,) int32 the parent and the action that led to the node
-    (-1 at the root). reward: (M,) of entering the node. terminal: (M,) bool. depth, visits: (M,) int32.
-    value: (M,) float32 summed discounted returns from entering the node (0 at the root). children: (M, K)
-    int32 (-1 empty). num_children: (M,) int32. size: () int32 nodes used.
-    """
+    """One search tree of M = iterations + 1 nodes (0: the root), K = max children: state (M, 3); parent and action
+    (M,) int32 (-1 at the root); reward (M,) of entering; terminal (M,) bool; depth and visits (M,) int32; value
+    (M,) summed discounted returns from entering; children (M, K) int32 (-1 empty); num_children (M,); size ()."""
 
     state: jax.Array
     parent: jax.Array
@@ -272,9 +266,8 @@ def search(maze: Maze, grid: GridSpec, config: PlannerConfig, world: World, key:
 
 @struct.dataclass
 class PlanResult:
-    """One decision. action: () int32 the best mean value over the merged root statistics; value: () float32
-    that value. visits: (A,) int32 merged root visits. path: (D + 1, 3) the start, the action's end, then
-    the most-visited branch below it (in the tree that visited the action most). path_length: () int32."""
+    """One decision: action () int32 of the best mean value over the merged roots, value (), visits (A,) int32,
+    path (D + 1, 3) the start, the action's end and the most-visited branch below it, path_length () int32."""
 
     action: jax.Array
     value: jax.Array

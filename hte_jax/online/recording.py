@@ -51,14 +51,10 @@ class Recorder:
 
 @dataclasses.dataclass(frozen=True)
 class Replay:
-    """One recorded episode: N actions taken, k = `every`, F = 400 / k states per action.
-
-    qpos: (N F + 1, 25) float32 the state every k control steps (state j F + s F / 4 starts second s of
-    action j). action: (N,) int32 the executed skill; map: (N,) int32 its repertoire (0 unless APROL).
-    patterns: (N, 3) int32 each step's contact pattern (-1: any). trajectory: (4 N + 1, 3) float32 the
-    pose after every second. damage: (6,) bool. info: JSON-able labels (variant, damage, seed, replicate,
-    row, reached, broken, damage_model, maze, max_actions, every, episode).
-    """
+    """One recorded episode of N actions, F = 400 / k states per action (k = `every`): qpos (N F + 1, 25) float32
+    (state j F + s F / 4 starts second s of action j), action and map (N,) int32, patterns (N, 3) int32,
+    trajectory (4 N + 1, 3) float32, damage (6,) bool, info JSON-able labels (variant, damage, seed, replicate,
+    row, reached, broken, damage_model, maze, max_actions, every, episode)."""
 
     qpos: np.ndarray
     action: np.ndarray

@@ -102,8 +102,7 @@ class ErrorModel:
 
 @dataclasses.dataclass(frozen=True)
 class GpUcb(PatternRule):
-    """The paper's HTE: GP-UCB over the 36 allowed patterns on the predicted relative errors of
-    their nearest elites (`secondary`); the GP learns every executed elite's errors."""
+    """The paper's HTE: GP-UCB over the 36 allowed patterns' nearest elites' predicted relative errors."""
 
     def init(self, damages, max_actions):
         gp = empty_gp(STEPS_PER_SKILL * max_actions, DESCRIPTOR_DIM, ERROR_DIM)
@@ -174,10 +173,9 @@ class LegSense:
 
 @dataclasses.dataclass(frozen=True)
 class SensedLegs(PatternRule):
-    """Ours: RTE's choice until a leg is sensed not to touch the floor when its elites should, or
-    not to move its joints as its controllers ask; then the pattern with every other leg down.
-    spare: once a leg is sensed off the floor, run the pattern's steps from its spare set (a leg
-    locked in its standing pose still props the body: its pattern's own elites run)."""
+    """Ours: RTE's choice until a leg is sensed off the floor when it should be down, or not moving as
+    commanded; then the pattern with every other leg down. spare: once a leg is sensed off the floor,
+    run the pattern's steps from its spare set."""
 
     spare: bool = False
 

@@ -24,8 +24,7 @@ def legs_down(pattern: int) -> list[int]:
 
 
 def allowed_patterns() -> np.ndarray:
-    """The original's 36 candidate patterns, ascending: at least three feet down, and not three consecutive
-    legs around the body ring 0-1-2-3-4-5-0 (the robot cannot stand on those)."""
+    """The original's 36 candidates, ascending: >= 3 feet down, not three consecutive legs of the ring 0-...-5-0."""
     allowed = []
     for pattern in range(NUM_PATTERNS):
         down = legs_down(pattern)

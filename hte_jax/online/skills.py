@@ -54,10 +54,8 @@ def action_set(repertoire: Repertoire, extent: float, pad_to: int | None = None)
         out[: len(values)] = values
         return jnp.asarray(out)
 
-    mask = np.zeros(size, bool)
-    mask[: filled.size] = True
     return ActionSet(slots=pad(filled.astype(np.int32), -1), inputs=pad(descriptors.astype(np.float32)),
-                     prior=pad(prior.astype(np.float32)), mask=jnp.asarray(mask))
+                     prior=pad(prior.astype(np.float32)), mask=jnp.asarray(np.arange(size) < filled.size))
 
 
 def outcome(displacement: jax.Array) -> jax.Array:
@@ -96,13 +94,9 @@ def replayed_models(actions: ActionSet, executed: jax.Array, displacements: jax.
 
 @struct.dataclass
 class Skills:
-    """The A actions an episode batch plans with, from one repertoire or K (APROL's).
-
-    actions: ActionSet (A,), or (K, A). genotypes: (A, G) top-layer genotypes (G = 9) of an HBR or
-    controllers (G = 36), or (K, A, 36). hbr: the HBR, or None for flat repertoires. table: the HBR's
-    elites by pattern for steps planned to the skill's end (`composition="planned"`), or None (the paper's
-    nearest elite to the next waypoint). spare: the HBR's spare sets (`hbr.spare`), or None.
-    """
+    """The A actions an episode batch plans with: actions ActionSet (A,) or (K, A) for K repertoires, genotypes
+    (A, 9) top-layer genotypes of `hbr` or (A, 36) / (K, A, 36) controllers, table the HBR's elites by pattern
+    for planned steps (None: the paper's nearest elite), spare its spare sets (`hbr.spare`) or None."""
 
     actions: ActionSet
     genotypes: jax.Array
@@ -132,9 +126,8 @@ class Skills:
 
 def hbr_skills(hbr: HBR, top_task: TopTask, pad_to: int | None = None, composition: str = "planned",
                spare: bool = False) -> Skills:
-    """The filled top-layer cells of an HBR as actions. composition: how a step of a chosen pattern picks
-    its elite: "waypoints" (the paper's nearest to the next waypoint) or "planned" (`hbr.composition`).
-    spare: also build the spare sets (`hbr.spare`; planned composition only)."""
+    """The filled top-layer cells of an HBR as actions; a step's elite is "waypoints" (the paper's nearest to the
+    next waypoint) or "planned" (`hbr.composition`); spare: also build the spare sets (`hbr.spare`)."""
     if composition not in COMPOSITIONS:
         raise ConfigError(f"unknown composition {composition!r}; choose from {', '.join(COMPOSITIONS)}")
     if spare and composition != "planned":

@@ -82,11 +82,5 @@ def variant(name: str) -> Variant:
 
 def batch_rules(names: list[str]) -> tuple[tuple[PatternRule, ...], list[int]]:
     """The distinct rules of the variants `names` (one per episode) in order of use, and each one's index."""
-    rules: list[PatternRule] = []
-    which = []
-    for name in names:
-        rule = variant(name).rule
-        if rule not in rules:
-            rules.append(rule)
-        which.append(rules.index(rule))
-    return tuple(rules), which
+    rules = list(dict.fromkeys(variant(name).rule for name in names))
+    return tuple(rules), [rules.index(variant(name).rule) for name in names]
