@@ -208,8 +208,7 @@ def record_action(maze: Maze, config: AdaptationConfig, skills: Skills, episodes
 
     rte, belief = jax.vmap(learn)(episodes.rte, episodes.belief, chosen_map, index, outcome.displacement, decision.prior)
     rules = episodes.rules if outcome.rules is None else outcome.rules
-    rows = jnp.arange(index.shape[0])
-    slot = jnp.minimum(episodes.taken, config.max_actions - 1)
+    rows, slot = jnp.arange(index.shape[0]), jnp.minimum(episodes.taken, config.max_actions - 1)
     planned = decision.plan
     recorded = jax.tree.map(lambda old, new: old.at[rows, slot].set(new), episodes.history, History(
         action=index, map=chosen_map, planned=planned.action, start=decision.start, predicted=decision.predicted,
@@ -277,8 +276,7 @@ def run_episodes(maze: Maze, config: AdaptationConfig, robot: Robot, skills: Ski
     skills, robot = sharding.put_replicated((skills, robot), mesh)
     episodes = sharding.put_batch(pad_episodes(episodes, sharding.padded_size(batch, mesh)), mesh)
     plan, act = sharded_steps(maze, config, mesh, 0 if recorder is None else recorder.every)
-    timings = RunTimings()
-    begin = time.perf_counter()
+    timings, begin = RunTimings(), time.perf_counter()
     bar = tqdm(total=config.max_actions, desc=description, unit="action", disable=not progress)
     for _ in range(config.max_actions if max_steps is None else min(max_steps, config.max_actions)):
         if bool(episodes.done.all()):

@@ -203,7 +203,6 @@ class MujocoExecutor:
         qpos, qvel, warm = (np.zeros((steps + 1, size)) for size in (model.nq, model.nv, model.nv))
         qpos[0], qvel[0], warm[0] = data.qpos, data.qvel, data.qacc_warmstart  # row k + 1: after control step k
         touching = np.zeros((steps, NUM_LEGS), bool)
-        tolerance = RolloutSpec.contact_tolerance
         braced = np.False_
         for k in range(steps):
             if self.config.reflex_tilt > 0.0:  # the tilt reflex, as `rollout` runs it
@@ -216,7 +215,7 @@ class MujocoExecutor:
             for _ in range(substeps):
                 mujoco.mj_step(model, data)
             # geom_xpos comes from the step's forward pass: the feet at the start of the step, as in MJX.
-            touching[k] = data.geom_xpos[self.feet, 2] - FOOT_RADIUS < tolerance
+            touching[k] = data.geom_xpos[self.feet, 2] - FOOT_RADIUS < RolloutSpec.contact_tolerance
             qpos[k + 1], qvel[k + 1], warm[k + 1] = data.qpos, data.qvel, data.qacc_warmstart
         reasons = np.asarray(_reasons(jnp.asarray(qpos[1:], jnp.float32), jnp.asarray(qvel[1:], jnp.float32),
                                       self.limits))

@@ -92,12 +92,6 @@ def add_observation(data: GPData, x: jax.Array, y: jax.Array, prior: jax.Array |
     )
 
 
-def data_mean(data: GPData) -> jax.Array:
-    """(O,) mean of the observed targets (0 when empty)."""
-    weight = data.mask.astype(jnp.float32)[:, None]
-    return jnp.sum(data.targets * weight, axis=0) / jnp.maximum(weight.sum(), 1.0)
-
-
 def _factor_and_solve(gram: jax.Array, rhs: jax.Array) -> jax.Array:
     """L^-1 rhs (N, M) for the Cholesky factor L of gram (N, N)."""
     return jax.scipy.linalg.solve_triangular(jnp.linalg.cholesky(gram), rhs, lower=True)
@@ -125,7 +119,8 @@ def posterior(kernel: Kernel, data: GPData, queries: jax.Array,
     with jax.default_matmul_precision("highest"):
         mask = data.mask
         if query_prior is None:
-            constant = data_mean(data)
+            weight = data.mask.astype(jnp.float32)[:, None]
+            constant = jnp.sum(data.targets * weight, axis=0) / jnp.maximum(weight.sum(), 1.0)  # (O,) (0 if empty)
             residual = data.targets - constant
             query_prior = jnp.broadcast_to(constant, (queries.shape[0], constant.shape[0]))
         else:
@@ -137,6 +132,5 @@ def posterior(kernel: Kernel, data: GPData, queries: jax.Array,
         # With L L^T = K, the mean is prior + (L^-1 k)^T (L^-1 r) and the variance s^2 - |L^-1 k|^2.
         solved = whitened(gram, jnp.concatenate([residual, cross.T], axis=1))
         w, v = solved[:, : residual.shape[1]], solved[:, residual.shape[1]:]  # (N, O), (N, Q)
-        mean = query_prior + v.T @ w
-        variance = kernel.variance - jnp.sum(v * v, axis=0)
+        mean, variance = query_prior + v.T @ w, kernel.variance - jnp.sum(v * v, axis=0)
     return mean, jnp.maximum(variance, 0.0)

@@ -113,8 +113,7 @@ def point_box_distance(points: jax.Array, boxes: np.ndarray) -> jax.Array:
 
 def _point_segment_distance(points: jax.Array, a: jax.Array, b: jax.Array) -> jax.Array:
     """points (..., M, 2) to segments a, b (..., 2) -> (..., M)."""
-    ab = (b - a)[..., None, :]
-    ap = points - a[..., None, :]
+    ab, ap = (b - a)[..., None, :], points - a[..., None, :]
     t = jnp.clip(jnp.sum(ap * ab, -1) / jnp.maximum(jnp.sum(ab * ab, -1), 1e-12), 0.0, 1.0)
     d = ap - t[..., None] * ab
     return jnp.sqrt(jnp.sum(d * d, axis=-1))
@@ -129,8 +128,7 @@ def _segment_crosses_box(a: jax.Array, b: jax.Array, boxes: np.ndarray) -> jax.A
     inside = (a >= low) & (a <= high)  # for axis-parallel segments
     t_near = jnp.where(jnp.abs(d) < 1e-12, jnp.where(inside, -jnp.inf, jnp.inf), jnp.minimum(t1, t2))
     t_far = jnp.where(jnp.abs(d) < 1e-12, jnp.where(inside, jnp.inf, -jnp.inf), jnp.maximum(t1, t2))
-    enter = jnp.max(t_near, axis=-1)
-    leave = jnp.min(t_far, axis=-1)
+    enter, leave = jnp.max(t_near, axis=-1), jnp.min(t_far, axis=-1)
     return (enter <= leave) & (leave >= 0.0) & (enter <= 1.0)
 
 

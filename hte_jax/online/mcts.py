@@ -168,16 +168,14 @@ def uct_child(config: PlannerConfig, tree: Tree, node: jax.Array) -> jax.Array:
     kids = tree.children[node]
     valid = kids >= 0
     safe = jnp.where(valid, kids, 0)
-    n = jnp.maximum(tree.visits[safe], 1).astype(jnp.float32)
-    parent = tree.visits[node].astype(jnp.float32)
+    n, parent = jnp.maximum(tree.visits[safe], 1).astype(jnp.float32), tree.visits[node].astype(jnp.float32)
     score = tree.value[safe] / n + 2.0 * config.exploration * jnp.sqrt(jnp.log(parent + 1.0) / n)
     return safe[jnp.argmax(jnp.where(valid, score, -jnp.inf))]
 
 
 def select(config: PlannerConfig, tree: Tree) -> Path:
     """Descend from the root by `uct_child` until a leaf or a node that should widen (the path's `last`)."""
-    capacity = config.iterations + 1
-    depth_limit = config.depth
+    capacity, depth_limit = config.iterations + 1, config.depth
 
     def descend(carry):
         node, _, nodes, length = carry
@@ -204,31 +202,23 @@ def expansion_action(maze: Maze, grid: GridSpec, config: PlannerConfig, world: W
 def expand(maze: Maze, grid: GridSpec, config: PlannerConfig, world: World, key: jax.Array, tree: Tree,
            path: Path) -> tuple[Tree, Path]:
     """Give the path's last node (unless a leaf) a child, node `tree.size`, and append it to the path."""
-    capacity = config.iterations + 1
-    node = path.last
+    capacity, node = config.iterations + 1, path.last
     grow = ~is_leaf(config, tree, node)
     action = expansion_action(maze, grid, config, world, key, tree.state[node])
     nxt, reward, terminal = transition(maze, config, world, tree.state[node], action)
     new = jnp.where(grow, tree.size, capacity)
+    child = dict(state=nxt, parent=node, action=action, reward=reward, terminal=terminal, depth=tree.depth[node] + 1)
     tree = tree.replace(
-        state=tree.state.at[new].set(nxt, mode="drop"),
-        parent=tree.parent.at[new].set(node, mode="drop"),
-        action=tree.action.at[new].set(action, mode="drop"),
-        reward=tree.reward.at[new].set(reward, mode="drop"),
-        terminal=tree.terminal.at[new].set(terminal, mode="drop"),
-        depth=tree.depth.at[new].set(tree.depth[node] + 1, mode="drop"),
+        **{name: getattr(tree, name).at[new].set(value, mode="drop") for name, value in child.items()},
         children=tree.children.at[jnp.where(grow, node, capacity), tree.num_children[node]].set(new, mode="drop"),
-        num_children=tree.num_children.at[node].add(grow.astype(jnp.int32)),
-        size=tree.size + grow.astype(jnp.int32),
-    )
+        num_children=tree.num_children.at[node].add(grow.astype(jnp.int32)), size=tree.size + grow.astype(jnp.int32))
     return tree, path.extended(new, grow)
 
 
 def backup(config: PlannerConfig, tree: Tree, path: Path, value: jax.Array) -> Tree:
     """One more visit at every node of the path, and to each below the root its discounted return
     g_k = reward_k + gamma g_(k+1), with g after the last node = `value` (() float32)."""
-    capacity = config.iterations + 1
-    depth_limit = config.depth
+    capacity, depth_limit = config.iterations + 1, config.depth
     on_path = jnp.arange(depth_limit + 1) < path.length
     below_root = on_path & (jnp.arange(depth_limit + 1) > 0)
     rewards = jnp.where(below_root, tree.reward[jnp.where(on_path, path.nodes, 0)], 0.0)

@@ -79,8 +79,7 @@ def candidate_elites(hbr: HBR, desired: jax.Array, patterns: np.ndarray = CANDID
     """For desired primary steps (B, 3): the middle elite index (B, C) each of `patterns` (C,) would execute
     and found (B, C) (False where the repertoire has no elite with that pattern)."""
     batch, count = desired.shape[0], patterns.size
-    queries = jnp.repeat(desired, count, axis=0)
-    wanted = jnp.tile(jnp.asarray(patterns), batch)
+    queries, wanted = jnp.repeat(desired, count, axis=0), jnp.tile(jnp.asarray(patterns), batch)
     index, found = select_middle(hbr, queries, wanted)
     return index.reshape(batch, count), found.reshape(batch, count)
 

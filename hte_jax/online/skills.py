@@ -45,8 +45,7 @@ def action_set(repertoire: Repertoire, extent: float, pad_to: int | None = None)
     if size < filled.size:
         raise ValueError(f"pad_to={pad_to} is smaller than the {filled.size} elites")
     descriptors = np.asarray(repertoire.descriptors)[filled]
-    xy = descriptors[:, :2] * 2 * extent - extent
-    yaw = np.asarray(repertoire.extras["arrival_yaw"])[filled]
+    xy, yaw = descriptors[:, :2] * 2 * extent - extent, np.asarray(repertoire.extras["arrival_yaw"])[filled]
     prior = np.concatenate([xy, np.cos(yaw)[:, None], np.sin(yaw)[:, None]], axis=1)
 
     def pad(values, fill=0):
