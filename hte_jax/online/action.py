@@ -1,22 +1,7 @@
-"""One action of B robots: a 3 s skill, then 1 s of the neutral pose (all controller parameters 0).
+"""One action of B robots: a 3 s skill, then 1 s of the neutral pose (`docs/design.md`, Reset-free episodes).
 
-A flat repertoire's skill is its 36-parameter controller run for 3 s. An HBR's skill is a
-top-layer genotype run one 1 s step at a time by `hbr_step`: the episodes' pattern rules choose
-the step's contact pattern (`rules`), the middle elite is planned or looked up among that
-pattern's elites, the robot runs it for one second, and the rules learn from what it did.
-
-The robots are a strategy object, so that the same action and step code drives every robot:
-`SimulatedRobots` are B robots in MJX (the step runs inside the episode's jitted program, the
-steps in a `lax.scan`); `external.ExecutorRobot` is one robot driven from the host (a real robot,
-or native MuJoCo), whose traceable parts run as jitted calls around each second. A robot provides
-`pose(state)`, `second(state, hbr, elite, found, alive)` (one step's second), `neutral(state)`,
-`flat(state, params)` (a flat skill and the neutral second), `steps(step, carry, xs)` (how
-steps follow each other) and `staged(fn)` (how traceable code runs).
-
-Rollouts of the online phase use `ONLINE_LIMITS`: the robot of the online phase has its body
-collide with the floor, so a body on the floor is no longer an error, and only a robot tilted past
-90 degrees (on its side or back: it cannot get up), a non-finite or an exploding state ends an
-episode. After a step a robot went invalid in, its later steps choose no pattern and run nothing.
+The robots are a strategy object with `pose`, `second`, `neutral`, `flat`, `steps` and `staged`:
+`SimulatedRobots` (MJX, inside the episode's jit) or `external.ExecutorRobot` (driven from the host).
 """
 
 from __future__ import annotations
@@ -45,14 +30,9 @@ ONLINE_LIMITS = ValidityLimits(max_tilt=math.pi / 2, min_base_height=0.0, body_o
 
 @struct.dataclass
 class Second:
-    """What B robots did in one second.
-
-    state: SimState (B, ...) after it (None for a host-driven robot). pose: (B, 3) world planar pose
-    after it. displacement: (B, 3) (x, y, yaw) in the frame of the pose before it. valid: (B,) bool.
-    invalid_reason: (B,) int32 `InvalidReason` bits (0 if valid). contact_fraction: (B, 6) share of
-    the second each foot was on the floor. leg_travel: (B, 6) rad each leg's joints moved. qpos:
-    (B, F, 25) the state every k control steps (recording), or None.
-    """
+    """What B robots did in one second: state SimState (B, ...) (None if host-driven), pose (B, 3) world, displacement
+    (B, 3) in the frame before, valid (B,), invalid_reason (B,) int32, contact_fraction (B, 6) share of the second
+    each foot was down, leg_travel (B, 6) rad, qpos (B, F, 25) or None."""
 
     state: SimState | None
     pose: jax.Array
@@ -66,19 +46,10 @@ class Second:
 
 @struct.dataclass
 class ActionOutcome:
-    """B robots after one action (3 s skill + 1 s neutral).
-
-    state: SimState (B, ...) at the end (None for a host-driven robot). valid: (B,) bool, no second
-    of the action went invalid. invalid_reason: (B,) int32 `InvalidReason` bits of the action (0 if
-    valid). poses: (B, 4, 3) world planar pose after each second. displacement: (B, 3) (dx, dy, dyaw)
-    in the pre-action frame. patterns: (B, 3) int32 contact pattern asked for at each step (-1: any,
-    for flat skills, and for steps after the robot went invalid). middle_index: (B, 3) int32
-    executed middle elite (-1 for flat skills and steps not run). errors: (B, 3, 3) relative error
-    (x, y, yaw) of each step (0 for flat skills). contacts: (B, 3, 6) share of each step each foot was
-    on the floor; leg_travel: (B, 3, 6) rad each leg's joints moved in each step (0 for flat skills). rules: the rules after this action's
-    observations (None for flat skills). qpos: (B, F, 25) the state every k = `record_every`
-    control steps of the action from its start (F = 400 / k), or None (not recorded).
-    """
+    """B robots after one action: state (as `Second`), valid (B,), invalid_reason (B,) int32, poses (B, 4, 3) after
+    each second, displacement (B, 3) in the pre-action frame; per step (-1 or 0 for flat skills and steps not run)
+    patterns (B, 3) int32, middle_index (B, 3) int32, errors (B, 3, 3) relative, contacts and leg_travel (B, 3, 6);
+    rules after it (None for flat skills); qpos (B, 400 / k, 25) every k = `record_every` control steps, or None."""
 
     state: SimState | None
     valid: jax.Array
@@ -96,8 +67,7 @@ class ActionOutcome:
 
 @dataclasses.dataclass(frozen=True)
 class SimulatedRobots:
-    """B damaged robots in MJX (`robot`, with the maze's walls; damage (B, 6) bool); record_every:
-    k > 0 also returns the state every k control steps (k divides 100)."""
+    """B robots in MJX with damage (B, 6) bool; record_every k > 0 (dividing 100) records the state every k steps."""
 
     robot: Robot
     damage: jax.Array
@@ -128,10 +98,8 @@ class SimulatedRobots:
             leg_travel=zeros, qpos=result.qpos)
 
     def flat(self, state: SimState, params: jax.Array) -> tuple[Second, jax.Array]:
-        """The controllers `params` (B, 36) for 3 s, then the neutral second, in one rollout (a
-        controller's clock restarts each second; its period is 1 s, so 3 seconds are one 3 s run).
-        Returns the last second's `Second` (its displacement: the whole action's) and the poses
-        (B, 4, 3) after each second."""
+        """Controllers `params` (B, 36) for 3 s, then the neutral second, in one rollout: the last `Second`
+        (displacement: the whole action's) and the poses (B, 4, 3)."""
         segments = jnp.stack([params] * STEPS_PER_SKILL + [jnp.zeros_like(params)], axis=1)  # (B, 4, 36)
         total = SECONDS_PER_ACTION * STEP_CONTROL_STEPS
         spec = RolloutSpec(num_steps=total, pose_steps=tuple(range(0, total + 1, STEP_CONTROL_STEPS)),
@@ -146,8 +114,7 @@ class SimulatedRobots:
 
 
 def skill_targets(skills: Skills, index: jax.Array, origin: jax.Array) -> tuple[jax.Array, jax.Array]:
-    """HBR skills `index` (B,) started at world poses `origin` (B, 3): their world waypoints (B, 3, 3),
-    one per step, and their stored end poses (B, 3) (what a planned step plans towards)."""
+    """World waypoints (B, 3, 3) and stored end poses (B, 3) of HBR skills `index` (B,) from poses `origin` (B, 3)."""
     targets = compose_pose(origin[:, None, :], skill_waypoints(skills.hbr.middle_task, skills.genotypes[index]))
     goal = compose_pose(origin, displacement_of(skills.actions.prior[index]))
     return targets, goal
@@ -155,11 +122,9 @@ def skill_targets(skills: Skills, index: jax.Array, origin: jax.Array) -> tuple[
 
 def choose_step(skills: Skills, rules: RuleBatch, here: jax.Array, target: jax.Array, goal: jax.Array,
                 step: jax.Array, taken: jax.Array, keys: jax.Array, alive: jax.Array):
-    """Before step `step` (0-2) of B HBR skills, robots at world poses `here` (B, 3) heading for the
-    step's waypoint `target` (B, 3) and the skill's end `goal` (B, 3): the contact pattern (B,) int32
-    each episode's rule picks (-1 where the robot is no longer `alive`), the middle elite (B,) to run
-    and whether it has that pattern (B,) bool. taken: (B,) actions already taken (GP-UCB's t =
-    1 + step + 3 taken). keys: (B, 2) this step's PRNG keys."""
+    """Before step `step` (0-2), robots at world poses `here` (B, 3) heading for `target` (B, 3), then `goal`
+    (B, 3): each rule's pattern (B,) int32 (-1 unless `alive`), the middle elite (B,) and whether it has that
+    pattern (B,) bool. taken: (B,) actions so far (GP-UCB's t = 1 + step + 3 taken). keys: (B, 2)."""
     hbr = skills.hbr
     task = hbr.middle_task
     desired = task.normalise(relative_pose(here, target))
@@ -177,18 +142,15 @@ def choose_step(skills: Skills, rules: RuleBatch, here: jax.Array, target: jax.A
 
 
 def learn_step(skills: Skills, rules: RuleBatch, elite: jax.Array, second: Second) -> tuple[RuleBatch, jax.Array]:
-    """The rules learn from the step the middle elites `elite` (B,) made (`second`); returns them
-    and the step's relative errors (B, 3) (`secondary.relative_error`)."""
+    """The rules after learning from the step of middle elites `elite` (B,), and its relative errors (B, 3)."""
     observation = StepObservation(hbr=skills.hbr, elite=elite, observed=skills.hbr.middle_task.normalise(second.displacement),
                                   contact_fraction=second.contact_fraction, leg_travel=second.leg_travel)
     return learn_rules(rules, observation), relative_error_of(observation)
 
 
 def hbr_step(robots, skills: Skills, goal: jax.Array, taken: jax.Array, carry, xs):
-    """One 1 s step of B HBR skills on `robots`: choose (`choose_step`), run one second, learn
-    (`learn_step`). carry: (state, rules, alive (B,) bool); xs: (target (B, 3), step () int32,
-    keys (B, 2)). Returns the carry and the step's record (pattern, elite run or -1, relative
-    errors, invalid reason, pose after, contact fractions, leg travel, qpos or None)."""
+    """One 1 s step of B HBR skills: choose, run, learn. carry: (state, rules, alive (B,) bool); xs: (target
+    (B, 3), step () int32, keys (B, 2)). Returns the carry and the step's record."""
     state, rules, alive = carry
     target, step, keys = xs
     pattern, elite, found = robots.staged(choose_step)(skills, rules, robots.pose(state), target, goal, step, taken,
@@ -202,10 +164,7 @@ def hbr_step(robots, skills: Skills, goal: jax.Array, taken: jax.Array, carry, x
 
 def hbr_action(robots, skills: Skills, state: SimState | None, rules: RuleBatch, action: jax.Array, taken: jax.Array,
                keys: jax.Array) -> ActionOutcome:
-    """Run the HBR skills `action` (B,) of B episodes step by step from their robots' `state`,
-    choosing each step's contact pattern by each episode's rule (`rules`: what they know so far;
-    GP-UCB's t = 1 + step + 3 x the actions `taken` (B,)), then 1 s neutral. keys: (B, 2) the
-    action's execution keys (each step's are split from them)."""
+    """Run HBR skills `action` (B,) step by step from `state`, then 1 s neutral; keys (B, 2) are split per step."""
     origin = robots.pose(state)
     targets, goal = robots.staged(skill_targets)(skills, action, origin)  # (B, 3, 3), (B, 3)
     step_keys = jnp.swapaxes(jax.vmap(lambda k: jax.random.split(k, STEPS_PER_SKILL))(keys), 0, 1)  # (3, B, 2)
@@ -218,19 +177,12 @@ def hbr_action(robots, skills: Skills, state: SimState | None, rules: RuleBatch,
         steps = jnp.swapaxes(qpos, 0, 1)
         qpos = jnp.concatenate([steps.reshape(steps.shape[0], -1, steps.shape[-1]), rest.qpos], axis=1)
     return ActionOutcome(
-        state=rest.state,
-        valid=(reasons == 0).all(axis=0) & rest.valid,
+        state=rest.state, valid=(reasons == 0).all(axis=0) & rest.valid,
         invalid_reason=jnp.bitwise_or.reduce(reasons, axis=0) | rest.invalid_reason,
         poses=jnp.concatenate([jnp.swapaxes(poses, 0, 1), rest.pose[:, None]], axis=1),
-        displacement=relative_pose(origin, rest.pose),
-        patterns=patterns.T,
-        middle_index=middle.T,
-        errors=jnp.swapaxes(errors, 0, 1),
-        contacts=jnp.swapaxes(contacts, 0, 1),
-        leg_travel=jnp.swapaxes(travel, 0, 1),
-        rules=rules,
-        qpos=qpos,
-    )
+        displacement=relative_pose(origin, rest.pose), patterns=patterns.T, middle_index=middle.T,
+        errors=jnp.swapaxes(errors, 0, 1), contacts=jnp.swapaxes(contacts, 0, 1),
+        leg_travel=jnp.swapaxes(travel, 0, 1), rules=rules, qpos=qpos)
 
 
 def flat_action(robots, state: SimState | None, params: jax.Array) -> ActionOutcome:
@@ -238,16 +190,9 @@ def flat_action(robots, state: SimState | None, params: jax.Array) -> ActionOutc
     last, poses = robots.flat(state, params)
     batch = params.shape[0]
     return ActionOutcome(
-        state=last.state,
-        valid=last.valid,
-        invalid_reason=last.invalid_reason,
-        poses=poses,
-        displacement=last.displacement,
-        patterns=jnp.full((batch, STEPS_PER_SKILL), ANY_PATTERN, jnp.int32),
+        state=last.state, valid=last.valid, invalid_reason=last.invalid_reason, poses=poses,
+        displacement=last.displacement, patterns=jnp.full((batch, STEPS_PER_SKILL), ANY_PATTERN, jnp.int32),
         middle_index=jnp.full((batch, STEPS_PER_SKILL), -1, jnp.int32),
         errors=jnp.zeros((batch, STEPS_PER_SKILL, ERROR_DIM), jnp.float32),
         contacts=jnp.zeros((batch, STEPS_PER_SKILL, NUM_LEGS), jnp.float32),
-        leg_travel=jnp.zeros((batch, STEPS_PER_SKILL, NUM_LEGS), jnp.float32),
-        rules=None,
-        qpos=last.qpos,
-    )
+        leg_travel=jnp.zeros((batch, STEPS_PER_SKILL, NUM_LEGS), jnp.float32), rules=None, qpos=last.qpos)

@@ -1,24 +1,10 @@
-"""APROL (Kaushik et al. 2020) in the maze: K prior repertoires, one RTE GP each, and after every
-plan a choice of repertoire and skill by likelihood times an upper confidence bound (`docs/original_code.md` §8).
+"""APROL (Kaushik et al. 2020) in the maze: K prior repertoires, one RTE GP each, and the choice of the
+executed skill by log L(k, a) + log P(k) (`docs/design.md`, APROL, with the fixes against the original).
 
-The planner plans with the repertoire chosen last. Its plan asks for a displacement: the GP-predicted
-outcome of the planned skill. Every skill k, a of every repertoire then gets a log score
-
-    log L(k, a) + log P(k),
     log L(k, a) = sum over x, y of [-1/2 log(2 pi var) - (mu - goal)^2 / (2 var)],
     P(k) = (m_k + u_k) / sum_j (m_j + u_j),   u_k = c sqrt(2 ln N / n_k),   N = sum_j n_j,
 
-with mu, var the GP posterior of repertoire k at skill a, m_k the repertoire's mean closeness
-exp(-5 |predicted - observed|) over its trials and n_k its trial count. The best-scoring skill runs,
-and only its repertoire's GP and belief learn from the outcome.
-
-Fixed against the original (`docs/original_code.md` §8 and docs/design.md):
-- trial counts n_k grow with every trial (the original never incremented them);
-- closeness compares like with like: the repertoire's predicted (dx, dy, cos, sin) in metres with
-  the observed one (the original mixed a normalised descriptor with metres);
-- the likelihood compares metres with metres (the original normalised the mean but not the variance);
-- every repertoire starts with one trial and episodes start on a random repertoire (the original
-  started on the first file, which favours one damage).
+mu, var: repertoire k's GP posterior at skill a; m_k: its mean closeness; n_k: its trial count.
 """
 
 from __future__ import annotations
@@ -39,12 +25,9 @@ VARIANCE_FLOOR = 1e-10
 
 @struct.dataclass
 class MapBelief:
-    """APROL's belief about K repertoires (one episode; batched with a leading B).
-
-    trials: (K,) int32 n_k, trials of repertoire k plus one. score: (K,) float32 m_k, mean
-    closeness of its predictions to what the robot did. current: () int32 the repertoire the
-    planner uses next (the one chosen last).
-    """
+    """APROL's belief about K repertoires (one episode; batched with a leading B). trials: (K,) int32 n_k,
+    trials plus one. score: (K,) float32 m_k, mean closeness of predictions to what the robot did.
+    current: () int32 the repertoire the planner uses next (the one chosen last)."""
 
     trials: jax.Array
     score: jax.Array
@@ -52,11 +35,8 @@ class MapBelief:
 
 
 def initial_belief(num_maps: int, start: jax.Array | int = 0) -> MapBelief:
-    return MapBelief(
-        trials=jnp.ones(num_maps, jnp.int32),
-        score=jnp.full(num_maps, INITIAL_SCORE, jnp.float32),
-        current=jnp.asarray(start, jnp.int32),
-    )
+    return MapBelief(trials=jnp.ones(num_maps, jnp.int32), score=jnp.full(num_maps, INITIAL_SCORE, jnp.float32),
+                     current=jnp.asarray(start, jnp.int32))
 
 
 def map_probability(belief: MapBelief, exploration: float = EXPLORATION) -> jax.Array:
@@ -68,11 +48,8 @@ def map_probability(belief: MapBelief, exploration: float = EXPLORATION) -> jax.
 
 
 def entry_scores(belief: MapBelief, mean: jax.Array, variance: jax.Array, mask: jax.Array, goal: jax.Array) -> jax.Array:
-    """(K, A) log score of every skill: log-likelihood of reaching `goal` plus log P(k).
-
-    mean: (K, A, >=2) GP posterior mean (dx, dy first, metres). variance: (K, A) posterior variance
-    (m^2). mask: (K, A) bool real skills. goal: (2,) the displacement the plan asks for (metres).
-    """
+    """(K, A) log score of every skill: log-likelihood of reaching `goal` (2,) (m) plus log P(k). mean:
+    (K, A, >=2) GP posterior mean (dx, dy first, m). variance: (K, A) (m^2). mask: (K, A) bool real skills."""
     var = jnp.maximum(variance, VARIANCE_FLOOR)[..., None]
     log_likelihood = jnp.sum(-0.5 * jnp.log(2.0 * math.pi * var) - (mean[..., :2] - goal) ** 2 / (2.0 * var), axis=-1)
     score = log_likelihood + jnp.log(map_probability(belief))[:, None]

@@ -1,10 +1,5 @@
-"""The maze in MJX: a robot model with the maze's walls, and damaged robots standing at the start.
-
-The walls are the maze's boxes, 0.9 m high. The robot touches them with its bumper (see
-`RobotConfig.wall_contact`): a sphere of the planner's robot radius around the body, so the
-simulated robot is stopped by a wall exactly where the planner's disc would touch it. Its body
-and links also collide with the floor (`body_floor_contact`): a damaged robot that tips while
-trying a contact pattern lands on its body and goes on, as in the original's simulator.
+"""The maze in MJX: a robot model with the maze's walls (met by a bumper of the planner's robot radius),
+and damaged robots standing at the start (`docs/design.md`, The maze in MJX).
 """
 
 from __future__ import annotations
@@ -37,23 +32,13 @@ def _yaw_quaternion(yaw: jax.Array) -> jax.Array:
 def _quaternion_product(a: jax.Array, b: jax.Array) -> jax.Array:
     aw, ax, ay, az = a[..., 0], a[..., 1], a[..., 2], a[..., 3]
     bw, bx, by, bz = b[..., 0], b[..., 1], b[..., 2], b[..., 3]
-    return jnp.stack(
-        [
-            aw * bw - ax * bx - ay * by - az * bz,
-            aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw,
-        ],
-        axis=-1,
-    )
+    return jnp.stack([aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
+                      aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw], axis=-1)
 
 
 def place(state: SimState, pose: jax.Array) -> SimState:
-    """Move robots `state` (B, ...) so that their planar pose becomes `pose` (B, 3) (x, y, heading).
-
-    The body is turned about the vertical axis: quaternion, world-frame linear velocity and its
-    warm start turn with it; body-frame angular velocity and joints are unchanged.
-    """
+    """Move robots `state` (B, ...) to planar poses `pose` (B, 3) (x, y, heading), turning the quaternion,
+    world-frame linear velocity and its warm start about the vertical axis (the rest is unchanged)."""
     qpos, qvel, warm = state.qpos, state.qvel, state.qacc_warmstart
     turn = pose[:, 2] - heading(qpos[:, 3:7])
     c, s = jnp.cos(turn)[:, None], jnp.sin(turn)[:, None]

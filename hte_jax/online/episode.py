@@ -1,23 +1,8 @@
-"""Reset-free adaptation episodes in the maze, B at once (paper section 4; `docs/original_code.md` §7, §9).
+"""Reset-free adaptation episodes in the maze, B at once (paper section 4; `docs/design.md`, Online adaptation).
 
-Each action: the RTE GP predicts every action's outcome (repertoire prior + observed
-corrections), MCTS plans from the robot's measured pose on those predictions, the chosen skill
-runs on the simulated damaged robot from wherever it stands (`action`), and the measured
-displacement (dx, dy, dyaw) in the pre-action frame is added to the RTE GP. An episode ends when
-the robot is within the goal radius after an action (success), after `max_actions` actions
-(failure) or when its simulation goes invalid (a flipped robot: failure). Wall contacts do not
-end an episode; a robot standing where the planner's disc overlaps a wall plans from the nearest
-free +-0.5 m offset.
-
-With APROL's K repertoires (`Skills.num_maps` > 1) every repertoire has its own RTE GP; the
-planner plans with the repertoire chosen last, and the executed skill is then chosen among all
-repertoires' skills by `aprol.select_entry`.
-
-`plan_step` and `act_step` are jitted over the whole batch; `run_episodes` calls them once per
-action until every episode has ended, so planning latency can be measured on its own. `act_step`
-runs the action on the MJX robots (`action.SimulatedRobots`) and then calls `record_action`, the
-bookkeeping that an episode driven through an executor (`external.py`, a robot simulated
-elsewhere or real) shares with it.
+Each action: the RTE GP predicts every skill's outcome, MCTS plans from the measured pose, the skill runs
+from wherever the robot stands, and the GP learns the measured displacement. An episode ends at the goal,
+after `max_actions` or when the robot goes invalid.
 """
 
 from __future__ import annotations
@@ -36,14 +21,8 @@ from tqdm.auto import tqdm
 from hte_jax import sharding
 from hte_jax.errors import ConfigError, require_int
 from hte_jax.hbr.hierarchy import STEPS_PER_SKILL, state_pose
-from hte_jax.online.action import (
-    SECONDS_PER_ACTION,
-    STEP_CONTROL_STEPS,
-    ActionOutcome,
-    SimulatedRobots,
-    flat_action,
-    hbr_action,
-)
+from hte_jax.online.action import (SECONDS_PER_ACTION, STEP_CONTROL_STEPS, ActionOutcome, SimulatedRobots,
+                                   flat_action, hbr_action)
 from hte_jax.online.aprol import MapBelief, closeness, initial_belief, select_entry, update_belief
 from hte_jax.online.gp import GPData, add_observation, empty_gp
 from hte_jax.online.maze import GridSpec, Maze, distance_field, planning_start, reached_goal
@@ -59,11 +38,8 @@ from hte_jax.sim.rollout import SimState
 
 @dataclasses.dataclass(frozen=True)
 class AdaptationConfig:
-    """Settings of an adaptation run (hashable: a static jit argument).
-
-    max_actions: actions before an episode counts as failed (paper 80).
-    planner: MCTS settings. grid: the planner's distance-field grid.
-    """
+    """Settings of an adaptation run (hashable: a static jit argument). max_actions: actions before an
+    episode fails (paper 80). planner: MCTS settings. grid: the planner's distance-field grid."""
 
     max_actions: int = 80
     planner: PlannerConfig = PlannerConfig()
@@ -75,18 +51,10 @@ class AdaptationConfig:
 
 @struct.dataclass
 class History:
-    """What happened at each action of B episodes, L = max_actions, D = planner depth.
-
-    action: (B, L) int32 executed action (-1 after the episode ended). map: (B, L) int32 its
-    repertoire (0 unless APROL). planned: (B, L) int32 the planner's action. start: (B, L, 3) the pose
-    the planner started from. predicted: (B, L, 3) the GP's predicted displacement of the chosen
-    action. observed: (B, L, 3) the measured displacement. value: (B, L) the plan's value.
-    path: (B, L, D + 1, 3) the planned path (world frame). path_length: (B, L) int32.
-    patterns: (B, L, 3) int32 contact pattern of each step (-1: any). errors: (B, L, 3, 3)
-    relative errors of each step (x, y, yaw). contacts: (B, L, 3, 6) share of each step each foot was
-    sensed on the floor. leg_travel: (B, L, 3, 6) rad each leg's joints moved in each step (both 0
-    for flat skills: what the leg senses of `rules.SensedLegs` read).
-    """
+    """What happened at each action of B episodes (L = max_actions, D = planner depth): action, map (its
+    repertoire) and planned (B, L) int32 (-1 after the end); start, predicted and observed (B, L, 3) (the
+    planner's start pose, the GP's and the measured displacement); value (B, L); path (B, L, D + 1, 3) and
+    path_length (B, L) int32; the `ActionOutcome` step records patterns, errors, contacts and leg_travel."""
 
     action: jax.Array
     map: jax.Array
@@ -105,17 +73,10 @@ class History:
 
 @struct.dataclass
 class Episodes:
-    """B adaptation episodes.
-
-    sim: SimState (B, ...) the simulated robots, or None when an executor drives them (`external.py`).
-    damage: (B, 6) bool, what the simulator does to each robot (no rule but an oracle's `init`
-    sees it). rte: GPData (B, K, L, D, 4), the action model of each of the K repertoires. belief:
-    MapBelief (B, K), APROL's belief about them. rules: RuleBatch, each episode's pattern rule and
-    what the rules have learnt (`rules`). key: (B, 2) PRNG keys.
-    taken: (B,) int32 actions so far. reached: (B,) bool at the goal. broken: (B,) bool the
-    simulation went invalid; reason: (B,) int32 its `InvalidReason` bits (0 if not broken). trajectory: (B, 4 L + 1, 3) world pose (x, y, yaw) every second,
-    the last pose repeated after the end. history: History.
-    """
+    """B adaptation episodes: sim SimState (B, ...) (None when an executor drives the robots), damage (B, 6)
+    bool, rte GPData (B, K, L, D, 4) per repertoire, belief MapBelief (B, K), rules, key (B, 2), taken (B,)
+    int32, reached and broken (B,) bool, reason (B,) int32 `InvalidReason` bits, trajectory (B, 4 L + 1, 3)
+    world pose every second (the last repeated after the end), history."""
 
     sim: SimState
     damage: jax.Array
@@ -142,72 +103,40 @@ class Episodes:
         return state_pose(self.sim)
 
 
-def start_episodes(
-    config: AdaptationConfig, skills: Skills, start: SimState | jax.Array, damages: np.ndarray,
-    rules: tuple[PatternRule, ...], which: np.ndarray, key: jax.Array,
-) -> Episodes:
-    """B fresh episodes: robots `start` with `damages` (B, 6), episode b running the pattern rule
-    `rules[which[b]]` (`variants.batch_rules`; flat skills ignore it). start: SimState (B, ...) of
-    simulated robots, or the world planar poses (B, 3) of robots an executor drives (`external.py`;
-    `Episodes.sim` is then None).
-
-    With K > 1 repertoires each episode starts planning with a uniformly drawn one.
-    """
+def start_episodes(config: AdaptationConfig, skills: Skills, start: SimState | jax.Array, damages: np.ndarray,
+                   rules: tuple[PatternRule, ...], which: np.ndarray, key: jax.Array) -> Episodes:
+    """B fresh episodes of robots `start` (SimState (B, ...), or world poses (B, 3) of executor-driven robots)
+    with `damages` (B, 6), episode b running `rules[which[b]]` and planning first with a random repertoire."""
     damages = np.asarray(damages, bool)
-    batch, length = damages.shape[0], config.max_actions
-    depth = config.planner.depth
+    batch, length, depth, maps = damages.shape[0], config.max_actions, config.planner.depth, skills.num_maps
     simulated = isinstance(start, SimState)
     pose = state_pose(start) if simulated else jnp.asarray(start, jnp.float32)
-    maps = skills.num_maps
-
-    def stacked(gp, *lead):
-        return jax.tree.map(lambda x: jnp.broadcast_to(x, (*lead, *x.shape)), gp)
-
     first_map = jax.random.randint(jax.random.fold_in(key, 1), (batch,), 0, maps)
-
     history = History(
-        action=jnp.full((batch, length), -1, jnp.int32),
-        map=jnp.full((batch, length), -1, jnp.int32),
-        planned=jnp.full((batch, length), -1, jnp.int32),
-        start=jnp.zeros((batch, length, 3), jnp.float32),
-        predicted=jnp.zeros((batch, length, 3), jnp.float32),
-        observed=jnp.zeros((batch, length, 3), jnp.float32),
-        value=jnp.zeros((batch, length), jnp.float32),
-        path=jnp.zeros((batch, length, depth + 1, 3), jnp.float32),
+        action=jnp.full((batch, length), -1, jnp.int32), map=jnp.full((batch, length), -1, jnp.int32),
+        planned=jnp.full((batch, length), -1, jnp.int32), start=jnp.zeros((batch, length, 3), jnp.float32),
+        predicted=jnp.zeros((batch, length, 3), jnp.float32), observed=jnp.zeros((batch, length, 3), jnp.float32),
+        value=jnp.zeros((batch, length), jnp.float32), path=jnp.zeros((batch, length, depth + 1, 3), jnp.float32),
         path_length=jnp.zeros((batch, length), jnp.int32),
         patterns=jnp.full((batch, length, STEPS_PER_SKILL), -1, jnp.int32),
         errors=jnp.zeros((batch, length, STEPS_PER_SKILL, ERROR_DIM), jnp.float32),
         contacts=jnp.zeros((batch, length, STEPS_PER_SKILL, NUM_LEGS), jnp.float32),
-        leg_travel=jnp.zeros((batch, length, STEPS_PER_SKILL, NUM_LEGS), jnp.float32),
-    )
+        leg_travel=jnp.zeros((batch, length, STEPS_PER_SKILL, NUM_LEGS), jnp.float32))
     return Episodes(
-        sim=start if simulated else None,
-        damage=jnp.asarray(damages),
-        rte=stacked(empty_gp(length, skills.actions.inputs.shape[-1], OUTCOME_DIM), batch, maps),
-        belief=jax.vmap(lambda k: initial_belief(maps, k))(first_map),
-        rules=start_rules(rules, which, damages, length),
-        key=jax.random.split(key, batch),
-        taken=jnp.zeros(batch, jnp.int32),
-        reached=jnp.zeros(batch, bool),
-        broken=jnp.zeros(batch, bool),
-        reason=jnp.zeros(batch, jnp.int32),
-        trajectory=jnp.broadcast_to(pose[:, None, :], (batch, SECONDS_PER_ACTION * length + 1, 3)),
-        history=history,
-    )
+        sim=start if simulated else None, damage=jnp.asarray(damages),
+        rte=jax.tree.map(lambda x: jnp.broadcast_to(x, (batch, maps, *x.shape)),
+                         empty_gp(length, skills.actions.inputs.shape[-1], OUTCOME_DIM)),
+        belief=jax.vmap(lambda k: initial_belief(maps, k))(first_map), rules=start_rules(rules, which, damages, length),
+        key=jax.random.split(key, batch), taken=jnp.zeros(batch, jnp.int32), reached=jnp.zeros(batch, bool),
+        broken=jnp.zeros(batch, bool), reason=jnp.zeros(batch, jnp.int32),
+        trajectory=jnp.broadcast_to(pose[:, None, :], (batch, SECONDS_PER_ACTION * length + 1, 3)), history=history)
 
 
 @struct.dataclass
 class Decision:
-    """The next action of B episodes.
-
-    plan: PlanResult with leading B (its action indexes the planning repertoire). map, action: (B,)
-    int32 the repertoire and skill to execute (APROL may pick another than the plan's; otherwise
-    map 0 and the plan's action). start: (B, 3) pose the planner started from. predicted: (B, 3)
-    the GP's predicted displacement of the executed skill. keys: (B, 3, 2) the keys the action
-    drew: the episode's next key, the plan's and the execution's.
-    prior: (B, 4) the GP's prior outcome of the executed skill (what its observation is learnt
-    against).
-    """
+    """The next action of B episodes: plan PlanResult (B,), map and action (B,) int32 to execute, start (B, 3)
+    the planner's start pose, predicted (B, 3) and prior (B, 4) the GP's displacement and prior outcome of the
+    executed skill, keys (B, 3, 2) the episode's next key, the plan's and the execution's."""
 
     plan: PlanResult
     map: jax.Array
@@ -220,25 +149,18 @@ class Decision:
 
 @functools.partial(jax.jit, static_argnames=("maze", "config"))
 def plan_step(maze: Maze, config: AdaptationConfig, skills: Skills, field: jax.Array, episodes: Episodes) -> Decision:
-    """Plan the next action of every episode on the RTE GP's predictions (with K repertoires: plan
-    with the current one, then let APROL choose the skill to execute among all of them)."""
+    """Plan every episode's next action on its RTE GP's predictions (APROL then picks among all repertoires)."""
     maps = skills.map_actions
-
-    def predict_maps(gps):
-        return jax.vmap(predict)(gps, maps)  # (K, A, 4), (K, A)
-
-    mean, variance = jax.vmap(predict_maps)(episodes.rte)  # (B, K, A, 4), (B, K, A)
-    rows = jnp.arange(mean.shape[0])
-    current = episodes.belief.current
+    mean, variance = jax.vmap(lambda gps: jax.vmap(predict)(gps, maps))(episodes.rte)  # (B, K, A, 4), (B, K, A)
+    rows, current = jnp.arange(mean.shape[0]), episodes.belief.current
     displacement = displacement_of(mean[rows, current])  # (B, A, 3)
     usable = maps.mask[current]  # (B, A)
     pose = episodes.pose
     start = jnp.concatenate([planning_start(maze, pose[:, :2]), pose[:, 2:]], axis=-1)
     keys = jax.vmap(lambda k: jax.random.split(k, 3))(episodes.key)  # (B, 3, 2): next, plan, act
 
-    def one(displacement, usable, key, state):
-        world = world_of(displacement, usable, field)
-        return plan(maze, config.grid, config.planner, world, key, state)
+    def one(moves, mask, key, state):
+        return plan(maze, config.grid, config.planner, world_of(moves, mask, field), key, state)
 
     result = jax.vmap(one)(displacement, usable, keys[:, 1], start)
     if skills.num_maps > 1:
@@ -255,40 +177,30 @@ def plan_step(maze: Maze, config: AdaptationConfig, skills: Skills, field: jax.A
 @functools.partial(jax.jit, static_argnames=("maze", "config", "record_every"))
 def act_step(maze: Maze, config: AdaptationConfig, robot: Robot, skills: Skills, episodes: Episodes,
              decision: Decision, record_every: int = 0) -> tuple[Episodes, jax.Array | None]:
-    """Execute every active episode's planned action on its MJX robot (`action.SimulatedRobots`
-    with `robot`, the maze's `Robot`), learn from it, and record it.
-
-    Returns the episodes and, when `record_every` = k > 0 (k divides 100), the state of every robot
-    every k control steps of the action, (B, 400 / k, 25) from its start (None when k = 0: the
-    program is then the one without recording).
-    """
+    """Execute every active episode's action on its MJX robot, learn and record it. Returns the episodes and
+    the states (B, 400 / k, 25) every k = `record_every` control steps (None when k = 0)."""
     if record_every and (not isinstance(record_every, int) or STEP_CONTROL_STEPS % record_every):
         raise ConfigError(f"record_every must divide {STEP_CONTROL_STEPS}, got {record_every!r}")
-    robots = SimulatedRobots(robot, episodes.damage, record_every)
-    if skills.hierarchical:
-        outcome = hbr_action(robots, skills, episodes.sim, episodes.rules, decision.action, episodes.taken,
-                             decision.keys[:, 2])
-    else:
-        outcome = flat_action(robots, episodes.sim, skills.map_genotypes[decision.map, decision.action])
+    outcome = execute(SimulatedRobots(robot, episodes.damage, record_every), skills, episodes, decision)
     return record_action(maze, config, skills, episodes, decision, outcome), outcome.qpos
+
+
+def execute(robots, skills: Skills, episodes: Episodes, decision: Decision) -> ActionOutcome:
+    """Every episode's decided skill run on `robots` (`action.SimulatedRobots` or `external.ExecutorRobot`)."""
+    if skills.hierarchical:
+        return hbr_action(robots, skills, episodes.sim, episodes.rules, decision.action, episodes.taken,
+                          decision.keys[:, 2])
+    return flat_action(robots, episodes.sim, skills.map_genotypes[decision.map, decision.action])
 
 
 @functools.partial(jax.jit, static_argnames=("maze", "config"))
 def record_action(maze: Maze, config: AdaptationConfig, skills: Skills, episodes: Episodes, decision: Decision,
                   outcome: ActionOutcome) -> Episodes:
-    """Every active episode after its executed action `outcome` (B, ...): the chosen repertoire's RTE
-    GP and APROL belief learn the displacement, the history and trajectory record it, and an episode
-    ends at the goal, when its robot went invalid or at `max_actions`. Ended episodes are unchanged.
-    `act_step` calls it after simulating; an executor's episode (`external.py`) after driving its robot.
-    """
+    """Every active episode after its executed `outcome` (B, ...): GP and belief learn it, history records it."""
     active = ~episodes.done
-    index, chosen_map = decision.action, decision.map
-    keys = decision.keys
-    maps = skills.map_actions
+    index, chosen_map, maps = decision.action, decision.map, skills.map_actions
 
     def learn(gps, belief, k, i, displacement, prior):
-        """The chosen repertoire's GP (against the prior it planned with) and APROL belief learn
-        what its skill did."""
         chosen = jax.tree.map(lambda x: x[k], maps)
         gp = add_observation(jax.tree.map(lambda x: x[k], gps), chosen.inputs[i], outcome_of(displacement), prior)
         gps = jax.tree.map(lambda all_, one: all_.at[k].set(one), gps, gp)
@@ -296,29 +208,12 @@ def record_action(maze: Maze, config: AdaptationConfig, skills: Skills, episodes
 
     rte, belief = jax.vmap(learn)(episodes.rte, episodes.belief, chosen_map, index, outcome.displacement, decision.prior)
     rules = episodes.rules if outcome.rules is None else outcome.rules
-
-    def keep(new, old):
-        """New values for active episodes, old ones for ended episodes."""
-        return jax.tree.map(lambda n, o: jnp.where(active.reshape(-1, *([1] * (n.ndim - 1))), n, o), new, old)
-
-    rows = jnp.arange(index.shape[0])
-    slot = jnp.minimum(episodes.taken, config.max_actions - 1)
-    h = episodes.history
-    recorded = History(
-        action=h.action.at[rows, slot].set(index),
-        map=h.map.at[rows, slot].set(chosen_map),
-        planned=h.planned.at[rows, slot].set(decision.plan.action),
-        start=h.start.at[rows, slot].set(decision.start),
-        predicted=h.predicted.at[rows, slot].set(decision.predicted),
-        observed=h.observed.at[rows, slot].set(outcome.displacement),
-        value=h.value.at[rows, slot].set(decision.plan.value),
-        path=h.path.at[rows, slot].set(decision.plan.path),
-        path_length=h.path_length.at[rows, slot].set(decision.plan.path_length),
-        patterns=h.patterns.at[rows, slot].set(outcome.patterns),
-        errors=h.errors.at[rows, slot].set(outcome.errors),
-        contacts=h.contacts.at[rows, slot].set(outcome.contacts),
-        leg_travel=h.leg_travel.at[rows, slot].set(outcome.leg_travel),
-    )
+    rows, slot = jnp.arange(index.shape[0]), jnp.minimum(episodes.taken, config.max_actions - 1)
+    planned = decision.plan
+    recorded = jax.tree.map(lambda old, new: old.at[rows, slot].set(new), episodes.history, History(
+        action=index, map=chosen_map, planned=planned.action, start=decision.start, predicted=decision.predicted,
+        observed=outcome.displacement, value=planned.value, path=planned.path, path_length=planned.path_length,
+        patterns=outcome.patterns, errors=outcome.errors, contacts=outcome.contacts, leg_travel=outcome.leg_travel))
     first = SECONDS_PER_ACTION * episodes.taken + 1
     trajectory = episodes.trajectory
     for second in range(SECONDS_PER_ACTION):
@@ -326,21 +221,12 @@ def record_action(maze: Maze, config: AdaptationConfig, skills: Skills, episodes
     # Later slots hold the latest pose until they are written (the plot shows a still robot).
     later = jnp.arange(trajectory.shape[1])[None, :] >= (first + SECONDS_PER_ACTION)[:, None]
     trajectory = jnp.where(later[..., None], outcome.poses[:, -1:, :], trajectory)
-    end = outcome.poses[:, -1]  # the pose after the neutral second
     updated = episodes.replace(
-        sim=outcome.state,
-        rte=rte,
-        belief=belief,
-        rules=rules,
-        key=keys[:, 0],
-        taken=episodes.taken + 1,
-        reached=reached_goal(maze, end[:, :2]) & outcome.valid,
-        broken=~outcome.valid,
-        reason=outcome.invalid_reason,
-        trajectory=trajectory,
-        history=recorded,
-    )
-    return keep(updated, episodes)
+        sim=outcome.state, rte=rte, belief=belief, rules=rules, key=decision.keys[:, 0], taken=episodes.taken + 1,
+        reached=reached_goal(maze, outcome.poses[:, -1, :2]) & outcome.valid, broken=~outcome.valid,
+        reason=outcome.invalid_reason, trajectory=trajectory, history=recorded)
+    return jax.tree.map(lambda new, old: jnp.where(active.reshape(-1, *([1] * (new.ndim - 1))), new, old),
+                        updated, episodes)  # ended episodes unchanged
 
 
 @dataclasses.dataclass
@@ -353,8 +239,7 @@ class RunTimings:
 
 
 def pad_episodes(episodes: Episodes, size: int) -> Episodes:
-    """The batch grown to `size` rows with copies of its last episode marked ended (`broken`), so
-    that the steps leave them as they are (`record_action`); `run_episodes` drops them at the end."""
+    """The batch grown to `size` rows with copies of its last episode marked ended (`broken`)."""
     batch = episodes.taken.shape[0]
     padded = sharding.pad_rows(episodes, size)
     return padded.replace(broken=padded.broken | (jnp.arange(size) >= batch))
@@ -362,10 +247,7 @@ def pad_episodes(episodes: Episodes, size: int) -> Episodes:
 
 @functools.lru_cache(maxsize=32)
 def sharded_steps(maze: Maze, config: AdaptationConfig, mesh: Mesh, record_every: int):
-    """(plan, act): `plan_step` and `act_step` with the episode axis split over `mesh` and the skills,
-    robot and distance field replicated: every device runs its episodes' planner and rollouts on its
-    own, no collective inside. plan(skills, field, episodes) -> Decision; act(robot, skills, episodes,
-    decision) -> (episodes, states)."""
+    """(plan, act): `plan_step` and `act_step` with the episode axis split over `mesh` (no collective inside)."""
     rows, whole = PartitionSpec(sharding.BATCH_AXIS), PartitionSpec()
 
     def plan(skills, field, episodes):
@@ -381,23 +263,11 @@ def sharded_steps(maze: Maze, config: AdaptationConfig, mesh: Mesh, record_every
             jax.jit(split(act, in_specs=(whole, whole, rows, rows))))
 
 
-def run_episodes(
-    maze: Maze,
-    config: AdaptationConfig,
-    robot: Robot,
-    skills: Skills,
-    episodes: Episodes,
-    progress: bool = True,
-    description: str = "episodes",
-    max_steps: int | None = None,
-    recorder: Recorder | None = None,
-    mesh: Mesh | None = None,
-) -> tuple[Episodes, RunTimings]:
-    """Run the batch until every episode has ended (or for `max_steps` actions); returns the
-    episodes and timings. recorder: collects the states of its rows during every action (the
-    step program then also returns states; without a recorder it is the one without recording).
-    mesh: the devices the episodes are spread over (`sharding.batch_mesh`; None: all visible), the
-    batch padded to a multiple of their count (`pad_episodes`); episodes do not depend on it."""
+def run_episodes(maze: Maze, config: AdaptationConfig, robot: Robot, skills: Skills, episodes: Episodes,
+                 progress: bool = True, description: str = "episodes", max_steps: int | None = None,
+                 recorder: Recorder | None = None, mesh: Mesh | None = None) -> tuple[Episodes, RunTimings]:
+    """Run the batch until every episode has ended (or for `max_steps` actions). recorder: collects its rows'
+    states. mesh: the devices the episodes are spread over (None: all visible)."""
     mesh = sharding.batch_mesh() if mesh is None else mesh
     batch = episodes.taken.shape[0]
     # Commit every input to the mesh: jit keys its cache on committed-ness, so uncommitted first
@@ -406,8 +276,7 @@ def run_episodes(
     skills, robot = sharding.put_replicated((skills, robot), mesh)
     episodes = sharding.put_batch(pad_episodes(episodes, sharding.padded_size(batch, mesh)), mesh)
     plan, act = sharded_steps(maze, config, mesh, 0 if recorder is None else recorder.every)
-    timings = RunTimings()
-    begin = time.perf_counter()
+    timings, begin = RunTimings(), time.perf_counter()
     bar = tqdm(total=config.max_actions, desc=description, unit="action", disable=not progress)
     for _ in range(config.max_actions if max_steps is None else min(max_steps, config.max_actions)):
         if bool(episodes.done.all()):

@@ -1,17 +1,5 @@
-"""Adaptation episodes on a robot this library does not simulate: the executor interface.
-
-An `Executor` is all the online loop needs from a robot, real or simulated elsewhere: its world
-planar pose, and running 36-parameter controllers for one second each from wherever it stands,
-reporting its pose after each second, the fraction of each second every foot touched the floor,
-and whether it went invalid (flipped, non-finite). `run_episode` runs ONE episode (B = 1) of any
-variant with the code of the batched MJX episodes: the planner (`episode.plan_step`), the action
-and its steps (`action.hbr_action`, `action.flat_action`, run on an `ExecutorRobot`) and the
-bookkeeping after an action (`episode.record_action`); the robot is driven only through the
-executor, one Python call per second of an HBR skill.
-
-`MujocoExecutor` is native MuJoCo (C, `mujoco.mj_step`) as the stand-in for hardware: the same
-model, damage, controller tables, servo law, contact test and validity limits as the MJX rollout,
-stepped on the CPU in float64.
+"""Adaptation episodes on a robot this library does not simulate, driven through an `Executor`; and
+`MujocoExecutor`, native MuJoCo as the stand-in for hardware (`docs/design.md`, Executors).
 """
 
 from __future__ import annotations
@@ -27,16 +15,9 @@ import numpy as np
 from flax import struct
 
 from hte_jax.geometry import planar_pose, relative_pose
-from hte_jax.online.action import (
-    ONLINE_LIMITS,
-    SECONDS_PER_ACTION,
-    STEP_CONTROL_STEPS,
-    Second,
-    flat_action,
-    hbr_action,
-)
+from hte_jax.online.action import ONLINE_LIMITS, SECONDS_PER_ACTION, STEP_CONTROL_STEPS, Second
 from hte_jax.online.arena import maze_config, place
-from hte_jax.online.episode import AdaptationConfig, Episodes, plan_step, record_action, start_episodes
+from hte_jax.online.episode import AdaptationConfig, Episodes, execute, plan_step, record_action, start_episodes
 from hte_jax.online.maze import Maze, distance_field
 from hte_jax.online.skills import Skills
 from hte_jax.online.variants import variant as variant_named
@@ -48,15 +29,9 @@ from hte_jax.sim.rollout import RolloutSpec, SimState, ValidityLimits, check_sta
 
 @struct.dataclass
 class Seconds:
-    """What a robot reports after running S one-second controllers.
-
-    poses: (S, 3) float32 world planar pose (x, y, heading) after each second.
-    contacts: (S, 6) float32 fraction of each second each foot was on the floor.
-    invalid_reason: int `sim.rollout.InvalidReason` bits (0: fine). An invalid robot stops where it
-      was last valid: the seconds after it repeat that pose, with no contact.
-    leg_travel: (S, 6) float32 radians each leg's three joints moved in each second (sum of |angle
-      changes|), or None for a robot that does not sense its joints (then no leg is judged stuck).
-    """
+    """What a robot reports after S one-second controllers: poses (S, 3) float32 world (x, y, heading) after each,
+    contacts (S, 6) float32 share each foot was down, invalid_reason int `InvalidReason` bits (later seconds repeat
+    the last valid pose, no contact), leg_travel (S, 6) float32 rad each leg's joints moved, or None."""
 
     poses: np.ndarray
     contacts: np.ndarray
@@ -71,16 +46,12 @@ class Executor(Protocol):
         """(3,) its world planar pose (x, y, heading) now."""
 
     def run(self, params: np.ndarray) -> Seconds:
-        """Run controllers `params` (S, 36) back to back from the current state, each for 1 s with
-        its clock restarted (`sim.controller`: joint targets, the velocity servo), and report."""
+        """Run controllers `params` (S, 36) back to back, each for 1 s with its clock restarted, and report."""
 
 
 class ExecutorRobot:
-    """One robot driven from the host through `executor`, as the robots of `action.hbr_action` and
-    `action.flat_action`: steps follow each other in a Python loop, the traceable parts of each
-    step run as jitted calls (`staged`), each second is one `executor.run` call. After a second
-    the robot went invalid in, it is not driven again: later seconds report its pose, no contact
-    and the same reason."""
+    """One robot driven from the host through `executor` (the robots of `action`), one `executor.run` per
+    second; an invalid robot is not driven again (later seconds report its pose and reason)."""
 
     def __init__(self, executor: Executor):
         self.executor, self.reason = executor, 0
@@ -142,13 +113,8 @@ class ExecutorRobot:
 
 def run_episode(maze: Maze, config: AdaptationConfig, skills: Skills, executor: Executor, variant: str = "hte",
                 key: jax.Array | None = None, damage: np.ndarray | None = None) -> Episodes:
-    """One adaptation episode of `variant` on the robot `executor` drives, from where it stands, until
-    it reaches the goal, goes invalid or has taken `config.max_actions` actions.
-
-    Returns the episode as `Episodes` with B = 1 (no `sim`; its trajectory holds the poses the
-    executor reported). key: PRNG key (default PRNGKey(0)). damage: (6,) bool, the robot's true
-    damage, which only Perfect HTE's oracle reads (default: intact).
-    """
+    """One episode of `variant` on the robot `executor` drives, from where it stands, as `Episodes` (B = 1, no
+    `sim`). damage: (6,) bool, the true damage that only Perfect HTE's oracle reads (default: intact)."""
     chosen = variant_named(variant)
     chosen.check_skills(skills)
     damage = np.zeros(NUM_LEGS, bool) if damage is None else np.asarray(damage, bool)
@@ -161,12 +127,7 @@ def run_episode(maze: Maze, config: AdaptationConfig, skills: Skills, executor: 
     skills, episodes = jax.device_put((skills, episodes), device)
     while not bool(episodes.done[0]):
         decision = plan_step(maze, config, skills, field, episodes)
-        if skills.hierarchical:
-            outcome = hbr_action(robot, skills, None, episodes.rules, decision.action, episodes.taken,
-                                 decision.keys[:, 2])
-        else:
-            outcome = flat_action(robot, None, skills.map_genotypes[decision.map, decision.action])
-        episodes = record_action(maze, config, skills, episodes, decision, outcome)
+        episodes = record_action(maze, config, skills, episodes, decision, execute(robot, skills, episodes, decision))
     return episodes
 
 
@@ -180,19 +141,8 @@ def _reasons(qpos: jax.Array, qvel: jax.Array, limits: ValidityLimits) -> jax.Ar
 
 
 class MujocoExecutor:
-    """One hexapod in native MuJoCo (C): the stand-in for a real robot.
-
-    config: the robot (`mj_model(config)`, e.g. `arena.maze_config(maze)` for the maze's walls).
-    damage: (6,) bool legs held in the damaged pose. start: unbatched SimState to start from.
-    limits: when the robot is invalid (default: the online phase's, `action.ONLINE_LIMITS`).
-
-    Each second is 100 control steps of the MJX rollout's loop: the controller's joint targets
-    (damaged legs in their pose), the velocity servo command, `mj_step`; a foot touches the floor
-    when its sphere is within `RolloutSpec.contact_tolerance` of it. Every state is checked as the
-    rollout checks it (`rollout.check_state`); at the first invalid one the robot is put back to the
-    state before it and stops. The tilt reflex of `config` (`RobotConfig.reflex_tilt`, `reflex_release`,
-    `reflex_rate`) runs as in the rollout (`rollout.reflex_braced`), within the second.
-    """
+    """One hexapod in native MuJoCo, run second by second as the MJX rollout runs it (damage (6,) bool, start an
+    unbatched SimState); at its first invalid state (`limits`) it is put back to the state before and stops."""
 
     def __init__(self, config: RobotConfig, damage: np.ndarray, start: SimState,
                  limits: ValidityLimits = ONLINE_LIMITS):
@@ -208,8 +158,7 @@ class MujocoExecutor:
 
     @classmethod
     def in_maze(cls, maze: Maze, damage: np.ndarray, base: RobotConfig = RobotConfig()) -> MujocoExecutor:
-        """A robot with `damage` settled standing (1 s of the neutral controller, away from walls, as
-        `arena.start_states` settles the MJX robots) and turned to the maze's start pose."""
+        """A robot with `damage` settled standing (as `arena.start_states`) and turned to the maze's start."""
         plain = dataclasses.replace(base, walls=())
         model = mj_model(plain)
         qpos = model.qpos0.copy()
@@ -239,10 +188,7 @@ class MujocoExecutor:
     def run(self, params: np.ndarray) -> Seconds:
         params = np.asarray(params, np.float32).reshape(-1, NUM_PARAMS)
         tables = np.asarray(_target_tables(jnp.asarray(params)), np.float64)  # (S, 100, 18)
-        count = tables.shape[0]
-        poses = np.zeros((count, 3), np.float32)
-        contacts = np.zeros((count, NUM_LEGS), np.float32)
-        travel = np.zeros((count, NUM_LEGS), np.float32)
+        poses, contacts, travel = (np.zeros((tables.shape[0], size), np.float32) for size in (3, NUM_LEGS, NUM_LEGS))
         reason = 0
         for second, table in enumerate(tables):
             if not reason:
@@ -250,16 +196,13 @@ class MujocoExecutor:
             poses[second] = self.pose()
         return Seconds(poses=poses, contacts=contacts, invalid_reason=reason, leg_travel=travel)
 
-    def _second(self, table: np.ndarray) -> tuple[int, np.ndarray]:
-        """One second of joint-target `table` (100, 18): (invalid reason, each foot's contact fraction,
-        each leg's joint travel)."""
+    def _second(self, table: np.ndarray) -> tuple[int, np.ndarray, np.ndarray]:
+        """One second of joint targets `table` (100, 18): (invalid reason, contact fractions (6,), leg travel (6,))."""
         model, data = self.model, self.data
         steps, substeps = STEP_CONTROL_STEPS, self.config.substeps
-        before = self.state()
-        qpos, qvel = np.zeros((steps, model.nq)), np.zeros((steps, model.nv))
-        warm = np.zeros((steps, model.nv))
+        qpos, qvel, warm = (np.zeros((steps + 1, size)) for size in (model.nq, model.nv, model.nv))
+        qpos[0], qvel[0], warm[0] = data.qpos, data.qvel, data.qacc_warmstart  # row k + 1: after control step k
         touching = np.zeros((steps, NUM_LEGS), bool)
-        tolerance = RolloutSpec.contact_tolerance
         braced = np.False_
         for k in range(steps):
             if self.config.reflex_tilt > 0.0:  # the tilt reflex, as `rollout` runs it
@@ -272,18 +215,14 @@ class MujocoExecutor:
             for _ in range(substeps):
                 mujoco.mj_step(model, data)
             # geom_xpos comes from the step's forward pass: the feet at the start of the step, as in MJX.
-            touching[k] = data.geom_xpos[self.feet, 2] - FOOT_RADIUS < tolerance
-            qpos[k], qvel[k], warm[k] = data.qpos, data.qvel, data.qacc_warmstart
-        reasons = np.asarray(_reasons(jnp.asarray(qpos, jnp.float32), jnp.asarray(qvel, jnp.float32), self.limits))
+            touching[k] = data.geom_xpos[self.feet, 2] - FOOT_RADIUS < RolloutSpec.contact_tolerance
+            qpos[k + 1], qvel[k + 1], warm[k + 1] = data.qpos, data.qvel, data.qacc_warmstart
+        reasons = np.asarray(_reasons(jnp.asarray(qpos[1:], jnp.float32), jnp.asarray(qvel[1:], jnp.float32),
+                                      self.limits))
         bad = np.flatnonzero(reasons)
-        angles = np.concatenate([before.qpos[None, self.joints], qpos[:, self.joints]])  # (101, 18)
-        moved = np.abs(np.diff(angles, axis=0))  # (100, 18) per control step
-        if not bad.size:
-            return 0, touching.mean(axis=0), moved.sum(axis=0).reshape(NUM_LEGS, -1).sum(axis=-1)
-        first = int(bad[0])
-        if first:
-            self._set(qpos[first - 1], qvel[first - 1], warm[first - 1])
-        else:
-            self._set(before.qpos, before.qvel, before.qacc_warmstart)
-        return (int(reasons[first]), touching[:first].sum(axis=0) / steps,
-                moved[:first].sum(axis=0).reshape(NUM_LEGS, -1).sum(axis=-1))
+        valid = int(bad[0]) if bad.size else steps  # control steps before the first invalid state
+        if bad.size:  # back to the last valid state
+            self._set(qpos[valid], qvel[valid], warm[valid])
+        moved = np.abs(np.diff(qpos[: valid + 1, self.joints], axis=0))  # (valid, 18) per control step
+        return (int(reasons[valid]) if bad.size else 0, touching[:valid].sum(axis=0) / steps,
+                moved.sum(axis=0).reshape(NUM_LEGS, -1).sum(axis=-1))

@@ -1,15 +1,7 @@
-"""Jitted Gaussian processes on fixed-capacity, masked observation buffers (`docs/original_code.md` §7).
+"""Gaussian processes on fixed-capacity, masked observation buffers (`docs/design.md`, GPs).
 
-A `GPData` buffer has room for `capacity` observations and a mask of the filled rows, so adding
-points never changes an array shape and never retraces. Padded rows are decoupled from the real
-ones (zero covariance, unit diagonal), which makes the posterior exactly that of the unpadded GP.
-When the buffer is full the oldest observation is overwritten (ring buffer).
-
-Outputs share one kernel (as in limbo): the posterior variance is the same for every output.
-The prior mean is either given per observation and per query (RTE: the repertoire's prediction)
-or the mean of the observed targets (limbo's `mean::Data`, HTE's secondary GP).
-Linear algebra runs in float32 under `jax.default_matmul_precision("highest")`: GPU tensor cores
-would otherwise round matrix products to TF32.
+Padded rows are decoupled (zero covariance, unit diagonal), so the posterior is the unpadded GP's and
+adding points never retraces; a full buffer overwrites its oldest observation. Outputs share one kernel.
 """
 
 from __future__ import annotations
@@ -27,11 +19,8 @@ KERNELS = ("squared_exponential", "matern52")
 
 @dataclasses.dataclass(frozen=True)
 class Kernel:
-    """A stationary kernel k(a, b) = variance * f(|a - b| / length_scale), observation noise `noise`.
-
-    kind: "squared_exponential" (limbo Exp: exp(-r^2 / 2)) or "matern52"
-    ((1 + sqrt5 r + 5 r^2 / 3) exp(-sqrt5 r)).
-    """
+    """A stationary kernel k(a, b) = variance * f(|a - b| / length_scale), observation noise `noise`. kind:
+    "squared_exponential" (limbo Exp: exp(-r^2 / 2)) or "matern52" ((1 + sqrt5 r + 5 r^2 / 3) exp(-sqrt5 r))."""
 
     kind: str
     length_scale: float
@@ -50,8 +39,7 @@ class Kernel:
 
 
 def covariance(kind: str, length_scale, variance, a: jax.Array, b: jax.Array) -> jax.Array:
-    """(A, D), (B, D) -> (A, B) covariances of a `Kernel` of this kind; length_scale and variance
-    may be traced (the kernel fit, `gp_fit.py`, differentiates through them)."""
+    """(A, D), (B, D) -> (A, B) covariances; length_scale and variance may be traced (`gp_fit.py`)."""
     diff = a[:, None, :] - b[None, :, :]
     r2 = jnp.sum(diff * diff, axis=-1) / length_scale**2
     if kind == "squared_exponential":
@@ -68,12 +56,9 @@ HTE_KERNEL = Kernel("matern52", length_scale=1.0, variance=0.05, noise=0.001)
 
 @struct.dataclass
 class GPData:
-    """Observations of a GP with N = capacity slots, inputs of size D, outputs of size O.
-
-    inputs: (N, D) float32. targets: (N, O) float32 observed values.
-    prior: (N, O) float32 prior mean at each input (ignored when the GP uses the data mean).
-    mask: (N,) bool filled slots. count: () int32 observations ever added (next slot = count % N).
-    """
+    """Observations of a GP with N = capacity slots. inputs: (N, D) float32. targets: (N, O) float32.
+    prior: (N, O) float32 prior mean at each input (ignored under the data mean). mask: (N,) bool filled
+    slots. count: () int32 observations ever added (next slot = count % N)."""
 
     inputs: jax.Array
     targets: jax.Array
@@ -88,13 +73,10 @@ class GPData:
 
 def empty_gp(capacity: int, input_dim: int, output_dim: int) -> GPData:
     require_int("GP capacity", capacity)
-    return GPData(
-        inputs=jnp.zeros((capacity, input_dim), jnp.float32),
-        targets=jnp.zeros((capacity, output_dim), jnp.float32),
-        prior=jnp.zeros((capacity, output_dim), jnp.float32),
-        mask=jnp.zeros((capacity,), bool),
-        count=jnp.int32(0),
-    )
+    return GPData(inputs=jnp.zeros((capacity, input_dim), jnp.float32),
+                  targets=jnp.zeros((capacity, output_dim), jnp.float32),
+                  prior=jnp.zeros((capacity, output_dim), jnp.float32), mask=jnp.zeros((capacity,), bool),
+                  count=jnp.int32(0))
 
 
 def add_observation(data: GPData, x: jax.Array, y: jax.Array, prior: jax.Array | None = None) -> GPData:
@@ -110,12 +92,6 @@ def add_observation(data: GPData, x: jax.Array, y: jax.Array, prior: jax.Array |
     )
 
 
-def data_mean(data: GPData) -> jax.Array:
-    """(O,) mean of the observed targets (0 when empty)."""
-    weight = data.mask.astype(jnp.float32)[:, None]
-    return jnp.sum(data.targets * weight, axis=0) / jnp.maximum(weight.sum(), 1.0)
-
-
 def _factor_and_solve(gram: jax.Array, rhs: jax.Array) -> jax.Array:
     """L^-1 rhs (N, M) for the Cholesky factor L of gram (N, N)."""
     return jax.scipy.linalg.solve_triangular(jnp.linalg.cholesky(gram), rhs, lower=True)
@@ -123,15 +99,8 @@ def _factor_and_solve(gram: jax.Array, rhs: jax.Array) -> jax.Array:
 
 @jax.custom_batching.custom_vmap
 def whitened(gram: jax.Array, rhs: jax.Array) -> jax.Array:
-    """L^-1 rhs (N, M) for the Cholesky factor L of the positive-definite gram (N, N).
-
-    Batched (under `vmap`), the CPU runs it one matrix at a time (`lax.map`), other platforms as
-    one batched call. jaxlib 0.10's CPU LAPACK kernels split a batch over XLA's intra-op thread
-    pool and block until it is done; two such kernels running at once (as the batched GPs of one
-    episode step do) can occupy every pool thread of a 2-core machine while they wait, and the
-    process hangs (`docs/design.md`, GPs). One matrix per call never uses the pool and computes
-    the same bits.
-    """
+    """L^-1 rhs (N, M) for the Cholesky factor L of gram (N, N); batched, the CPU solves one matrix at a time
+    (batched LAPACK calls can hang a 2-core machine: `docs/design.md`, GPs)."""
     return _factor_and_solve(gram, rhs)
 
 
@@ -139,37 +108,29 @@ def whitened(gram: jax.Array, rhs: jax.Array) -> jax.Array:
 def _whitened_batched(axis_size: int, in_batched: list[bool], gram: jax.Array, rhs: jax.Array):
     gram, rhs = (x if batched else jnp.broadcast_to(x, (axis_size, *x.shape))
                  for x, batched in zip((gram, rhs), in_batched))
-
-    def one_at_a_time(gram, rhs):
-        return jax.lax.map(lambda pair: whitened(*pair), (gram, rhs))
-
-    return jax.lax.platform_dependent(gram, rhs, cpu=one_at_a_time, default=jax.vmap(_factor_and_solve)), True
+    return jax.lax.platform_dependent(gram, rhs, cpu=lambda *pair: jax.lax.map(lambda one: whitened(*one), pair),
+                                      default=jax.vmap(_factor_and_solve)), True
 
 
-def posterior(
-    kernel: Kernel, data: GPData, queries: jax.Array, query_prior: jax.Array | None = None
-) -> tuple[jax.Array, jax.Array]:
-    """Posterior mean (Q, O) and variance (Q,) at queries (Q, D).
-
-    query_prior (Q, O): the prior mean at the queries, with `data.prior` at the observations;
-    None: the prior mean is the mean of the observed targets everywhere (limbo `mean::Data`).
-    """
+def posterior(kernel: Kernel, data: GPData, queries: jax.Array,
+              query_prior: jax.Array | None = None) -> tuple[jax.Array, jax.Array]:
+    """Posterior mean (Q, O) and variance (Q,) at queries (Q, D). query_prior (Q, O): the prior mean at the
+    queries (`data.prior` at the observations); None: the observed targets' mean everywhere."""
     with jax.default_matmul_precision("highest"):
         mask = data.mask
         if query_prior is None:
-            constant = data_mean(data)
+            weight = data.mask.astype(jnp.float32)[:, None]
+            constant = jnp.sum(data.targets * weight, axis=0) / jnp.maximum(weight.sum(), 1.0)  # (O,) (0 if empty)
             residual = data.targets - constant
             query_prior = jnp.broadcast_to(constant, (queries.shape[0], constant.shape[0]))
         else:
             residual = data.targets - data.prior
-        pair = mask[:, None] & mask[None, :]
-        gram = jnp.where(pair, kernel(data.inputs, data.inputs), 0.0)
+        gram = jnp.where(mask[:, None] & mask[None, :], kernel(data.inputs, data.inputs), 0.0)
         gram = gram + jnp.diag(jnp.where(mask, kernel.noise, 1.0))
         residual = jnp.where(mask[:, None], residual, 0.0)
         cross = jnp.where(mask[None, :], kernel(queries.astype(jnp.float32), data.inputs), 0.0)  # (Q, N)
         # With L L^T = K, the mean is prior + (L^-1 k)^T (L^-1 r) and the variance s^2 - |L^-1 k|^2.
         solved = whitened(gram, jnp.concatenate([residual, cross.T], axis=1))
         w, v = solved[:, : residual.shape[1]], solved[:, residual.shape[1]:]  # (N, O), (N, Q)
-        mean = query_prior + v.T @ w
-        variance = kernel.variance - jnp.sum(v * v, axis=0)
+        mean, variance = query_prior + v.T @ w, kernel.variance - jnp.sum(v * v, axis=0)
     return mean, jnp.maximum(variance, 0.0)

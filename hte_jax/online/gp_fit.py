@@ -1,13 +1,5 @@
-"""Fitting a GP kernel's hyper-parameters by maximising the log marginal likelihood (issue 22).
-
-The likelihood of one `GPData` buffer is that of its filled rows only: padded rows are decoupled
-as in `gp.posterior` (zero covariance, unit diagonal, zero residual), so they add nothing to the
-quadratic term or to log|K|. Outputs are independent GPs sharing one kernel, each on the
-residual target - prior (RTE: the observed outcome against the repertoire's prediction).
-
-`fit_kernel` maximises the summed likelihood of E buffers (many episodes' GPs, stacked on a
-leading axis) with `optax.adam` on (log length_scale, log variance, log noise) inside one jitted
-`lax.scan`. A tool for researchers: nothing in the online loop calls it.
+"""Fitting a GP kernel's hyper-parameters by maximising the log marginal likelihood of masked buffers
+(issue 22; `docs/design.md`, Kernel fit). A researchers' tool: the online loop keeps the paper's kernel.
 """
 
 from __future__ import annotations
@@ -42,11 +34,9 @@ class KernelParams:
 
 def kernel_params(kernel: Kernel) -> KernelParams:
     """The free parameters of `kernel` (its noise raised to the floor first)."""
-    return KernelParams(
-        log_length_scale=jnp.float32(math.log(kernel.length_scale)),
-        log_variance=jnp.float32(math.log(kernel.variance)),
-        log_noise=jnp.float32(math.log(max(kernel.noise, NOISE_FLOOR))),
-    )
+    return KernelParams(log_length_scale=jnp.float32(math.log(kernel.length_scale)),
+                        log_variance=jnp.float32(math.log(kernel.variance)),
+                        log_noise=jnp.float32(math.log(max(kernel.noise, NOISE_FLOOR))))
 
 
 def kernel_of(params: KernelParams, kind: str) -> Kernel:
@@ -81,8 +71,7 @@ def total_log_likelihood(params: KernelParams, data_batch: GPData, kind: str) ->
 @functools.partial(jax.jit, static_argnames=("kind", "steps", "learning_rate"))
 def _ascend(params: KernelParams, data_batch: GPData, kind: str, steps: int,
             learning_rate: float) -> tuple[KernelParams, jax.Array]:
-    """`steps` Adam steps on the negative summed likelihood; the parameters and the likelihood
-    trace (steps + 1,): before each step, then at the returned parameters."""
+    """`steps` Adam steps on the negative summed likelihood; the parameters and the likelihood trace (steps + 1,)."""
     optimizer = optax.adam(learning_rate)
     loss_and_grad = jax.value_and_grad(lambda p: -total_log_likelihood(p, data_batch, kind))
 
@@ -99,9 +88,8 @@ def _ascend(params: KernelParams, data_batch: GPData, kind: str, steps: int,
 
 def fit_kernel(data_batch: GPData, initial: Kernel, steps: int = 200,
                learning_rate: float = 0.05) -> tuple[Kernel, np.ndarray]:
-    """The kernel of `initial`'s kind that maximises the summed log marginal likelihood of the E
-    buffers `data_batch` (fields (E, N, ...)), found by `steps` Adam steps from `initial`; and the
-    likelihood trace (steps + 1,): trace[0] at `initial`, trace[-1] at the returned kernel."""
+    """The kernel of `initial`'s kind maximising the summed log marginal likelihood of the E buffers
+    `data_batch` (fields (E, N, ...)) after `steps` Adam steps, and the trace (steps + 1,) from `initial` on."""
     require_int("fit steps", steps)
     require_number("fit learning_rate", learning_rate, 0.0, open_low=True)
     if data_batch.mask.ndim != 2:

@@ -1,12 +1,5 @@
-"""The maze of the paper's experiment (`docs/original_code.md` §9) and the planner's 2-D geometry.
-
-Obstacles are axis-aligned boxes (x1, y1, x2, y2). `load_maze` reads a maze from a JSON file
-(`maze_to_dict`'s layout) or by the name of one shipped in assets/mazes/ ("paper", "two_rooms").
-The robot is a disc for the planner: a point
-collides when the disc of radius r overlaps a box; a move collides when the disc swept along the
-segment does (exact test). `distance_field` is the breadth-first distance, in grid steps, from
-every cell of a grid to the goal's cell through free cells (8-connected, every step costs 1, as
-the original's A*), the guide of the planner's expansion.
+"""The maze of the paper's experiment and the planner's 2-D geometry (`docs/design.md`, Maze): boxes
+(x1, y1, x2, y2), a disc-shaped robot, and the grid distance field that guides the planner's expansion.
 """
 
 from __future__ import annotations
@@ -23,29 +16,17 @@ from hte_jax.errors import ConfigError, require_number
 
 Box = tuple[float, float, float, float]
 
-PAPER_BOXES: tuple[Box, ...] = (
-    (-0.20, 3.06, 0.75, 4.00),
-    (2.20, -0.30, 2.70, 0.625),
-    (1.73, 1.84, 2.73, 2.34),
-    (2.73, 1.84, 3.23, 2.84),
-    (3.15, 1.84, 4.50, 4.04),
-)
-PAPER_WALLS: tuple[Box, ...] = (
-    (-0.2, -0.31, 4.5, -0.3),
-    (-0.21, -0.3, -0.2, 4.0),
-    (4.5, -0.3, 4.51, 4.0),
-    (-0.2, 4.0, 4.5, 4.01),
-)
+PAPER_BOXES: tuple[Box, ...] = ((-0.20, 3.06, 0.75, 4.00), (2.20, -0.30, 2.70, 0.625), (1.73, 1.84, 2.73, 2.34),
+                                 (2.73, 1.84, 3.23, 2.84), (3.15, 1.84, 4.50, 4.04))
+PAPER_WALLS: tuple[Box, ...] = ((-0.2, -0.31, 4.5, -0.3), (-0.21, -0.3, -0.2, 4.0), (4.5, -0.3, 4.51, 4.0),
+                                (-0.2, 4.0, 4.5, 4.01))
 
 
 @dataclasses.dataclass(frozen=True)
 class Maze:
-    """A navigation task (static, hashable).
-
-    obstacles: boxes (x1, y1, x2, y2) in metres (boxes and walls). bounds: (x_min, y_min, x_max,
-    y_max) of the planner's map; leaving it is a failure. start: (x, y, yaw). goal: (x, y);
-    reached within goal_radius. robot_radius: the planner's disc.
-    """
+    """A navigation task (static, hashable). obstacles: boxes (x1, y1, x2, y2) in metres. bounds: (x_min,
+    y_min, x_max, y_max) of the planner's map (leaving it fails). start: (x, y, yaw). goal: (x, y), reached
+    within goal_radius. robot_radius: the planner's disc."""
 
     obstacles: tuple[Box, ...] = PAPER_BOXES + PAPER_WALLS
     bounds: Box = (0.0, 0.0, 4.5, 4.0)
@@ -76,8 +57,7 @@ def maze_to_dict(maze: Maze) -> dict:
 
 
 def maze_from_dict(data: dict) -> Maze:
-    """The maze of `maze_to_dict`'s layout (JSON lists back to tuples); missing fields take the
-    paper maze's values."""
+    """The maze of `maze_to_dict`'s layout; missing fields take the paper maze's values."""
     unknown = sorted(set(data) - set(MAZE_FIELDS))
     if unknown:
         raise ConfigError(f"unknown maze field(s) {', '.join(unknown)}; the fields are {', '.join(MAZE_FIELDS)}")
@@ -133,8 +113,7 @@ def point_box_distance(points: jax.Array, boxes: np.ndarray) -> jax.Array:
 
 def _point_segment_distance(points: jax.Array, a: jax.Array, b: jax.Array) -> jax.Array:
     """points (..., M, 2) to segments a, b (..., 2) -> (..., M)."""
-    ab = (b - a)[..., None, :]
-    ap = points - a[..., None, :]
+    ab, ap = (b - a)[..., None, :], points - a[..., None, :]
     t = jnp.clip(jnp.sum(ap * ab, -1) / jnp.maximum(jnp.sum(ab * ab, -1), 1e-12), 0.0, 1.0)
     d = ap - t[..., None] * ab
     return jnp.sqrt(jnp.sum(d * d, axis=-1))
@@ -149,17 +128,12 @@ def _segment_crosses_box(a: jax.Array, b: jax.Array, boxes: np.ndarray) -> jax.A
     inside = (a >= low) & (a <= high)  # for axis-parallel segments
     t_near = jnp.where(jnp.abs(d) < 1e-12, jnp.where(inside, -jnp.inf, jnp.inf), jnp.minimum(t1, t2))
     t_far = jnp.where(jnp.abs(d) < 1e-12, jnp.where(inside, jnp.inf, -jnp.inf), jnp.maximum(t1, t2))
-    enter = jnp.max(t_near, axis=-1)
-    leave = jnp.min(t_far, axis=-1)
+    enter, leave = jnp.max(t_near, axis=-1), jnp.min(t_far, axis=-1)
     return (enter <= leave) & (leave >= 0.0) & (enter <= 1.0)
 
 
 def segment_box_distance(a: jax.Array, b: jax.Array, boxes: np.ndarray) -> jax.Array:
-    """(..., 2) segment ends, (K, 4) boxes -> (..., K) distance between segment and box (0 if they meet).
-
-    Disjoint convex shapes in the plane are closest at a vertex of one of them: an end of the
-    segment or a corner of the box.
-    """
+    """(..., 2) segment ends, (K, 4) boxes -> (..., K) distance (0 if they meet; else at an end or a corner)."""
     ends = jnp.minimum(point_box_distance(a, boxes), point_box_distance(b, boxes))
     corners = jnp.stack([boxes[:, [0, 1]], boxes[:, [0, 3]], boxes[:, [2, 1]], boxes[:, [2, 3]]], axis=1)  # (K, 4, 2)
     flat = jnp.asarray(corners.reshape(-1, 2))
@@ -197,9 +171,8 @@ _ESCAPES = np.array(sorted(((dx, dy) for dx in (-0.5, 0.0, 0.5) for dy in (-0.5,
 
 
 def planning_start(maze: Maze, points: jax.Array) -> jax.Array:
-    """(..., 2) measured positions -> (..., 2) where the planner starts: the position itself if the
-    disc is free and on the map, else the nearest free on-map point among the +-0.5 m offsets (the
-    original's rule), else the position itself."""
+    """(..., 2) measured positions -> (..., 2) the planner's start: the nearest free on-map point among the
+    position and its +-0.5 m offsets (the original's rule), else the position itself."""
     offsets = jnp.asarray(_ESCAPES)  # (9, 2), (0, 0) first
     tries = points[..., None, :] + offsets
     free = ~point_collides(maze, tries) & in_bounds(maze, tries)
@@ -213,8 +186,7 @@ class GridSpec:
     """A planning grid over the maze bounds: node (i, j) at (x_min + i cell, y_min + j cell)."""
 
     cell: float = 0.5
-    radius_factor: float = 1.3  # a step between nodes is blocked if the swept disc of
-    # radius_factor * robot_radius collides (the original's A* inflation)
+    radius_factor: float = 1.3  # steps blocked for a disc of radius_factor * robot_radius (the A*'s inflation)
 
     def shape(self, maze: Maze) -> tuple[int, int]:
         x0, y0, x1, y1 = maze.bounds

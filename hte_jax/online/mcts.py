@@ -1,21 +1,6 @@
-"""RTE's planner: Monte-Carlo tree search over the repertoire's actions, jitted and batched (`docs/original_code.md` §7.2).
-
-`search` grows a tree by `simulate`, one simulation at a time, each in four steps (the structure of
-mctx's search):
-* `select`: descend from the root by UCT (Q/N + 2c sqrt(ln(N_parent + 1) / N)) and stop at a leaf or
-  at a node that should widen (progressive widening: a node gets a new action when visits^a > children);
-* `expand`: give that node a child by the best of `candidates` random actions, as ranked by the maze's
-  distance field;
-* `evaluate`: estimate the new leaf by a random rollout (uniform actions, discount gamma, depth limit);
-* `backup`: count a visit on every node of the selected path and add each one below the root its
-  discounted return.
-Transitions compose the state with the action's predicted displacement (the GP mean; the
-original's outcome noise has a standard deviation of at most 0.01 m and is left out). Leaving
-the map or colliding gives `collision_reward` and ends the branch; reaching the goal gives
-`goal_reward` and ends it. `plan` merges `roots` independent trees by summing their root
-statistics per action (root parallelisation) and returns the action with the best mean value.
-Everything has a fixed size: one tree holds iterations + 1 nodes and at most K children per node,
-a selected path depth + 1 nodes.
+"""RTE's planner: Monte-Carlo tree search over the repertoire's actions, jitted and batched (`docs/design.md`,
+Planner). A simulation is `select`, `expand`, `evaluate` and `backup` on one fixed-size tree, written for
+vmap (an expansion that does not happen writes out of range); `plan` merges `roots` trees at the root.
 """
 
 from __future__ import annotations
@@ -35,12 +20,8 @@ from hte_jax.online.maze import GridSpec, Maze, in_bounds, move_collides, point_
 
 @dataclasses.dataclass(frozen=True)
 class PlannerConfig:
-    """MCTS settings (the original's values as defaults, except iterations and roots: 6000 x 32 there).
-
-    iterations: simulations per tree. roots: independent trees per decision. exploration: UCT c.
-    widening: progressive-widening exponent a. gamma: discount. depth: longest simulated path.
-    candidates: random actions ranked at each expansion. collision_reward / goal_reward: terminal rewards.
-    """
+    """MCTS settings, the original's but iterations x roots (6000 x 32 there): UCT c `exploration`, progressive
+    widening exponent a, discount gamma, `depth` the longest path, `candidates` ranked at each expansion."""
 
     iterations: int = 1000
     roots: int = 4
@@ -53,10 +34,8 @@ class PlannerConfig:
     goal_reward: float = 100.0
 
     def __post_init__(self):
-        require_int("iterations", self.iterations)
-        require_int("roots", self.roots)
-        require_int("depth", self.depth)
-        require_int("candidates", self.candidates)
+        for name in ("iterations", "roots", "depth", "candidates"):
+            require_int(name, getattr(self, name))
         require_number("exploration", self.exploration, 0.0)
         require_number("widening", self.widening, 0.0, 1.0, open_low=True)
         require_number("gamma", self.gamma, 0.0, 1.0)
@@ -68,15 +47,9 @@ class PlannerConfig:
 
 @struct.dataclass
 class Tree:
-    """One search tree, M = iterations + 1 nodes (node 0 is the root), K = max children.
-
-    state: (M, 3) x, y, yaw. parent: (M,) int32 (-1 at the root). action: (M,) int32 action that
-    led to the node (-1 at the root).
-    reward: (M,) reward of entering the node. terminal: (M,) bool. depth: (M,) int32.
-    visits: (M,) int32. value: (M,) float32 summed discounted returns from entering the node (0 at the
-    root: `plan` reads its children).
-    children: (M, K) int32 child nodes (-1 empty). num_children: (M,) int32. size: () int32 nodes used.
-    """
+    """One search tree of M = iterations + 1 nodes (0: the root), K = max children: state (M, 3); parent and action
+    (M,) int32 (-1 at the root); reward (M,) of entering; terminal (M,) bool; depth and visits (M,) int32; value
+    (M,) summed discounted returns from entering; children (M, K) int32 (-1 empty); num_children (M,); size ()."""
 
     state: jax.Array
     parent: jax.Array
@@ -93,12 +66,9 @@ class Tree:
 
 @struct.dataclass
 class World:
-    """What a plan needs besides the state: A actions and the maze's distance field.
-
-    displacement: (A, 3) predicted (dx, dy, dyaw) of each action in the robot's frame.
-    mask: (A,) bool usable actions. field: (nx, ny) int32 grid steps to the goal (-1 unreachable).
-    usable: (A,) int32 action indices, the usable ones first. count: () int32 usable actions.
-    """
+    """What a plan needs besides the state. displacement: (A, 3) predicted (dx, dy, dyaw) of each action in
+    the robot's frame. mask: (A,) bool usable actions. field: (nx, ny) int32 grid steps to the goal (-1
+    unreachable). usable: (A,) int32 action indices, the usable ones first. count: () int32 usable actions."""
 
     displacement: jax.Array
     mask: jax.Array
@@ -109,12 +79,9 @@ class World:
 
 @struct.dataclass
 class Path:
-    """The nodes one simulation went through, root first. D = config.depth, M = config.iterations + 1.
-
-    nodes: (D + 1,) int32 the node at each depth (nodes[0] = 0, the root); the entries from `length`
-      on hold M, an index past every tree array, so that scatters through them are dropped.
-    length: () int32 nodes on the path (at least 1: the root).
-    """
+    """The nodes one simulation went through. nodes: (D + 1,) int32 the node at each depth (D = config.depth);
+    from `length` on M = iterations + 1, past every tree array (scatters through them are dropped).
+    length: () int32 nodes on the path (at least 1: the root)."""
 
     nodes: jax.Array
     length: jax.Array
@@ -133,29 +100,18 @@ class Path:
 def empty_tree(config: PlannerConfig, state: jax.Array) -> Tree:
     """A tree holding only its root, at `state` (3,)."""
     m, k = config.iterations + 1, config.max_children
-    return Tree(
-        state=jnp.zeros((m, 3), jnp.float32).at[0].set(state),
-        parent=jnp.full((m,), -1, jnp.int32),
-        action=jnp.full((m,), -1, jnp.int32),
-        reward=jnp.zeros((m,), jnp.float32),
-        terminal=jnp.zeros((m,), bool),
-        depth=jnp.zeros((m,), jnp.int32),
-        visits=jnp.zeros((m,), jnp.int32),
-        value=jnp.zeros((m,), jnp.float32),
-        children=jnp.full((m, k), -1, jnp.int32),
-        num_children=jnp.zeros((m,), jnp.int32),
-        size=jnp.int32(1),
-    )
+    return Tree(state=jnp.zeros((m, 3), jnp.float32).at[0].set(state), parent=jnp.full((m,), -1, jnp.int32),
+                action=jnp.full((m,), -1, jnp.int32), reward=jnp.zeros((m,), jnp.float32),
+                terminal=jnp.zeros((m,), bool), depth=jnp.zeros((m,), jnp.int32), visits=jnp.zeros((m,), jnp.int32),
+                value=jnp.zeros((m,), jnp.float32), children=jnp.full((m, k), -1, jnp.int32),
+                num_children=jnp.zeros((m,), jnp.int32), size=jnp.int32(1))
 
 def transition(maze: Maze, config: PlannerConfig, world: World, state: jax.Array, action: jax.Array):
     """(..., 3) state, (...,) action -> next state, reward, terminal."""
     nxt = compose_pose(state, world.displacement[action])
-    bad = (
-        ~in_bounds(maze, nxt[..., :2])
-        | point_collides(maze, nxt[..., :2])
-        | move_collides(maze, state[..., :2], nxt[..., :2])
-    )
-    goal = reached_goal(maze, nxt[..., :2]) & ~bad
+    end = nxt[..., :2]
+    bad = ~in_bounds(maze, end) | point_collides(maze, end) | move_collides(maze, state[..., :2], end)
+    goal = reached_goal(maze, end) & ~bad
     reward = jnp.where(bad, config.collision_reward, jnp.where(goal, config.goal_reward, 0.0))
     return nxt, reward, bad | goal
 
@@ -176,11 +132,10 @@ def _sample_actions(key, world: World, num: int) -> jax.Array:
     return world.usable[jax.random.randint(key, (num,), 0, jnp.maximum(world.count, 1))]
 
 
-def _rollout_return(maze: Maze, config: PlannerConfig, world: World, key: jax.Array, state: jax.Array,
-                    alive: jax.Array, depth: jax.Array) -> jax.Array:
-    """Discounted return of a uniform random rollout from `state` at tree depth `depth`, as the
-    step-by-step loop would give it (stop at a terminal transition or the depth limit), but with
-    every step's reward computed at once: only the pose composition is sequential (unrolled)."""
+def evaluate(maze: Maze, config: PlannerConfig, world: World, key: jax.Array, tree: Tree, leaf: jax.Array) -> jax.Array:
+    """() float32 the leaf's estimated return: a uniform random rollout's from its state and depth (0 if
+    terminal), until a terminal transition or the depth limit; only the pose composition is sequential."""
+    state, alive, depth = tree.state[leaf], ~tree.terminal[leaf], tree.depth[leaf]
     steps = config.depth
     actions = _sample_actions(key, world, steps)
 
@@ -196,25 +151,16 @@ def _rollout_return(maze: Maze, config: PlannerConfig, world: World, key: jax.Ar
     return jnp.sum(jnp.where(go, config.gamma ** k.astype(jnp.float32) * reward, 0.0))
 
 
-# The search, one step at a time. Every step works on one tree (the planner vmaps over trees and
-# robots), so each is written for batching: the descent only selects, the one expansion of a
-# simulation is computed whether or not it happens and written through the out-of-range index M when
-# it does not (dropped writes), the rollout is one vectorised return, and the back-up adds to the
-# recorded path in one scatter.
-
-
 def is_leaf(config: PlannerConfig, tree: Tree, node: jax.Array) -> jax.Array:
     """() bool: the node ends every simulation reaching it (terminal, or at the depth limit)."""
     return tree.terminal[node] | (tree.depth[node] >= config.depth)
 
 
 def should_widen(config: PlannerConfig, tree: Tree, node: jax.Array) -> jax.Array:
-    """() bool progressive widening: the node gets a new child when it has none or visits^a > children,
-    while it has room for one (fewer than K children)."""
+    """() bool progressive widening: a new child when it has none or visits^a > children, room permitting."""
     count = tree.num_children[node]
-    return ((count == 0) | (tree.visits[node].astype(jnp.float32) ** config.widening > count)) & (
-        count < config.max_children
-    )
+    widen = (count == 0) | (tree.visits[node].astype(jnp.float32) ** config.widening > count)
+    return widen & (count < config.max_children)
 
 
 def uct_child(config: PlannerConfig, tree: Tree, node: jax.Array) -> jax.Array:
@@ -222,21 +168,16 @@ def uct_child(config: PlannerConfig, tree: Tree, node: jax.Array) -> jax.Array:
     kids = tree.children[node]
     valid = kids >= 0
     safe = jnp.where(valid, kids, 0)
-    n = jnp.maximum(tree.visits[safe], 1).astype(jnp.float32)
-    parent = tree.visits[node].astype(jnp.float32)
+    n, parent = jnp.maximum(tree.visits[safe], 1).astype(jnp.float32), tree.visits[node].astype(jnp.float32)
     score = tree.value[safe] / n + 2.0 * config.exploration * jnp.sqrt(jnp.log(parent + 1.0) / n)
     return safe[jnp.argmax(jnp.where(valid, score, -jnp.inf))]
 
 
 def select(config: PlannerConfig, tree: Tree) -> Path:
-    """Descend from the root by `uct_child` until a leaf (`is_leaf`) or a node that should widen
-    (`should_widen`); the path ends there (its `last`)."""
-    capacity = config.iterations + 1
-    depth_limit = config.depth
+    """Descend from the root by `uct_child` until a leaf or a node that should widen (the path's `last`)."""
+    capacity, depth_limit = config.iterations + 1, config.depth
 
     def descend(carry):
-        """One step down, unless the node is a leaf or should widen (then stop there). The tree does
-        not change on the way down, so it stays out of the loop's carry."""
         node, _, nodes, length = carry
         stop = is_leaf(config, tree, node) | should_widen(config, tree, node)
         node_next = jnp.where(stop, node, uct_child(config, tree, node))
@@ -250,8 +191,8 @@ def select(config: PlannerConfig, tree: Tree) -> Path:
 
 def expansion_action(maze: Maze, grid: GridSpec, config: PlannerConfig, world: World, key: jax.Array,
                      state: jax.Array) -> jax.Array:
-    """() int32 the best of `config.candidates` uniform draws among the usable actions from `state`
-    (3,): the one ending nearest the goal by `geodesic_cost`; colliding ones are never preferred."""
+    """() int32 the best of `config.candidates` uniform usable actions from `state` (3,): the one ending
+    nearest the goal by `geodesic_cost`; colliding ones are never preferred."""
     candidates = _sample_actions(key, world, config.candidates)
     ends, reward, _ = transition(maze, config, world, jnp.broadcast_to(state, (config.candidates, 3)), candidates)
     cost = jnp.where(reward < 0, jnp.inf, geodesic_cost(maze, grid, world.field, ends[:, :2]))
@@ -260,39 +201,24 @@ def expansion_action(maze: Maze, grid: GridSpec, config: PlannerConfig, world: W
 
 def expand(maze: Maze, grid: GridSpec, config: PlannerConfig, world: World, key: jax.Array, tree: Tree,
            path: Path) -> tuple[Tree, Path]:
-    """Give the path's last node a child by `expansion_action` and append it to the path, unless the
-    node is a leaf (then tree and path are returned unchanged). The child is node `tree.size`."""
-    capacity = config.iterations + 1
-    node = path.last
+    """Give the path's last node (unless a leaf) a child, node `tree.size`, and append it to the path."""
+    capacity, node = config.iterations + 1, path.last
     grow = ~is_leaf(config, tree, node)
     action = expansion_action(maze, grid, config, world, key, tree.state[node])
     nxt, reward, terminal = transition(maze, config, world, tree.state[node], action)
     new = jnp.where(grow, tree.size, capacity)
+    child = dict(state=nxt, parent=node, action=action, reward=reward, terminal=terminal, depth=tree.depth[node] + 1)
     tree = tree.replace(
-        state=tree.state.at[new].set(nxt, mode="drop"),
-        parent=tree.parent.at[new].set(node, mode="drop"),
-        action=tree.action.at[new].set(action, mode="drop"),
-        reward=tree.reward.at[new].set(reward, mode="drop"),
-        terminal=tree.terminal.at[new].set(terminal, mode="drop"),
-        depth=tree.depth.at[new].set(tree.depth[node] + 1, mode="drop"),
+        **{name: getattr(tree, name).at[new].set(value, mode="drop") for name, value in child.items()},
         children=tree.children.at[jnp.where(grow, node, capacity), tree.num_children[node]].set(new, mode="drop"),
-        num_children=tree.num_children.at[node].add(grow.astype(jnp.int32)),
-        size=tree.size + grow.astype(jnp.int32),
-    )
+        num_children=tree.num_children.at[node].add(grow.astype(jnp.int32)), size=tree.size + grow.astype(jnp.int32))
     return tree, path.extended(new, grow)
 
 
-def evaluate(maze: Maze, config: PlannerConfig, world: World, key: jax.Array, tree: Tree, leaf: jax.Array) -> jax.Array:
-    """() float32 the leaf's estimated return: a uniform random rollout's (`_rollout_return`) from its
-    state and depth, with the terminal rewards met on the way; 0 at a terminal leaf."""
-    return _rollout_return(maze, config, world, key, tree.state[leaf], ~tree.terminal[leaf], tree.depth[leaf])
-
-
 def backup(config: PlannerConfig, tree: Tree, path: Path, value: jax.Array) -> Tree:
-    """Count one more visit at every node of the path and add to each node below the root its discounted
-    return g_k = reward_k + gamma g_(k+1), with g after the last node = `value` (() float32)."""
-    capacity = config.iterations + 1
-    depth_limit = config.depth
+    """One more visit at every node of the path, and to each below the root its discounted return
+    g_k = reward_k + gamma g_(k+1), with g after the last node = `value` (() float32)."""
+    capacity, depth_limit = config.iterations + 1, config.depth
     on_path = jnp.arange(depth_limit + 1) < path.length
     below_root = on_path & (jnp.arange(depth_limit + 1) > 0)
     rewards = jnp.where(below_root, tree.reward[jnp.where(on_path, path.nodes, 0)], 0.0)
@@ -304,10 +230,8 @@ def backup(config: PlannerConfig, tree: Tree, path: Path, value: jax.Array) -> T
     _, returns = jax.lax.scan(back, value, jnp.arange(depth_limit, -1, -1), unroll=True)
     returns = returns[::-1]
     target = jnp.where(below_root, path.nodes, capacity)
-    return tree.replace(
-        visits=tree.visits.at[target].add(1, mode="drop").at[0].add(1),
-        value=tree.value.at[target].add(returns, mode="drop"),
-    )
+    return tree.replace(visits=tree.visits.at[target].add(1, mode="drop").at[0].add(1),
+                        value=tree.value.at[target].add(returns, mode="drop"))
 
 
 def simulate(maze: Maze, grid: GridSpec, config: PlannerConfig, world: World, key_expand: jax.Array,
@@ -332,14 +256,8 @@ def search(maze: Maze, grid: GridSpec, config: PlannerConfig, world: World, key:
 
 @struct.dataclass
 class PlanResult:
-    """One decision, A actions, D = config.depth.
-
-    action: () int32 the action with the best mean value over the merged root statistics.
-    value: () float32 that mean value. visits: (A,) int32 merged root visits per action.
-    path: (D + 1, 3) the planned path: the start state, the chosen action's end state, then the
-      most-visited branch below it (in the tree that visited the chosen action most).
-    path_length: () int32 valid rows of `path` (the rest repeat the last state).
-    """
+    """One decision: action () int32 of the best mean value over the merged roots, value (), visits (A,) int32,
+    path (D + 1, 3) the start, the action's end and the most-visited branch below it, path_length () int32."""
 
     action: jax.Array
     value: jax.Array
@@ -394,10 +312,5 @@ def plan(maze: Maze, grid: GridSpec, config: PlannerConfig, world: World, key: j
 def world_of(displacement: jax.Array, mask: jax.Array, field: jax.Array) -> World:
     """A World from predicted displacements (A, 3), usable actions (A,) and a distance field (jittable)."""
     mask = jnp.asarray(mask, bool)
-    return World(
-        displacement=jnp.asarray(displacement, jnp.float32),
-        mask=mask,
-        field=field,
-        usable=jnp.argsort(~mask, stable=True).astype(jnp.int32),
-        count=mask.sum().astype(jnp.int32),
-    )
+    return World(displacement=jnp.asarray(displacement, jnp.float32), mask=mask, field=field,
+                 usable=jnp.argsort(~mask, stable=True).astype(jnp.int32), count=mask.sum().astype(jnp.int32))

@@ -1,5 +1,4 @@
-"""Figures of adaptation runs: the maze with trajectories and planned paths, GP prediction error
-over actions, and the actions each variant needed."""
+"""Figures of adaptation runs: mazes with trajectories, GP prediction error, actions per variant."""
 
 from __future__ import annotations
 
@@ -32,12 +31,10 @@ def draw_maze(ax, maze: Maze) -> None:
     sx, sy, syaw = maze.start
     ax.annotate("", xy=(sx + 0.3 * np.cos(syaw), sy + 0.3 * np.sin(syaw)), xytext=(sx, sy),
                 arrowprops={"arrowstyle": "->", "color": "k"})
-    pad = 0.3
-    ax.set_xlim(min(b[0] for b in maze.obstacles + (maze.bounds,)) - pad, max(b[2] for b in maze.obstacles + (maze.bounds,)) + pad)
-    ax.set_ylim(min(b[1] for b in maze.obstacles + (maze.bounds,)) - pad, max(b[3] for b in maze.obstacles + (maze.bounds,)) + pad)
-    ax.set_aspect("equal")
-    ax.set_xlabel("x (m)")
-    ax.set_ylabel("y (m)")
+    boxes, pad = maze.obstacles + (maze.bounds,), 0.3
+    ax.set_xlim(min(b[0] for b in boxes) - pad, max(b[2] for b in boxes) + pad)
+    ax.set_ylim(min(b[1] for b in boxes) - pad, max(b[3] for b in boxes) + pad)
+    ax.set(aspect="equal", xlabel="x (m)", ylabel="y (m)")
 
 
 def episode_track(episodes: Episodes, index: int) -> np.ndarray:
@@ -47,8 +44,7 @@ def episode_track(episodes: Episodes, index: int) -> np.ndarray:
 
 
 def plot_episodes(path, maze: Maze, episodes: Episodes, indices, labels, title: str, plan_of: int | None = None) -> None:
-    """Trajectories of the episodes `indices` (one colour each, dots at action ends), and the first
-    planned path of episode `plan_of` (dashed)."""
+    """Trajectories of the episodes `indices` (dots at action ends) and the first plan of episode `plan_of`."""
     fig, ax = plt.subplots(figsize=(6, 5.5))
     draw_maze(ax, maze)
     colours = plt.cm.viridis(np.linspace(0, 0.9, max(len(indices), 1)))
@@ -69,9 +65,7 @@ def plot_episodes(path, maze: Maze, episodes: Episodes, indices, labels, title: 
 
 def plot_prediction_error(path, curves: dict[str, np.ndarray]) -> None:
     """Median and inter-quartile band of the RTE GP's prediction error (m) against the action index.
-
-    curves: variant -> (E, L) errors, NaN after an episode's last action.
-    """
+    curves: variant -> (E, L) errors, NaN after an episode's last action."""
     fig, ax = plt.subplots(figsize=(6, 3.5))
     for name, errors in curves.items():
         counts = np.isfinite(errors).sum(axis=0)
@@ -83,9 +77,8 @@ def plot_prediction_error(path, curves: dict[str, np.ndarray]) -> None:
             q25, q50, q75 = np.nanpercentile(errors[:, :upto], [25, 50, 75], axis=0)
         ax.plot(steps, q50, label=name)
         ax.fill_between(steps, q25, q75, alpha=0.2)
-    ax.set_xlabel("action")
-    ax.set_ylabel("|predicted - measured| end position (m)")
-    ax.set_title("RTE GP prediction error (median, 25-75 %)")
+    ax.set(xlabel="action", ylabel="|predicted - measured| end position (m)",
+           title="RTE GP prediction error (median, 25-75 %)")
     ax.legend(fontsize=7)
     _save(fig, path)
 
@@ -120,8 +113,7 @@ def plot_protocol_box(path, statistics: dict, max_actions: int, paper: dict | No
         handles = [plt.Line2D([], [], color="tab:red", marker="_", ls="", ms=12, mew=2)]
         ax.legend(handles, ["paper's 25 / 50 / 75 %"], fontsize=7, loc="upper left")
     ax.axhline(max_actions, color="0.5", ls=":", lw=1)
-    ax.set_ylabel("median actions per replication")
-    ax.set_title("actions to reach the goal (failures count as the cap)")
+    ax.set(ylabel="median actions per replication", title="actions to reach the goal (failures count as the cap)")
     _save(fig, path)
 
 

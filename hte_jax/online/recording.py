@@ -1,13 +1,6 @@
-"""Recording chosen episodes for replay: the robot's full state every k control steps, and the
-replay files that `python -m experiments.render episode` reads.
-
-`Recorder` collects on the host, while `run_episodes` runs a batch, the states of the batch rows
-asked for (only those rows leave the device; recording is off unless a recorder is given).
-`replay_of` assembles one episode's `Replay`: its states from the start to the end of its last
-action and what a video annotates (the executed skills, each step's contact pattern, the pose
-after every second, the outcome). A replay file (`save_replay`, written atomically) is a
-checkpoint (`hte_jax.qd.io`) with the arrays of `Replay` and its labels as metadata; a run
-folder keeps them as `replays/<variant>_ep<I>.npz`, I counting the variant's episodes in run order.
+"""Recording chosen episodes for replay (`python -m experiments.render episode`): a `Recorder` collects
+their states during `run_episodes`; `replay_of` makes one episode's `Replay`, kept in a run folder as
+`replays/<variant>_ep<I>.npz` (a `qd.io` checkpoint; I counts the variant's episodes in run order).
 """
 
 from __future__ import annotations
@@ -30,12 +23,9 @@ ARRAYS = ("qpos", "action", "map", "patterns", "trajectory", "damage")
 
 @dataclasses.dataclass
 class Recorder:
-    """Collects the states of chosen episodes of a batch, on the host, during `run_episodes`.
-
-    rows: the batch rows (episodes) to record. every: control steps between recorded states
-    (divides 100; 4 gives 25 states per simulated second). frames: row -> one (400 / every, 25)
-    float32 array per action the episode took, filled by `add`.
-    """
+    """Collects the states of chosen episodes of a batch during `run_episodes`. rows: the batch rows to
+    record. every: control steps between recorded states (divides 100). frames: row -> one (400 / every,
+    25) float32 array per action the episode took, filled by `add`."""
 
     rows: tuple[int, ...]
     every: int = 4
@@ -61,16 +51,10 @@ class Recorder:
 
 @dataclasses.dataclass(frozen=True)
 class Replay:
-    """One recorded episode: N actions taken, k = `every`, F = 400 / k states per action.
-
-    qpos: (N F + 1, 25) float32 the state every k control steps from the start to the end of the
-      last action (state j F + s F / 4 starts second s of action j; every F / 4-th state's base is at
-      `trajectory`). action: (N,) int32 the executed skill. map: (N,) int32 its repertoire (0
-      unless APROL). patterns: (N, 3) int32 the contact pattern asked for at each 1 s step (-1:
-      any, as for RTE and flat skills). trajectory: (4 N + 1, 3) float32 the pose (x, y, yaw) after
-      every second. damage: (6,) bool. info: JSON-able labels (variant, damage, seed, replicate,
-      row, reached, broken, damage_model, maze, max_actions, every, episode).
-    """
+    """One recorded episode of N actions, F = 400 / k states per action (k = `every`): qpos (N F + 1, 25) float32
+    (state j F + s F / 4 starts second s of action j), action and map (N,) int32, patterns (N, 3) int32,
+    trajectory (4 N + 1, 3) float32, damage (6,) bool, info JSON-able labels (variant, damage, seed, replicate,
+    row, reached, broken, damage_model, maze, max_actions, every, episode)."""
 
     qpos: np.ndarray
     action: np.ndarray
@@ -98,8 +82,7 @@ class Replay:
 
 
 def replay_of(recorder: Recorder, episodes, row: int, info: dict) -> Replay:
-    """The recorded episode in batch `row` of `episodes` (an `episode.Episodes` batch that
-    `run_episodes` ran with `recorder`) once it has ended."""
+    """The ended episode in batch `row` of the `episode.Episodes` that `run_episodes` ran with `recorder`."""
     taken = int(episodes.taken[row])
     frames = recorder.frames.get(row, [])
     if len(frames) != taken:
@@ -107,15 +90,12 @@ def replay_of(recorder: Recorder, episodes, row: int, info: dict) -> Replay:
     final = np.asarray(episodes.sim.qpos[row], np.float32)[None]
     history = episodes.history
     return Replay(
-        qpos=np.concatenate([*frames, final]).astype(np.float32),
-        action=np.asarray(history.action[row, :taken]),
-        map=np.asarray(history.map[row, :taken]),
-        patterns=np.asarray(history.patterns[row, :taken]),
+        qpos=np.concatenate([*frames, final]).astype(np.float32), action=np.asarray(history.action[row, :taken]),
+        map=np.asarray(history.map[row, :taken]), patterns=np.asarray(history.patterns[row, :taken]),
         trajectory=np.asarray(episodes.trajectory[row, : SECONDS_PER_ACTION * taken + 1]),
         damage=np.asarray(episodes.damage[row], bool),
         info={**info, "row": int(row), "every": recorder.every, "actions": taken,
-              "reached": bool(episodes.reached[row]), "broken": bool(episodes.broken[row])},
-    )
+              "reached": bool(episodes.reached[row]), "broken": bool(episodes.broken[row])})
 
 
 def replay_path(run: str | Path, variant: str, episode: int) -> Path:

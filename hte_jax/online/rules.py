@@ -1,17 +1,8 @@
 """Pattern rules: how an adaptation variant picks the contact pattern of each 1 s step of a skill.
 
-A rule is one object that owns its state, in the shape of the QD emitters (`qd.emitters`):
-- `init(damages, max_actions) -> state`: its state for B new episodes (damages (B, 6); only an
-  oracle may read them: the robot does not know its damage);
-- `choose(state, context) -> (pattern (B,) int32, spare (B,) bool)`: the pattern of the next step
-  (-1: any pattern, RTE's nearest elite) and whether its steps run from the pattern's spare set
-  (`hbr.spare`: the elites that keep the lifted legs off the floor);
-- `learn(state, observation) -> state`: what it takes from the executed step.
-States are pytrees (`flax.struct` dataclasses) with a leading (B,) episode axis.
-
-Rules are frozen dataclasses (static, hashable): an episode batch holds the tuple of its variants'
-rules (`RuleBatch`), every episode runs one of them, and a step computes only those rules.
-`docs/extending.md` adds a rule.
+A rule is a frozen dataclass that owns its state (a pytree with a leading (B,) episode axis):
+`init(damages (B, 6), max_actions) -> state` (only an oracle reads the damages), `choose(state, context)
+-> (pattern (B,) int32, -1: any; spare (B,) bool)` and `learn(state, observation) -> state`.
 """
 
 from __future__ import annotations
@@ -39,11 +30,8 @@ DESCRIPTOR_DIM = 9  # a middle elite's descriptor: x, y, yaw, 6 contact bits
 
 @struct.dataclass
 class StepContext:
-    """What B robots know before one 1 s step.
-
-    hbr: the HBR. desired: (B, 3) normalised primary step wanted. t: (B,) int32 steps so far + 1
-    (GP-UCB's t). keys: (B, 2) PRNG keys of this step.
-    """
+    """What B robots know before one 1 s step. hbr: the HBR. desired: (B, 3) normalised primary step
+    wanted. t: (B,) int32 steps so far + 1 (GP-UCB's t). keys: (B, 2) PRNG keys of this step."""
 
     hbr: HBR
     desired: jax.Array
@@ -53,12 +41,9 @@ class StepContext:
 
 @struct.dataclass
 class StepObservation:
-    """What B robots observed in one executed step.
-
-    hbr: the HBR. elite: (B,) int32 middle elite executed. observed: (B, 3) normalised primary
-    descriptor of the step the robot made. contact_fraction: (B, 6) share of the second each foot
-    was sensed on the floor. leg_travel: (B, 6) rad each leg's joints moved.
-    """
+    """What B robots observed in one executed step. hbr: the HBR. elite: (B,) int32 middle elite executed.
+    observed: (B, 3) normalised primary descriptor of the step made. contact_fraction: (B, 6) share of the
+    second each foot was sensed down. leg_travel: (B, 6) rad each leg's joints moved."""
 
     hbr: HBR
     elite: jax.Array
@@ -91,13 +76,10 @@ def _never(context: StepContext) -> jax.Array:
 
 
 def candidate_elites(hbr: HBR, desired: jax.Array, patterns: np.ndarray = CANDIDATE_PATTERNS):
-    """For desired primary steps (B, 3): the middle elite each of `patterns` (C,) would execute.
-
-    Returns index (B, C) and found (B, C) (False where the repertoire has no elite with that pattern).
-    """
+    """For desired primary steps (B, 3): the middle elite index (B, C) each of `patterns` (C,) would execute
+    and found (B, C) (False where the repertoire has no elite with that pattern)."""
     batch, count = desired.shape[0], patterns.size
-    queries = jnp.repeat(desired, count, axis=0)
-    wanted = jnp.tile(jnp.asarray(patterns), batch)
+    queries, wanted = jnp.repeat(desired, count, axis=0), jnp.tile(jnp.asarray(patterns), batch)
     index, found = select_middle(hbr, queries, wanted)
     return index.reshape(batch, count), found.reshape(batch, count)
 
@@ -119,8 +101,7 @@ class ErrorModel:
 
 @dataclasses.dataclass(frozen=True)
 class GpUcb(PatternRule):
-    """The paper's HTE: GP-UCB over the 36 allowed patterns on the predicted relative errors of
-    their nearest elites (`secondary`); the GP learns every executed elite's errors."""
+    """The paper's HTE: GP-UCB over the 36 allowed patterns' nearest elites' predicted relative errors."""
 
     def init(self, damages, max_actions):
         gp = empty_gp(STEPS_PER_SKILL * max_actions, DESCRIPTOR_DIM, ERROR_DIM)
@@ -181,12 +162,9 @@ class RandomPattern(PatternRule):
 
 @struct.dataclass
 class LegSense:
-    """What the robot sensed of its legs, summed over the episode (`sensing`).
-
-    contacts: (B, 2, 6) seconds each leg was sensed on the floor (row 0) and expected on it by the
-    executed elites' stored contact fractions (row 1). motion: (B, 2, 6) rad each leg's joints
-    moved (row 0) and were commanded to move by the executed elites' controllers (row 1).
-    """
+    """What the robot sensed of its legs, summed over the episode (`sensing`). contacts: (B, 2, 6) seconds
+    each leg was sensed down (row 0) and expected down by the executed elites (row 1). motion: (B, 2, 6)
+    rad each leg's joints moved (row 0) and were commanded to move (row 1)."""
 
     contacts: jax.Array
     motion: jax.Array
@@ -194,10 +172,9 @@ class LegSense:
 
 @dataclasses.dataclass(frozen=True)
 class SensedLegs(PatternRule):
-    """Ours: RTE's choice until a leg is sensed not to touch the floor when its elites should, or
-    not to move its joints as its controllers ask; then the pattern with every other leg down.
-    spare: once a leg is sensed off the floor, run the pattern's steps from its spare set (a leg
-    locked in its standing pose still props the body: its pattern's own elites run)."""
+    """Ours: RTE's choice until a leg is sensed off the floor when it should be down, or not moving as
+    commanded; then the pattern with every other leg down. spare: once a leg is sensed off the floor,
+    run the pattern's steps from its spare set."""
 
     spare: bool = False
 
@@ -219,11 +196,8 @@ class SensedLegs(PatternRule):
 
 @struct.dataclass
 class RuleBatch:
-    """The pattern rules of B episodes: `rules` (static) is the batch's tuple of rule objects.
-
-    which: (B,) int32 each episode's rule (an index into `rules`). states: one state per rule,
-    each with a leading (B,) axis (a rule's state is kept for every row; only its rows use it).
-    """
+    """The pattern rules of B episodes. rules (static): the batch's rule objects. which: (B,) int32 each
+    episode's index into them. states: one per rule, each kept for all (B,) rows (only its rows use it)."""
 
     which: jax.Array
     states: tuple

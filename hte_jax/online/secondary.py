@@ -1,11 +1,5 @@
-"""HTE's secondary descriptor: the paper's error measure and GP-UCB choice of contact pattern
-(`docs/original_code.md` §7.3).
-
-Before each 1 s step the robot picks, among the allowed contact patterns, the one whose middle
-elite is predicted to deviate least from its stored primary descriptor. A GP (Matern-5/2,
-input: the elite's 9-D descriptor, output: the three relative errors of x, y, yaw) learns the
-errors on the damaged robot; the score of a candidate is ||exp(-k max(0, mu))||_2 + beta_t var
-(k = 4, 4, 3), with the GP-UCB schedule beta_t of the original.
+"""HTE's secondary descriptor: the paper's error measure and GP-UCB score of contact patterns
+(`docs/design.md`, Secondary descriptor).
 """
 
 from __future__ import annotations
@@ -30,14 +24,12 @@ def legs_down(pattern: int) -> list[int]:
 
 
 def allowed_patterns() -> np.ndarray:
-    """The original's 36 candidate patterns, ascending: at least three feet down, and not three
-    consecutive legs around the body ring 0-1-2-3-4-5-0 (the robot cannot stand on those)."""
+    """The original's 36 candidates, ascending: >= 3 feet down, not three consecutive legs of the ring 0-...-5-0."""
     allowed = []
     for pattern in range(NUM_PATTERNS):
         down = legs_down(pattern)
-        consecutive = len(down) == 3 and any(
-            set(down) == {i % NUM_LEGS, (i + 1) % NUM_LEGS, (i + 2) % NUM_LEGS} for i in range(NUM_LEGS)
-        )
+        consecutive = len(down) == 3 and any(set(down) == {i % NUM_LEGS, (i + 1) % NUM_LEGS, (i + 2) % NUM_LEGS}
+                                             for i in range(NUM_LEGS))
         if len(down) >= 3 and not consecutive:
             allowed.append(pattern)
     return np.asarray(allowed, np.int32)

@@ -1,10 +1,5 @@
-"""What a robot senses of its own legs: which ones it should stop using (ours, not the paper's).
-
-After each 1 s step the robot adds up, per leg, the seconds its foot was sensed on the floor
-beside the seconds the executed elites' stored contact fractions expected, and the radians its
-joints moved beside the radians their controllers commanded. A leg that stays off the floor when
-its elites expect it down (a leg blocked in the air) is unusable (`unusable_legs`); a leg whose
-joints move much less than commanded (a leg locked in any pose) is stuck (`stuck_legs`).
+"""What a robot senses of its own legs: which ones it should stop using (ours, not the paper's;
+`docs/design.md`, Sensing the legs). contacts and motion: (..., 2, 6), sensed (row 0) beside expected.
 """
 
 from __future__ import annotations
@@ -21,25 +16,22 @@ JOINT_RATIO = 0.55  # a leg whose joints moved less than this share of the comma
 
 
 def unusable_legs(contacts: jax.Array, evidence: float = CONTACT_EVIDENCE, ratio: float = CONTACT_RATIO) -> jax.Array:
-    """(..., 2, 6) seconds each leg was sensed on the floor and expected on it -> (..., 6) bool, the
-    legs that touched the floor for less than `ratio` of the contact the executed elites expected,
-    once they expected at least `evidence` seconds (a leg blocked in the air senses none)."""
+    """(..., 2, 6) seconds each leg was sensed and expected down -> (..., 6) bool: sensed less than `ratio`
+    of the expected contact, once at least `evidence` seconds were expected."""
     sensed, expected = contacts[..., 0, :], contacts[..., 1, :]
     return (expected >= evidence) & (sensed < ratio * expected)
 
 
 def stuck_legs(motion: jax.Array, evidence: float = JOINT_EVIDENCE, ratio: float = JOINT_RATIO) -> jax.Array:
-    """(..., 2, 6) radians each leg's joints moved and were commanded to move -> (..., 6) bool, the
-    legs that moved less than `ratio` of the commanded travel once at least `evidence` rad were
-    commanded (a locked leg's joints hold their pose whatever they are asked)."""
+    """(..., 2, 6) rad each leg's joints moved and were commanded to move -> (..., 6) bool: moved less than
+    `ratio` of the commanded travel, once at least `evidence` rad were commanded."""
     moved, commanded = motion[..., 0, :], motion[..., 1, :]
     return (commanded >= evidence) & (moved < ratio * commanded)
 
 
 def usable_pattern(contacts: jax.Array, motion: jax.Array | None = None) -> jax.Array:
-    """(..., 2, 6) sensed and expected contact, and optionally (..., 2, 6) moved and commanded joint
-    travel -> (...,) int32: the pattern with every leg down but the unusable ones (`unusable_legs`,
-    and `stuck_legs` when motion is given), or -1 (any pattern) while every leg seems usable."""
+    """(..., 2, 6) sensed and expected contact, optionally (..., 2, 6) moved and commanded travel -> (...,)
+    int32 the pattern with every leg down but the unusable (or stuck) ones, or -1 while all seem usable."""
     bad = unusable_legs(contacts)
     if motion is not None:
         bad = bad | stuck_legs(motion)

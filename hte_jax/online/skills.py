@@ -1,11 +1,6 @@
-"""The skills an episode plans with, and RTE's GP model of their outcome (`docs/original_code.md` §7.1).
-
-An action is one elite of a repertoire (a top-layer skill of an HBR, or a flat controller). Its
-GP input is the elite's normalised descriptor (2-D for the HBR top layer and Flat-2D, 8-D for
-Flat-8D); its outcome is (dx, dy, cos dtheta, sin dtheta) in the pre-action frame, and the GP's
-prior mean is the repertoire's own prediction: the stored final position and arrival heading.
-`Skills` holds the actions of one repertoire (or APROL's K) with what executing them needs;
-`replayed_models` rebuilds the GPs of finished episodes from what they recorded.
+"""The skills an episode plans with, and RTE's GP model of their outcome (`docs/original_code.md` §7.1):
+input the elite's normalised descriptor, outcome (dx, dy, cos dtheta, sin dtheta) in the pre-action
+frame, prior mean the repertoire's stored final position and heading.
 """
 
 from __future__ import annotations
@@ -30,11 +25,8 @@ OUTCOME_DIM = 4  # dx, dy, cos dtheta, sin dtheta
 
 @struct.dataclass
 class ActionSet:
-    """A = number of actions (the filled elites, padded to a fixed size).
-
-    slots: (A,) int32 repertoire slot of each action. inputs: (A, D) GP inputs (descriptors).
-    prior: (A, 4) the repertoire's predicted outcome. mask: (A,) bool real actions.
-    """
+    """A actions (the filled elites, padded). slots: (A,) int32 repertoire slot of each. inputs: (A, D) GP
+    inputs (descriptors). prior: (A, 4) the repertoire's predicted outcome. mask: (A,) bool real actions."""
 
     slots: jax.Array
     inputs: jax.Array
@@ -47,15 +39,13 @@ class ActionSet:
 
 
 def action_set(repertoire: Repertoire, extent: float, pad_to: int | None = None) -> ActionSet:
-    """The filled elites of a repertoire whose descriptors start with normalised final (x, y) over
-    +-extent and whose extras hold "arrival_yaw"."""
+    """The filled elites of a repertoire of normalised final (x, y) over +-extent and "arrival_yaw" extras."""
     filled = np.flatnonzero(np.asarray(repertoire.filled))
     size = filled.size if pad_to is None else pad_to
     if size < filled.size:
         raise ValueError(f"pad_to={pad_to} is smaller than the {filled.size} elites")
     descriptors = np.asarray(repertoire.descriptors)[filled]
-    xy = descriptors[:, :2] * 2 * extent - extent
-    yaw = np.asarray(repertoire.extras["arrival_yaw"])[filled]
+    xy, yaw = descriptors[:, :2] * 2 * extent - extent, np.asarray(repertoire.extras["arrival_yaw"])[filled]
     prior = np.concatenate([xy, np.cos(yaw)[:, None], np.sin(yaw)[:, None]], axis=1)
 
     def pad(values, fill=0):
@@ -63,21 +53,14 @@ def action_set(repertoire: Repertoire, extent: float, pad_to: int | None = None)
         out[: len(values)] = values
         return jnp.asarray(out)
 
-    mask = np.zeros(size, bool)
-    mask[: filled.size] = True
-    return ActionSet(
-        slots=pad(filled.astype(np.int32), -1),
-        inputs=pad(descriptors.astype(np.float32)),
-        prior=pad(prior.astype(np.float32)),
-        mask=jnp.asarray(mask),
-    )
+    return ActionSet(slots=pad(filled.astype(np.int32), -1), inputs=pad(descriptors.astype(np.float32)),
+                     prior=pad(prior.astype(np.float32)), mask=jnp.asarray(np.arange(size) < filled.size))
 
 
 def outcome(displacement: jax.Array) -> jax.Array:
     """(..., 3) measured (dx, dy, dtheta) -> (..., 4) GP target."""
-    return jnp.concatenate(
-        [displacement[..., :2], jnp.cos(displacement[..., 2:3]), jnp.sin(displacement[..., 2:3])], axis=-1
-    )
+    return jnp.concatenate([displacement[..., :2], jnp.cos(displacement[..., 2:3]), jnp.sin(displacement[..., 2:3])],
+                           axis=-1)
 
 
 def displacement_of(prediction: jax.Array, extent: float = 1.5) -> jax.Array:
@@ -94,10 +77,8 @@ def predict(model: GPData, actions: ActionSet, kernel: Kernel = RTE_KERNEL) -> t
 
 @jax.jit
 def replayed_models(actions: ActionSet, executed: jax.Array, displacements: jax.Array) -> GPData:
-    """The RTE GPs (B, L) of B episodes that executed actions `executed` (B, L) (-1: none, after the
-    episode ended) and measured `displacements` (B, L, 3) (`episode.History.action` and `.observed`
-    of episodes planning on one repertoire with its stored prior), with room for L observations.
-    Actions whose displacement is not finite (a robot whose simulation failed) are left out."""
+    """The RTE GPs (B, L) of B episodes on one repertoire that executed `executed` (B, L) (-1: none) and
+    measured `displacements` (B, L, 3) (`History.action`, `.observed`); non-finite ones are left out."""
     executed, displacements = jnp.asarray(executed), jnp.asarray(displacements, jnp.float32)
     mask = (executed >= 0) & jnp.all(jnp.isfinite(displacements), axis=-1)
     index = jnp.maximum(executed, 0)
@@ -105,29 +86,16 @@ def replayed_models(actions: ActionSet, executed: jax.Array, displacements: jax.
     def filled(values):
         return jnp.where(mask[..., None], values, 0.0).astype(jnp.float32)
 
-    return GPData(
-        inputs=filled(actions.inputs[index]),
-        targets=filled(outcome(jnp.where(mask[..., None], displacements, 0.0))),
-        prior=filled(actions.prior[index]),
-        mask=mask,
-        count=mask.sum(axis=-1).astype(jnp.int32),
-    )
+    return GPData(inputs=filled(actions.inputs[index]),
+                  targets=filled(outcome(jnp.where(mask[..., None], displacements, 0.0))),
+                  prior=filled(actions.prior[index]), mask=mask, count=mask.sum(axis=-1).astype(jnp.int32))
 
 
 @struct.dataclass
 class Skills:
-    """The A actions an episode batch plans with, from one repertoire or from K (APROL's set).
-
-    actions: ActionSet (A,) with the RTE GP's inputs and prior; (K, A) for K repertoires.
-    genotypes: (A, G) top-layer genotypes (G = 9) of an HBR, or controllers (G = 36) of a flat
-      repertoire; (K, A, 36) for K flat repertoires.
-    hbr: the HBR the top genotypes belong to, or None for flat repertoires.
-    table: the HBR's elites grouped by pattern when a step with a chosen contact pattern plans its
-      way to the skill's end (`composition="planned"`), or None for the paper's nearest elite to
-      the next waypoint.
-    spare: the HBR's spare sets (`hbr.spare.spare_table`) that rules with a spare flag plan their
-      patterns' steps among, or None (no such rule in the batch).
-    """
+    """The A actions an episode batch plans with: actions ActionSet (A,) or (K, A) for K repertoires, genotypes
+    (A, 9) top-layer genotypes of `hbr` or (A, 36) / (K, A, 36) controllers, table the HBR's elites by pattern
+    for planned steps (None: the paper's nearest elite), spare its spare sets (`hbr.spare`) or None."""
 
     actions: ActionSet
     genotypes: jax.Array
@@ -157,14 +125,8 @@ class Skills:
 
 def hbr_skills(hbr: HBR, top_task: TopTask, pad_to: int | None = None, composition: str = "planned",
                spare: bool = False) -> Skills:
-    """The filled top-layer cells of an HBR as actions.
-
-    composition: how a step with a chosen contact pattern picks its elite: "waypoints" (the
-    paper's nearest elite to the next waypoint) or "planned" (`hbr.composition`: a plan among the
-    pattern's elites to the skill's end, with the HBR's measured step model when it has one).
-    spare: also build the spare sets (`hbr.spare`) for rules that run steps from them (planned
-    composition only).
-    """
+    """The filled top-layer cells of an HBR as actions; a step's elite is "waypoints" (the paper's nearest to the
+    next waypoint) or "planned" (`hbr.composition`); spare: also build the spare sets (`hbr.spare`)."""
     if composition not in COMPOSITIONS:
         raise ConfigError(f"unknown composition {composition!r}; choose from {', '.join(COMPOSITIONS)}")
     if spare and composition != "planned":
@@ -185,8 +147,7 @@ def flat_skills(repertoire: Repertoire, extent: float, pad_to: int | None = None
 
 
 def flat_skill_maps(repertoires: Repertoire, extent: float) -> Skills:
-    """K flat repertoires (a `Repertoire` with a leading (K,) axis, e.g. APROL's 21) as actions with
-    a leading (K,) axis, each padded to the largest one's number of elites."""
+    """K flat repertoires (a `Repertoire` with a leading (K,) axis) as actions (K, A), A the largest's elites."""
     count = int(jnp.asarray(repertoires.filled).sum(axis=-1).max())
     maps = [flat_skills(jax.tree.map(lambda x, k=k: x[k], repertoires), extent, pad_to=count)
             for k in range(repertoires.filled.shape[0])]

@@ -1,10 +1,5 @@
-"""The adaptation variants, one table entry each.
-
-A `Variant` names the repertoire an episode plans with (the HBR, or a shipped flat repertoire)
-and, for the HBR, the pattern rule (`rules`) that picks the contact pattern of each 1 s step. The
-paper's variants beside ours (`hte-spare`, `perfect-spare`: the final results of
-`docs/results.md`); the levers that did not win are listed in `docs/levers.md`. Adding a variant
-is one entry (`add_variant`), adding a rule one class (`docs/extending.md`, example 2).
+"""The adaptation variants, one table entry each: the repertoire an episode plans with and, for the
+HBR, the pattern rule (`docs/design.md`, The variant table; `add_variant` adds one).
 """
 
 from __future__ import annotations
@@ -19,13 +14,9 @@ REPERTOIRES = ("hbr", "2d", "8d", "aprol")  # the HBR, or a shipped flat reperto
 
 @dataclasses.dataclass(frozen=True)
 class Variant:
-    """One adaptation variant.
-
-    name: what `maze_eval --variant` calls it. rule: the `rules.PatternRule` that picks each step's
-    pattern (`AnyPattern` for flat repertoires, which have no patterns). repertoire: "hbr", or the
-    shipped flat repertoire it plans with ("2d", "8d", "aprol": APROL's 21). summary: one line for
-    the docs and `--help`.
-    """
+    """One adaptation variant. name: what `maze_eval --variant` calls it. rule: the `rules.PatternRule` of
+    each step's pattern (`AnyPattern` for flat repertoires). repertoire: one of `REPERTOIRES`. summary: one
+    line for the docs and `--help`."""
 
     name: str
     rule: PatternRule = AnyPattern()
@@ -37,8 +28,7 @@ class Variant:
         return self.repertoire == "hbr"
 
     def check_skills(self, skills) -> None:
-        """ConfigError unless this variant can run on `skills` (`skills.Skills`): a pattern rule
-        other than RTE's needs an HBR."""
+        """ConfigError unless this variant can run on `skills`: a rule other than RTE's needs an HBR."""
         if not skills.hierarchical and self.rule != AnyPattern():
             raise ConfigError(f"variant {self.name!r} needs an HBR (a flat repertoire has no secondary descriptor)")
 
@@ -91,13 +81,6 @@ def variant(name: str) -> Variant:
 
 
 def batch_rules(names: list[str]) -> tuple[tuple[PatternRule, ...], list[int]]:
-    """The distinct rules of the variants `names` (one per episode), in order of first use, and
-    each episode's index into them."""
-    rules: list[PatternRule] = []
-    which = []
-    for name in names:
-        rule = variant(name).rule
-        if rule not in rules:
-            rules.append(rule)
-        which.append(rules.index(rule))
-    return tuple(rules), which
+    """The distinct rules of the variants `names` (one per episode) in order of use, and each one's index."""
+    rules = list(dict.fromkeys(variant(name).rule for name in names))
+    return tuple(rules), [rules.index(variant(name).rule) for name in names]
