@@ -1,9 +1,5 @@
-"""Table 2 of the paper: HBR top layer against the flat repertoires, over seeds.
-
-For every repertoire file: its size, its effective size (x-y cells filled when projected on the
-first two descriptor dimensions) and the mean fitness of the projected elites (the best elite of
-each x-y cell); then mean and sample standard deviation over the files (seeds) of each method.
-"""
+"""Table 2 of the paper: per repertoire file its size, effective size (x-y cells filled) and the mean
+fitness of its x-y projection; then mean and std over each method's seeds."""
 
 from __future__ import annotations
 
@@ -36,26 +32,24 @@ def resolve(path: str | Path) -> Path:
 
 
 def file_statistics(path: str | Path) -> dict:
-    """Table 2 statistics of one HBR file (its top layer) or one-repertoire flat file, plus its kind,
-    evaluation count (when recorded) and path."""
+    """Table 2 statistics of an HBR file (its top layer) or a one-repertoire flat file, with method and seed."""
     path = resolve(path)
     _, header = read_checkpoint(path)
     kind = header.get("metadata", {}).get("kind")
     if kind == "hte_jax.hbr":
         hbr, task, meta = load_hbr(path)
-        stats = projected_statistics(hbr.top.descriptors, hbr.top.fitnesses, hbr.top.filled, task.bins)
+        rep, bins, label = hbr.top, task.bins, "HBR"
         evaluations = meta.get("training", {}).get("layers", {}).get("top", {}).get("evaluations")
-        label = "HBR"
     elif kind == "hte_jax.flat":
         flat, meta = load_flat(path)
         if len(flat) != 1:
-            raise CheckpointError(f"{path}: holds {len(flat)} repertoires (APROL set?); Table 2 compares single repertoires")
-        rep = flat[0]
-        stats = projected_statistics(rep.descriptors, rep.fitnesses, rep.filled, flat.task.bins)
+            raise CheckpointError(f"{path}: holds {len(flat)} repertoires (APROL set?); "
+                                  "Table 2 compares single repertoires")
+        rep, bins, label = flat[0], flat.task.bins, f"Flat-{flat.task.descriptor.upper()}"
         evaluations = meta.get("training", {}).get("evaluations")
-        label = f"Flat-{flat.task.descriptor.upper()}"
     else:
         raise CheckpointError(f"{path}: not an HBR or flat repertoire file (kind {kind!r})")
+    stats = projected_statistics(rep.descriptors, rep.fitnesses, rep.filled, bins)
     seed = meta.get("training", {}).get("config", {}).get("seed")
     return {"method": label, "path": str(path), "evaluations": evaluations, "seed": seed, **stats}
 
@@ -79,20 +73,15 @@ def markdown_table(table: dict[str, dict]) -> str:
     def cell(pair, digits):
         return f"{pair[0]:.{digits}f} ± {pair[1]:.{digits}f}"
 
-    lines = [
-        "| method | seeds | evaluations | repertoire size | effective size | mean fitness (projected) | mean fitness (all elites) |",
-        "|---|---|---|---|---|---|---|",
-    ]
+    lines = ["| method | seeds | evaluations | repertoire size | effective size | mean fitness (projected) "
+             "| mean fitness (all elites) |", "|---|---|---|---|---|---|---|"]
     for method, entry in table.items():
         evals = ", ".join(f"{e:.3g}" if isinstance(e, (int, float)) else str(e) for e in entry["evaluations"])
-        lines.append(
-            f"| {method} (ours) | {entry['n']} | {evals} | {cell(entry['size'], 1)} | {cell(entry['effective_size'], 1)} "
-            f"| {cell(entry['mean_fitness'], 3)} | {cell(entry['mean_fitness_all'], 3)} |"
-        )
+        lines.append(f"| {method} (ours) | {entry['n']} | {evals} | {cell(entry['size'], 1)} "
+                     f"| {cell(entry['effective_size'], 1)} | {cell(entry['mean_fitness'], 3)} "
+                     f"| {cell(entry['mean_fitness_all'], 3)} |")
         if method in PAPER_TABLE2:
             paper = PAPER_TABLE2[method]
-            lines.append(
-                f"| {method} (paper) | – | 4e6 | {cell(paper['size'], 1)} | {cell(paper['effective_size'], 1)} "
-                f"| {cell(paper['mean_fitness'], 2)} | – |"
-            )
+            lines.append(f"| {method} (paper) | – | 4e6 | {cell(paper['size'], 1)} "
+                         f"| {cell(paper['effective_size'], 1)} | {cell(paper['mean_fitness'], 2)} | – |")
     return "\n".join(lines) + "\n"

@@ -12,14 +12,8 @@ import numpy as np  # noqa: E402
 
 from hte_jax.flat.store import FlatRepertoires  # noqa: E402
 from hte_jax.hbr.middle import NUM_PATTERNS, pattern_code  # noqa: E402
-from hte_jax.hbr.plots import draw_xy_map, xy_title  # noqa: E402
+from hte_jax.hbr.plots import draw_pattern_counts, draw_xy_map, save_figure, xy_title  # noqa: E402
 from hte_jax.qd.plots import grid_projection, plot_metrics  # noqa: E402
-
-
-def _save(fig, path):
-    Path(path).parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120, bbox_inches="tight")
-    plt.close(fig)
 
 
 def xy_image(flat: FlatRepertoires, index: int) -> np.ndarray:
@@ -30,9 +24,8 @@ def xy_image(flat: FlatRepertoires, index: int) -> np.ndarray:
 def contact_pattern_counts(flat: FlatRepertoires, index: int) -> np.ndarray:
     """(64,) elites per contact pattern of an 8-D repertoire (leg 0 = most significant bit)."""
     rep = flat[index]
-    filled = np.asarray(rep.filled)
-    codes = np.asarray(pattern_code(np.asarray(rep.descriptors)[filled, 2:]))
-    return np.bincount(codes, minlength=NUM_PATTERNS)
+    codes = pattern_code(np.asarray(rep.descriptors)[np.asarray(rep.filled), 2:])
+    return np.bincount(np.asarray(codes), minlength=NUM_PATTERNS)
 
 
 def plot_flat(flat: FlatRepertoires, metrics_csv, plot_dir):
@@ -43,7 +36,7 @@ def plot_flat(flat: FlatRepertoires, metrics_csv, plot_dir):
         image = xy_image(flat, 0)
         fig, ax = plt.subplots(figsize=(6, 5))
         draw_xy_map(fig, ax, image, extent, xy_title(f"flat {flat.task.descriptor}", image))
-        _save(fig, plot_dir / "xy_fitness.png")
+        save_figure(fig, plot_dir / "xy_fitness.png")
     else:
         cols = 7
         rows = -(-len(flat) // cols)
@@ -57,16 +50,11 @@ def plot_flat(flat: FlatRepertoires, metrics_csv, plot_dir):
             axes.flat[index].set(xlabel="", ylabel="")
         fig.colorbar(mesh, ax=axes, label="fitness (minus angle error, rad)", shrink=0.6)
         fig.suptitle("one 2-D repertoire per damage: cells filled")
-        _save(fig, plot_dir / "xy_fitness_per_damage.png")
+        save_figure(fig, plot_dir / "xy_fitness_per_damage.png")
     if flat.task.descriptor == "8d":
-        counts = contact_pattern_counts(flat, 0)
         fig, ax = plt.subplots(figsize=(10, 4))
-        ax.bar(np.arange(counts.size), counts)
-        ax.set_yscale("log" if counts.max(initial=0) > 50 else "linear")
-        ax.set(xlabel="contact pattern (leg 0 = most significant bit; 63 = all feet down)", ylabel="elites",
-               title=f"flat 8d: {int((counts > 0).sum())} distinct contact patterns")
-        _save(fig, plot_dir / "contact_patterns.png")
+        draw_pattern_counts(ax, contact_pattern_counts(flat, 0), "flat 8d: ")
+        save_figure(fig, plot_dir / "contact_patterns.png")
     if Path(metrics_csv).exists():
-        fig = plot_metrics(metrics_csv, title=f"flat {flat.task.descriptor} ({len(flat)} repertoires)",
-                           path=plot_dir / "metrics.png")
-        plt.close(fig)
+        plt.close(plot_metrics(metrics_csv, title=f"flat {flat.task.descriptor} ({len(flat)} repertoires)",
+                               path=plot_dir / "metrics.png"))

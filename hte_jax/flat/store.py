@@ -1,10 +1,5 @@
-"""Flat repertoire files: R repertoires (one per damage) in one compressed `.npz`, checked on load.
-
-Only elites are stored, each under its grid cell; the header holds the task and the damage
-names. Each repertoire is read by the task's spec (`task.flat_spec`, `qd.store.rebuild_elites`). `load_flat` rebuilds fixed-size device repertoires with a leading (R,) axis and raises
-`CheckpointError` naming any problem (wrong kind, missing or wrong-shaped arrays, non-finite
-values, elites outside the cells of their descriptors, unknown damages).
-"""
+"""Flat repertoire files: R repertoires (one per damage) in one compressed `.npz`, only elites, each under
+its grid cell, with the task and damage names in the header; `load_flat` checks everything."""
 
 from __future__ import annotations
 
@@ -17,9 +12,9 @@ import numpy as np
 
 from hte_jax.errors import ConfigError
 from hte_jax.flat.task import FlatTask, flat_spec
-from hte_jax.qd.io import CheckpointError, elite_arrays, read_checkpoint, save_checkpoint
+from hte_jax.qd.io import CheckpointError, elite_arrays, save_checkpoint
 from hte_jax.qd.repertoire import Repertoire
-from hte_jax.qd.store import rebuild_elites
+from hte_jax.qd.store import read_kind, rebuild_elites
 from hte_jax.sim.damage import damage_masks
 from hte_jax.sim.robot import assets_dir
 
@@ -37,11 +32,8 @@ def shipped_flat_path(variant: str) -> Path:
 
 @dataclasses.dataclass(frozen=True)
 class FlatRepertoires:
-    """R flat repertoires of one task, repertoire r trained on damage `damages[r]`.
-
-    repertoire: Repertoire with a leading (R,) axis: genotypes (R, C, 36), descriptors (R, C, D),
-    fitnesses (R, C), filled (R, C), extras arrival_yaw (R, C), contact_fraction (R, C, 6).
-    """
+    """R flat repertoires of one task, repertoire r trained on damage `damages[r]`; repertoire: genotypes
+    (R, C, 36), descriptors (R, C, D), fitnesses, filled, extras arrival_yaw (R, C), contact_fraction (R, C, 6)."""
 
     task: FlatTask
     damages: tuple[str, ...]
@@ -70,24 +62,14 @@ def save_flat(path: str | Path, flat: FlatRepertoires, metadata: dict | None = N
     arrays = {}
     for index in range(len(flat)):
         arrays.update(elite_arrays(flat[index], _prefix(index)))
-    header = {
-        "kind": KIND,
-        "kind_version": KIND_VERSION,
-        "task": dataclasses.asdict(flat.task),
-        "damages": list(flat.damages),
-        **(metadata or {}),
-    }
+    header = {"kind": KIND, "kind_version": KIND_VERSION, "task": dataclasses.asdict(flat.task),
+              "damages": list(flat.damages), **(metadata or {})}
     save_checkpoint(path, arrays, header, compress=True)
 
 
 def load_flat(path: str | Path) -> tuple[FlatRepertoires, dict]:
     """Read a flat repertoire file: (FlatRepertoires on device, the header metadata)."""
-    arrays, header = read_checkpoint(path)
-    meta = header.get("metadata", {})
-    if meta.get("kind") != KIND:
-        raise CheckpointError(f"{path}: not a flat repertoire file (kind {meta.get('kind')!r})")
-    if meta.get("kind_version") != KIND_VERSION:
-        raise CheckpointError(f"{path}: flat repertoire file version {meta.get('kind_version')!r} is not supported")
+    arrays, meta = read_kind(path, KIND, KIND_VERSION, "flat repertoire")
     try:
         task = FlatTask(**meta["task"])
         damages = tuple(str(name) for name in meta["damages"])
@@ -96,10 +78,7 @@ def load_flat(path: str | Path) -> tuple[FlatRepertoires, dict]:
         raise CheckpointError(f"{path}: bad flat repertoire header: {error}") from None
     if not damages:
         raise CheckpointError(f"{path}: holds no repertoire")
-    spec = flat_spec(task)
-    repertoires = [
-        rebuild_elites(path, arrays, spec, _prefix(index), label=f"repertoire {index} ({damages[index]})")
-        for index in range(len(damages))
-    ]
+    repertoires = [rebuild_elites(path, arrays, flat_spec(task), _prefix(index), label=f"repertoire {index} ({name})")
+                   for index, name in enumerate(damages)]
     stacked = jax.tree.map(lambda *xs: jnp.stack(xs), *repertoires)
     return FlatRepertoires(task=task, damages=damages, repertoire=stacked), meta

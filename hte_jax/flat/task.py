@@ -1,11 +1,6 @@
-"""A flat repertoire's evaluation: one 36-parameter controller run for 3 s (paper section 5; `docs/original_code.md` §6).
-
-Descriptor, "2d": final (x, y) in the start frame normalised to [0, 1] over [-extent, extent] m
-(the HBR top layer's grid). "8d": the same (x, y) plus one contact bit per leg, 1 when the foot
-was on the ground more than `contact_threshold` of the 3 s (leg 0 first), i.e. the x-y grid
-times the 64 contact patterns. Fitness: the circular-trajectory angle error of the 3 s.
-The robot starts from the standing state of its own (possibly damaged) body.
-"""
+"""A flat repertoire's evaluation (paper section 5; `docs/original_code.md` §6): a 36-parameter controller
+run 3 s from the (damaged) standing robot. Descriptor: final (x, y) on the top layer's grid ("2d"), plus
+six contact bits ("8d"); fitness: the circular-trajectory angle error."""
 
 from __future__ import annotations
 
@@ -33,12 +28,8 @@ QD_OFFSET = -math.pi  # the lowest angle error
 
 @dataclasses.dataclass(frozen=True)
 class FlatTask:
-    """What a flat repertoire measures (static, hashable).
-
-    descriptor: "2d" or "8d". bins: x-y cells per axis over [-extent, extent] m.
-    steps: control steps of the episode (100 per second). contact_threshold: fraction of the
-    episode a foot must be down for its contact bit (8d).
-    """
+    """What a flat repertoire measures (hashable): descriptor "2d" or "8d", `bins` x-y cells per axis over
+    [-extent, extent] m, `steps` control steps (100 per s), contact_threshold of the 8d contact bits."""
 
     descriptor: str = "2d"
     bins: int = 100
@@ -64,29 +55,22 @@ class FlatTask:
         return TopTask(bins=self.bins, extent=self.extent)
 
     def grid(self) -> Grid:
-        bins = (self.bins, self.bins) + (2,) * (self.descriptor_dim - 2)
-        dims = len(bins)
-        return Grid(bins=bins, low=(0.0,) * dims, high=(1.0,) * dims)
+        dims = self.descriptor_dim
+        return Grid(bins=(self.bins, self.bins) + (2,) * (dims - 2), low=(0.0,) * dims, high=(1.0,) * dims)
 
     def spec(self) -> RolloutSpec:
         return RolloutSpec(num_steps=self.steps, pose_steps=(0, self.steps), record_contacts=True)
 
 
 def flat_spec(task: FlatTask, evaluate: EvaluateFn | None = None) -> TaskSpec:
-    """A flat repertoire as a QD task: 36 genes, the task's grid, the extras `evaluate_flat` returns.
-
-    For `BatchedMapElites.from_spec` the evaluation takes the run's condition as a third argument.
-    """
+    """A flat repertoire as a QD task; for `BatchedMapElites`, `evaluate` also takes the run's condition."""
     return TaskSpec(f"flat-{task.descriptor}", GENES, task.grid(), evaluate, EXTRAS, QD_OFFSET)
 
 
-def evaluate_flat(
-    robot: Robot, task: FlatTask, start: SimState, damage: jax.Array, key: jax.Array, genotypes: jax.Array
-) -> Evaluation:
-    """Evaluate (B, 36) controllers from `start` (unbatched) with damage (6,) (key unused: deterministic).
-
-    Extras: "arrival_yaw" (B,) rad in the start frame; "contact_fraction" (B, 6) per foot.
-    """
+def evaluate_flat(robot: Robot, task: FlatTask, start: SimState, damage: jax.Array, key: jax.Array,
+                  genotypes: jax.Array) -> Evaluation:
+    """Evaluate (B, 36) controllers from the unbatched `start` with damage (6,) (key unused); extras
+    "arrival_yaw" (B,) rad in the start frame, "contact_fraction" (B, 6)."""
     del key
     result = rollout(robot, genotypes, damage, start, task.spec())
     poses = planar_pose(result.base_pos, result.base_quat)
@@ -97,9 +81,5 @@ def evaluate_flat(
     if task.descriptor == "8d":
         descriptors = jnp.concatenate([xy, (fraction > task.contact_threshold).astype(jnp.float32)], axis=-1)
     in_range = jnp.all((xy >= 0.0) & (xy <= 1.0), axis=-1)
-    return Evaluation(
-        fitnesses=angle_error(displacement),
-        descriptors=descriptors,
-        valid=result.valid & in_range,
-        extras={"arrival_yaw": displacement[:, 2], "contact_fraction": fraction},
-    )
+    return Evaluation(fitnesses=angle_error(displacement), descriptors=descriptors, valid=result.valid & in_range,
+                      extras={"arrival_yaw": displacement[:, 2], "contact_fraction": fraction})

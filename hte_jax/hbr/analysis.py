@@ -18,48 +18,32 @@ def pattern_histogram(hbr: HBR) -> np.ndarray:
 
 
 def speed_by_turn(hbr: HBR, bins: int = 10) -> list[dict]:
-    """The middle layer's speed-versus-turn frontier: per |yaw| bin of width max_turn / bins,
-    the number of motions and the 95th percentile and maximum of their speed (m/s; None if empty)."""
-    filled = np.asarray(hbr.middle.filled)
-    steps = np.asarray(hbr.middle_task.denormalise(hbr.middle.descriptors[:, :3]))[filled]
+    """The middle layer's speed-versus-turn frontier: per |yaw| bin of width max_turn / bins, the number
+    of motions and the 95th percentile and maximum of their speed (m/s; None if empty)."""
+    steps = np.asarray(hbr.middle_task.denormalise(hbr.middle.descriptors[:, :3]))[np.asarray(hbr.middle.filled)]
     speed, turn = np.hypot(steps[:, 0], steps[:, 1]), np.abs(steps[:, 2])
     edges = np.linspace(0.0, hbr.middle_task.max_turn, bins + 1)
     rows = []
     for low, high in zip(edges[:-1], edges[1:]):
         inside = (turn >= low) & ((turn < high) | (high == edges[-1]))
         chosen = speed[inside]
-        rows.append(
-            {
-                "turn": [round(float(low), 6), round(float(high), 6)],
-                "motions": int(inside.sum()),
-                "speed_p95": float(np.percentile(chosen, 95)) if chosen.size else None,
-                "speed_max": float(chosen.max()) if chosen.size else None,
-            }
-        )
+        rows.append({"turn": [round(float(low), 6), round(float(high), 6)], "motions": int(inside.sum()),
+                     "speed_p95": float(np.percentile(chosen, 95)) if chosen.size else None,
+                     "speed_max": float(chosen.max()) if chosen.size else None})
     return rows
 
 
 def fitness_by_distance(hbr: HBR, top_task: TopTask = TopTask(), edges=DISTANCE_BANDS) -> list[dict]:
-    """The top layer's cells and mean fitness per band of distance (m) from the start: how the
-    quality of the skills changes from the interior of the map to its frontier (None if empty).
-
-    The mean over all filled cells mixes quality with coverage (a layer that reaches farther adds
-    frontier cells whose ideal arcs are hard); these bands separate the two.
-    """
+    """Top-layer cells and mean fitness (None if empty) per band of distance (m) from the start: quality apart
+    from coverage (reaching farther adds frontier cells whose arcs are hard)."""
     filled = np.asarray(hbr.top.filled)
-    xy = np.asarray(top_task.denormalise(hbr.top.descriptors))[filled]
+    distance = np.hypot(*np.asarray(top_task.denormalise(hbr.top.descriptors))[filled].T)
     fitness = np.asarray(hbr.top.fitnesses)[filled]
-    distance = np.hypot(xy[:, 0], xy[:, 1])
     rows = []
     for low, high in zip(edges[:-1], edges[1:]):
         inside = (distance >= low) & (distance < high)
-        rows.append(
-            {
-                "distance": [float(low), float(high) if np.isfinite(high) else None],
-                "cells": int(inside.sum()),
-                "mean_fitness": float(fitness[inside].mean()) if inside.any() else None,
-            }
-        )
+        rows.append({"distance": [float(low), float(high) if np.isfinite(high) else None], "cells": int(inside.sum()),
+                     "mean_fitness": float(fitness[inside].mean()) if inside.any() else None})
     return rows
 
 
@@ -70,19 +54,14 @@ def hbr_statistics(hbr: HBR, top_task: TopTask = TopTask()) -> dict:
         repertoire = getattr(hbr, name)
         filled = np.asarray(repertoire.filled)
         fitness = np.asarray(repertoire.fitnesses)[filled]
-        stats[name] = {
-            "elites": int(filled.sum()),
-            "capacity": int(filled.size),
-            "mean_fitness": float(fitness.mean()) if fitness.size else float("nan"),
-            "min_fitness": float(fitness.min()) if fitness.size else float("nan"),
-        }
+        stats[name] = {"elites": int(filled.sum()), "capacity": int(filled.size),
+                       "mean_fitness": float(fitness.mean()) if fitness.size else float("nan"),
+                       "min_fitness": float(fitness.min()) if fitness.size else float("nan")}
     histogram = pattern_histogram(hbr)
-    stats["middle"]["contact_patterns"] = int((histogram > 0).sum())
-    stats["middle"]["pattern_histogram"] = histogram.tolist()
-    stats["middle"]["speed_by_turn"] = speed_by_turn(hbr)
+    stats["middle"].update(contact_patterns=int((histogram > 0).sum()), pattern_histogram=histogram.tolist(),
+                           speed_by_turn=speed_by_turn(hbr))
     top_filled = np.asarray(hbr.top.filled)
     used = np.asarray(hbr.top.extras["middle_indices"])[top_filled]
-    stats["top"]["coverage"] = float(top_filled.mean())
-    stats["top"]["distinct_middle_elites_used"] = int(np.unique(used).size)
-    stats["top"]["fitness_by_distance"] = fitness_by_distance(hbr, top_task)
+    stats["top"].update(coverage=float(top_filled.mean()), distinct_middle_elites_used=int(np.unique(used).size),
+                        fitness_by_distance=fitness_by_distance(hbr, top_task))
     return stats

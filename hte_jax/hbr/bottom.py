@@ -1,23 +1,6 @@
-"""Bottom layer: leg primitives (paper section 3; `docs/original_code.md` §3).
-
-A primitive is the 6 controller parameters of one leg: (a, p, d) of the hip signal and (a, p, d)
-of the vertical signal. It is evaluated on the full standing robot for 1 s with a leg drawn at
-random (the other five legs hold the standing pose), so one repertoire serves all six legs.
-
-Descriptor (each normalised to [0, 1]; outside the range the individual is invalid):
-  swing: signed arc (m) the foot sweeps about its hip while on the ground, positive when the hip
-    signal rises (the hip angle falls): R * sum over steps with the foot down at both ends of
-    -(q_hip[t+1] - q_hip[t]), R = 0.176 m the foot's horizontal reach. It is leg-agnostic, and
-    after a whole period it measures the stroke that propels the body (the original's
-    start-to-end displacement is ~0 after exactly one period, `docs/original_code.md` §14.7).
-  height: the signed extreme of the foot's height relative to the body, minus its initial value.
-  duty: the vertical signal's duty gene quantised to 4 levels {0, 1/3, 2/3, 1} (floor(4 d), with
-    d = 1 in the top level; the original maps d = 1 to 0).
-Fitness, "minimal activation" (`BottomTask.fitness`): "commands" (default) is minus the
-time-averaged |commanded velocity| of the leg's three joints, divided by the servo's velocity
-limit (in [-1, 0]); "genes" is the original's minus the sum of the six genes over 3 (in [-2, 0]),
-which also penalises phases and duties.
-"""
+"""Bottom layer: leg primitives (paper section 3; `docs/original_code.md` §3), one leg's (a, p, d) of the
+hip and vertical signals run 1 s on a random leg of the standing robot (one repertoire serves all legs).
+Descriptor: stance sweep, lift height, duty level in [0, 1]^3; fitness: minus the leg's activation."""
 
 from __future__ import annotations
 
@@ -45,12 +28,8 @@ QD_OFFSET = -1.0  # the lowest "commands" fitness
 
 @dataclasses.dataclass(frozen=True)
 class BottomTask:
-    """How a leg primitive is evaluated (hashable).
-
-    steps: control steps (100 = 1 s). swing_range / height_range: the descriptor covers
-    [-range, range] metres. duty_levels: quantisation of the duty descriptor.
-    fitness: "commands" (measured joint commands) or "genes" (the original's gene sum).
-    """
+    """How a leg primitive is evaluated (hashable): `steps` control steps (100 = 1 s), swing / height
+    descriptors over [-range, range] m, `duty_levels` duty levels, fitness "commands" or "genes"."""
 
     steps: int = 100
     swing_range: float = 0.2
@@ -67,24 +46,20 @@ class BottomTask:
 
     @property
     def spec(self) -> RolloutSpec:
-        return RolloutSpec(
-            num_steps=self.steps,
-            pose_steps=tuple(range(self.steps)),
-            record_contacts=True,
-            record_feet=True,
-            record_joints=True,
-        )
+        return RolloutSpec(num_steps=self.steps, pose_steps=tuple(range(self.steps)), record_contacts=True,
+                           record_feet=True, record_joints=True)
 
 
 def bottom_spec(capacity: int, l: float = ARCHIVE_L, evaluate: EvaluateFn | None = None) -> TaskSpec:
-    """The bottom layer as a QD task: 6 genes, an archive of `capacity` slots over [0, 1]^3 with
-    distance threshold `l`, the extras `evaluate_bottom` returns."""
+    """The bottom layer as a QD task: 6 genes, an archive of `capacity` slots over [0, 1]^3, threshold `l`."""
     return TaskSpec("hbr-bottom", GENES, Archive(capacity, (0.0,) * DESCRIPTORS, (1.0,) * DESCRIPTORS, l), evaluate,
                     EXTRAS, QD_OFFSET)
 
 
 def swing_distance(hip_angle: jax.Array, contact: jax.Array) -> jax.Array:
-    """(..., T) hip angles and foot contacts -> (...,) signed stance sweep of the foot (m)."""
+    """(..., T) hip angles and foot contacts -> (...,) signed arc (m) the foot sweeps while down at both ends
+    of a step, positive as the hip angle falls (the original's start-to-end displacement is ~0 after one
+    period, `docs/original_code.md` §14.7)."""
     down = contact[..., 1:] & contact[..., :-1]
     return -FOOT_REACH * jnp.sum(jnp.where(down, jnp.diff(hip_angle, axis=-1), 0.0), axis=-1)
 
@@ -97,18 +72,17 @@ def lift_height(foot_z: jax.Array, base_z: jax.Array) -> jax.Array:
 
 
 def duty_level(duty: jax.Array, levels: int = 4) -> jax.Array:
-    """Duty genes in [0, 1] -> their level k / (levels - 1), k = min(floor(levels d), levels - 1)."""
-    k = jnp.minimum(jnp.floor(duty * levels + 1e-6), levels - 1)
-    return k / (levels - 1)
+    """Duty genes in [0, 1] -> level k / (levels - 1), k = min(floor(levels d), levels - 1) (original: 1 -> 0)."""
+    return jnp.minimum(jnp.floor(duty * levels + 1e-6), levels - 1) / (levels - 1)
 
 
 def activation_fitness(command_abs_sum: jax.Array, duration: float, max_velocity: float) -> jax.Array:
-    """(..., 3) integrated |command| (rad) of a leg's joints -> (...,) fitness in [-1, 0]."""
+    """(..., 3) integrated |command| (rad) of a leg's joints -> (...,) minus their mean over the limit, in [-1, 0]."""
     return -command_abs_sum.mean(axis=-1) / (duration * max_velocity)
 
 
 def gene_fitness(genes: jax.Array) -> jax.Array:
-    """(..., 6) primitives -> (...,) the original's fitness, minus the sum of the genes over 3."""
+    """(..., 6) primitives -> (...,) the original's fitness, minus the sum of the genes over 3 (in [-2, 0])."""
     return -jnp.sum(jnp.abs(genes), axis=-1) / 3.0
 
 
@@ -119,37 +93,21 @@ def leg_params(genes: jax.Array, leg: jax.Array) -> jax.Array:
 
 
 def evaluate_bottom(robot: Robot, start: SimState, task: BottomTask, key: jax.Array, genes: jax.Array) -> Evaluation:
-    """Evaluate (B, 6) leg primitives, each on a random leg, from the standing state `start`.
-
-    Returns descriptors (B, 3) in [0, 1], fitness (B,), and extras {"leg": (B,) int32}.
-    """
+    """Evaluate (B, 6) leg primitives, each on a random leg, from `start`; extras "leg" (B,) int32."""
     batch = genes.shape[0]
     leg = jax.random.randint(key, (batch,), 0, NUM_LEGS)
     result = rollout(robot, leg_params(genes, leg), jnp.zeros(NUM_LEGS, bool), start, task.spec)
     rows = jnp.arange(batch)
-    hip = result.joint_pos[rows, :, 3 * leg]  # (B, T)
-    contact = result.foot_contacts[rows, :, leg]
-    foot_z = result.foot_pos[rows, :, leg, 2]
-    swing = swing_distance(hip, contact)
-    height = lift_height(foot_z, result.base_pos[:, :, 2])
-    descriptors = jnp.stack(
-        [
-            (swing + task.swing_range) / (2 * task.swing_range),
-            (height + task.height_range) / (2 * task.height_range),
-            duty_level(genes[:, 5], task.duty_levels),
-        ],
-        axis=-1,
-    )
-    leg_commands = result.command_abs_sum.reshape(batch, NUM_LEGS, 3)[rows, leg]
-    duration = task.steps * robot.config.control_dt
+    swing = swing_distance(result.joint_pos[rows, :, 3 * leg], result.foot_contacts[rows, :, leg])  # from (B, T)
+    height = lift_height(result.foot_pos[rows, :, leg, 2], result.base_pos[:, :, 2])
+    descriptors = jnp.stack([(swing + task.swing_range) / (2 * task.swing_range),
+                             (height + task.height_range) / (2 * task.height_range),
+                             duty_level(genes[:, 5], task.duty_levels)], axis=-1)
     if task.fitness == "genes":
         fitness = gene_fitness(genes)
     else:
-        fitness = activation_fitness(leg_commands, duration, robot.config.max_joint_velocity)
+        commands = result.command_abs_sum.reshape(batch, NUM_LEGS, 3)[rows, leg]
+        fitness = activation_fitness(commands, task.steps * robot.config.control_dt, robot.config.max_joint_velocity)
     in_range = jnp.all((descriptors >= 0.0) & (descriptors <= 1.0), axis=-1)
-    return Evaluation(
-        fitnesses=fitness,
-        descriptors=descriptors,
-        valid=result.valid & in_range,
-        extras={"leg": leg.astype(jnp.int32)},
-    )
+    return Evaluation(fitnesses=fitness, descriptors=descriptors, valid=result.valid & in_range,
+                      extras={"leg": leg.astype(jnp.int32)})

@@ -1,17 +1,6 @@
-"""Hierarchical execution: a top-layer genotype down to joint commands, batched and jittable.
-
-top genotype (9) -> three waypoints -> for each 1 s step, the middle elite whose primary
-descriptor is nearest to the waypoint seen from the robot's current pose (optionally only among
-elites with a chosen contact pattern) -> its six leg primitives -> one 36-parameter controller,
-simulated for 1 s. Training of the top layer and the modulation analysis call `execute_skill` /
-`execute_step`, the online phase `step_elite` and `run_elite` (the two halves of `execute_step`:
-which elite, then its simulated second), so a skill is decoded the same way everywhere.
-
-Waypoints: the genotype holds three middle-layer primary descriptors (normalised x, y, yaw
-steps); waypoint k is the pose reached by composing the first k + 1 steps from the start pose.
-Before each step the next waypoint is re-expressed in the robot's current frame, so a step that
-fell short is corrected by the next one (the original does the same at deployment).
-"""
+"""Hierarchical execution, batched and jittable: per 1 s step, the middle elite (optionally of one contact
+pattern) whose primary descriptor is nearest to the next waypoint seen from the robot's current pose, so
+a step that fell short is corrected by the next (as the original does at deployment)."""
 
 from __future__ import annotations
 
@@ -34,21 +23,11 @@ ANY_PATTERN = -1
 
 @struct.dataclass
 class HBR:
-    """A trained hierarchical behavioural repertoire.
-
-    bottom: leg primitives, genotypes (Cb, 6), descriptors (Cb, 3) (swing, height, duty).
-    middle: body motions, genotypes (Cm, 18), descriptors (Cm, 9) (x, y, yaw, 6 contact bits).
-    top: skills on a grid, genotypes (Ct, 9), descriptors (Ct, 2) (final x, y).
-    middle_params: (Cm, 36) the controller of every middle elite (zeros where empty).
-    middle_patterns: (Cm,) int32 contact pattern of every middle elite (-1 where empty).
-    middle_task: how the middle layer was evaluated (static).
-    step_model: the middle elites' steps measured from several start states (`composition.StepModel`,
-      (Cm, 3) and (Cm,)), or None when not measured.
-    top_task: the grid the top layer was trained on (static; Ct = bins^2).
-    spare_count: how many of the middle slots, at the end, are a second archive's elites appended
-      for spare sets (`spare.with_spare`; static, 0 for an HBR as trained). They are never
-      `filled`, so no lookup of the HBR's own sees them.
-    """
+    """A trained hierarchical behavioural repertoire: bottom genotypes (Cb, 6), descriptors (Cb, 3) (swing,
+    height, duty); middle (Cm, 18), (Cm, 9) (x, y, yaw, 6 contact bits); top (Ct, 9), (Ct, 2) (final x, y).
+    middle_params: (Cm, 36) controllers (zeros where empty). middle_patterns: (Cm,) int32 (-1 where empty).
+    step_model: measured steps (`composition.StepModel`) or None. middle_task, top_task (Ct = bins^2): static.
+    spare_count: the last middle slots, `spare.with_spare`'s elites (static; never `filled`, so unseen)."""
 
     bottom: Repertoire
     middle: Repertoire
@@ -71,17 +50,10 @@ class HBR:
 
 @struct.dataclass
 class StepResult:
-    """One 1 s step of B robots.
-
-    state: SimState (B, ...) after the step. valid: (B,) bool. invalid_reason: (B,) int32
-      `InvalidReason` bits (0 if valid).
-    middle_index: (B,) int32 middle elite executed. pattern_found: (B,) bool, False when no elite
-      has the requested pattern (then the nearest elite of any pattern ran).
-    displacement: (B, 3) (x, y, yaw) in the frame of the pose at the start of the step.
-    contact_fraction: (B, 6) fraction of the step each foot was on the ground.
-    qpos: (B, F, 25) qpos every `record_every` control steps of the step (replay), or None.
-    leg_travel: (B, 6) rad each leg's three joints moved during the step (sum of |angle changes|).
-    """
+    """One 1 s step of B robots: state (B, ...) after it, valid (B,), invalid_reason (B,) int32 `InvalidReason`
+    bits, middle_index (B,) int32 elite run, pattern_found (B,) (False: no elite has the pattern, the nearest
+    of any ran), displacement (B, 3) (x, y, yaw) in the step's start frame, contact_fraction (B, 6), qpos
+    (B, F, 25) every `record_every` control steps or None, leg_travel (B, 6) rad each leg's joints moved."""
 
     state: SimState
     valid: jax.Array
@@ -96,11 +68,8 @@ class StepResult:
 
 @struct.dataclass
 class SkillResult:
-    """A 3 s skill of B robots.
-
-    state: SimState (B, ...) at the end. valid: (B,) bool, every step valid.
-    displacement: (B, 3) (x, y, yaw) in the start frame. steps: StepResult with leading (3, B).
-    """
+    """A 3 s skill of B robots: state (B, ...) at the end, valid (B,) (every step), displacement (B, 3)
+    (x, y, yaw) in the start frame, steps: StepResult with leading (3, B)."""
 
     state: SimState
     valid: jax.Array
@@ -114,17 +83,13 @@ def state_pose(state: SimState) -> jax.Array:
 
 
 def select_middle(hbr: HBR, desired: jax.Array, pattern: jax.Array, chunk: int = 1024):
-    """Nearest middle elite in primary descriptor to `desired` (B, 3), among elites with `pattern` (B,).
-
-    pattern -1 means any. Returns (index (B,) int32, found (B,) bool); where no elite has the
-    pattern, the nearest elite of any pattern is returned and found is False.
-    """
+    """(index (B,) int32, found (B,) bool): the nearest middle elite in primary descriptor to `desired`
+    (B, 3) among elites with `pattern` (B,) (-1: any); where none has it, the nearest of any (found False)."""
     points = hbr.middle.descriptors[:, :PRIMARY]
-    filled = hbr.middle.filled
 
     def block(args):
         q, p = args
-        anywhere = jnp.where(filled[None, :], squared_distance(q, points), jnp.inf)
+        anywhere = jnp.where(hbr.middle.filled[None, :], squared_distance(q, points), jnp.inf)
         matching = jnp.where((p[:, None] < 0) | (hbr.middle_patterns[None, :] == p[:, None]), anywhere, jnp.inf)
         found = jnp.isfinite(matching).any(axis=-1)
         index = jnp.where(found, jnp.argmin(matching, axis=-1), jnp.argmin(anywhere, axis=-1))
@@ -133,23 +98,10 @@ def select_middle(hbr: HBR, desired: jax.Array, pattern: jax.Array, chunk: int =
     return map_rows(block, (desired, pattern.astype(jnp.int32)), (0.0, ANY_PATTERN), chunk)
 
 
-def _step_spec(steps: int, limits: ValidityLimits, record_every: int = 0) -> RolloutSpec:
-    return RolloutSpec(num_steps=steps, pose_steps=(0, steps), record_contacts=True, limits=limits,
-                       record_qpos_every=record_every, record_joint_travel=True)
-
-
-def step_elite(
-    hbr: HBR, here: jax.Array, target: jax.Array, pattern: jax.Array, query: jax.Array | None = None,
-    elite: jax.Array | None = None,
-) -> tuple[jax.Array, jax.Array]:
-    """The middle elite a step from world pose `here` (B, 3) towards world pose `target` (B, 3) runs,
-    among elites with contact `pattern` (B,) (-1: any): (index (B,) int32, found (B,) bool, False
-    where no elite has the pattern). Its controller is `hbr.middle_params[index]` (B, 36).
-
-    query: (B, 3) normalised primary step to look the elite up with instead of the step to `target`
-    (an adaptation rule that aims off the target to cancel a predicted drift). elite: (B,) int32
-    middle elite to run where >= 0 (chosen by a planner), instead of the looked-up one.
-    """
+def step_elite(hbr: HBR, here: jax.Array, target: jax.Array, pattern: jax.Array, query: jax.Array | None = None,
+               elite: jax.Array | None = None) -> tuple[jax.Array, jax.Array]:
+    """`select_middle`'s (index, found) for a step from world pose `here` (B, 3) towards `target` (B, 3), or
+    for the normalised step `query` (B, 3); elite (B,) int32: run instead where >= 0 (a planner's choice)."""
     desired = hbr.middle_task.normalise(relative_pose(here, target)) if query is None else query
     index, found = select_middle(hbr, desired, pattern)
     if elite is not None:
@@ -157,40 +109,24 @@ def step_elite(
     return index, found
 
 
-def run_elite(
-    robot: Robot, hbr: HBR, state: SimState, damage: jax.Array, index: jax.Array, found: jax.Array,
-    limits: ValidityLimits = ValidityLimits(), record_every: int = 0,
-) -> StepResult:
-    """Simulate middle elites `index` (B,) (found (B,): `step_elite`'s) for one step from `state`.
-
-    record_every: k > 0 also returns the qpos every k control steps (`StepResult.qpos`).
-    """
-    result = rollout(robot, hbr.middle_params[index], damage, state,
-                     _step_spec(hbr.middle_task.steps, limits, record_every))
+def run_elite(robot: Robot, hbr: HBR, state: SimState, damage: jax.Array, index: jax.Array, found: jax.Array,
+              limits: ValidityLimits = ValidityLimits(), record_every: int = 0) -> StepResult:
+    """Simulate middle elites `index` (B,) for one step from `state`; record_every > 0 also records qpos."""
+    steps = hbr.middle_task.steps
+    spec = RolloutSpec(num_steps=steps, pose_steps=(0, steps), record_contacts=True, limits=limits,
+                       record_qpos_every=record_every, record_joint_travel=True)
+    result = rollout(robot, hbr.middle_params[index], damage, state, spec)
     poses = planar_pose(result.base_pos, result.base_quat)
-    return StepResult(
-        state=result.final_state,
-        valid=result.valid,
-        invalid_reason=result.invalid_reason,
-        middle_index=index,
-        pattern_found=found,
-        displacement=relative_pose(poses[:, 0], poses[:, 1]),
-        contact_fraction=result.foot_contacts.mean(axis=1),
-        qpos=result.qpos,
-        leg_travel=result.joint_travel.reshape(-1, NUM_LEGS, NUM_JOINTS // NUM_LEGS).sum(axis=-1),
-    )
+    return StepResult(state=result.final_state, valid=result.valid, invalid_reason=result.invalid_reason,
+                      middle_index=index, pattern_found=found, displacement=relative_pose(poses[:, 0], poses[:, 1]),
+                      contact_fraction=result.foot_contacts.mean(axis=1), qpos=result.qpos,
+                      leg_travel=result.joint_travel.reshape(-1, NUM_LEGS, NUM_JOINTS // NUM_LEGS).sum(axis=-1))
 
 
-def execute_step(
-    robot: Robot, hbr: HBR, state: SimState, damage: jax.Array, target: jax.Array, pattern: jax.Array,
-    limits: ValidityLimits = ValidityLimits(), query: jax.Array | None = None, record_every: int = 0,
-    elite: jax.Array | None = None,
-) -> StepResult:
-    """Walk one second towards the world pose `target` (B, 3) with contact `pattern` (B,) (-1: any).
-
-    query, elite: see `step_elite`. record_every: k > 0 also returns the qpos every k control steps
-    (`StepResult.qpos`).
-    """
+def execute_step(robot: Robot, hbr: HBR, state: SimState, damage: jax.Array, target: jax.Array, pattern: jax.Array,
+                 limits: ValidityLimits = ValidityLimits(), query: jax.Array | None = None, record_every: int = 0,
+                 elite: jax.Array | None = None) -> StepResult:
+    """Walk one second towards the world pose `target` (B, 3) with contact `pattern` (B,) (-1: any)."""
     index, found = step_elite(hbr, state_pose(state), target, pattern, query, elite)
     return run_elite(robot, hbr, state, damage, index, found, limits, record_every)
 
@@ -198,58 +134,37 @@ def execute_step(
 def skill_waypoints(task: MiddleTask, genotypes: jax.Array) -> jax.Array:
     """(..., 9) top genotypes -> (..., 3, 3) waypoints (x, y, yaw) in the skill's start frame."""
     steps = task.denormalise(genotypes.reshape(*genotypes.shape[:-1], STEPS_PER_SKILL, PRIMARY))
-    pose = jnp.zeros_like(steps[..., 0, :])
-    waypoints = []
+    pose, waypoints = jnp.zeros_like(steps[..., 0, :]), []
     for k in range(STEPS_PER_SKILL):
         pose = compose_pose(pose, steps[..., k, :])
         waypoints.append(pose)
     return jnp.stack(waypoints, axis=-2)
 
 
-def execute_skill(
-    robot: Robot,
-    hbr: HBR,
-    genotypes: jax.Array,
-    start: SimState,
-    damage: jax.Array | None = None,
-    patterns: jax.Array | None = None,
-    record_every: int = 0,
-    table: PatternTable | None = None,
-    ends: jax.Array | None = None,
-    limits: ValidityLimits = ValidityLimits(),
-) -> SkillResult:
-    """Execute (B, 9) top genotypes from `start` (B, ...) with damage (B, 6) and contact patterns (B, 3).
-
-    damage None: intact. patterns None or -1 entries: nearest elite of any pattern. record_every:
-    k > 0 records the qpos every k control steps (`steps.qpos`, (3, B, F, 25)). table and ends
-    (B, 3) (the skills' end poses in the start frame): steps with a pattern >= 0 run the first step
-    of a plan among that pattern's elites towards the end (`composition`), not the nearest elite to
-    the next waypoint. limits: when a step is invalid (default: training's).
-    """
+def execute_skill(robot: Robot, hbr: HBR, genotypes: jax.Array, start: SimState, damage: jax.Array | None = None,
+                  patterns: jax.Array | None = None, record_every: int = 0, table: PatternTable | None = None,
+                  ends: jax.Array | None = None, limits: ValidityLimits = ValidityLimits()) -> SkillResult:
+    """Execute (B, 9) top genotypes from `start` (B, ...) with damage (B, 6) (None: intact), contact patterns
+    (B, 3) (None or -1: any) and `run_elite`'s record_every (`steps.qpos` (3, B, F, 25)). table, ends (B, 3)
+    (end poses in the start frame): a step with a pattern >= 0 runs the first step of a plan towards the end
+    (`composition`). limits: when a step is invalid (default: training's)."""
     batch = genotypes.shape[0]
     damage = jnp.zeros((batch, NUM_LEGS), bool) if damage is None else jnp.broadcast_to(damage, (batch, NUM_LEGS))
     if patterns is None:
         patterns = jnp.full((batch, STEPS_PER_SKILL), ANY_PATTERN, jnp.int32)
     origin = state_pose(start)
     targets = compose_pose(origin[:, None, :], skill_waypoints(hbr.middle_task, genotypes))  # (B, 3, 3)
-
     goal = None if table is None else compose_pose(origin, ends)
 
     def one_step(state, xs):
         target, pattern, remaining = xs
-        elite = None
-        if table is not None:
-            elite = plan_batch(table, hbr.middle_task, state_pose(state), goal, pattern, remaining)
+        here = state_pose(state)
+        elite = None if table is None else plan_batch(table, hbr.middle_task, here, goal, pattern, remaining)
         step = execute_step(robot, hbr, state, damage, target, pattern, limits, record_every=record_every, elite=elite)
         return step.state, step
 
     remaining = jnp.arange(STEPS_PER_SKILL, 0, -1, dtype=jnp.int32)
     xs = (jnp.swapaxes(targets, 0, 1), jnp.swapaxes(patterns, 0, 1), remaining)
     final, steps = jax.lax.scan(one_step, start, xs)
-    end = state_pose(final)
-    return SkillResult(
-        state=final,
-        valid=steps.valid.all(axis=0),
-        displacement=relative_pose(origin, end),
-        steps=steps,
-    )
+    return SkillResult(state=final, valid=steps.valid.all(axis=0),
+                       displacement=relative_pose(origin, state_pose(final)), steps=steps)

@@ -1,24 +1,6 @@
-"""Middle layer: 1 s body motions (paper section 3; `docs/original_code.md` §4).
-
-Genotype: 18 numbers, for each leg a target (swing, height, duty) in the bottom layer's
-descriptor space; each is mapped to its nearest bottom primitive and the six primitives form
-one 36-parameter controller.
-
-Evaluation: the controller runs for `samples` consecutive seconds from the standing state, so
-every second after the first starts from the dynamic state the previous one left (the
-original's chained initial states). Per second: the displacement (x, y, yaw) in the frame of
-the pose at the start of that second, and each foot's fraction of steps on the ground. The
-reported sample is the medoid of the samples in normalised (x, y, yaw) (the sample with the
-smallest summed distance to the others): a robust median.
-
-Descriptor (9-D, [0, 1]): primary (x + 0.5, y + 0.5, (yaw + 1) / 2) for |x|, |y| <= 0.5 m
-and |yaw| <= 1 rad, outside which the individual is invalid; secondary: six contact bits,
-1 if the foot is down more than `contact_threshold` of the second (paper: 30 %).
-Fitness: the circular-trajectory angle error of the medoid sample (its own position and yaw),
-minus `purity` times the contact left on the legs whose bit is 0 (ours, default 0: the paper's
-fitness; > 0 keeps, among body motions of one niche, those that really lift the legs their
-pattern lifts).
-"""
+"""Middle layer: 1 s body motions (paper section 3; `docs/original_code.md` §4). Per leg a target in the
+bottom descriptor space (18 genes), mapped to its nearest primitive, runs `samples` chained seconds; the
+medoid second's (x, y, yaw) step and contact bits are the descriptor, its angle error the fitness."""
 
 from __future__ import annotations
 
@@ -41,21 +23,16 @@ GENES = 18
 PRIMARY = 3  # x, y, yaw
 DESCRIPTORS = PRIMARY + NUM_LEGS
 NUM_PATTERNS = 2**NUM_LEGS
-# the medoid sample's contact fractions and its index among the samples
-EXTRAS = {"contact_fraction": ((NUM_LEGS,), "float32"), "medoid": ((), "int32")}
+EXTRAS = {"contact_fraction": ((NUM_LEGS,), "float32"), "medoid": ((), "int32")}  # of the reported (medoid) second
 ARCHIVE_L = 0.05  # default distance threshold of the layer's archive (`HBRConfig.middle_l`)
 QD_OFFSET = -math.pi  # the lowest angle error
 
 
 @dataclasses.dataclass(frozen=True)
 class MiddleTask:
-    """How a body motion is evaluated (hashable).
-
-    samples: consecutive 1 s samples (original 10). steps: control steps per sample.
-    max_step: |x|, |y| range of the primary descriptor (m). max_turn: |yaw| range (rad).
-    contact_threshold: a leg's contact bit is 1 above this fraction of the second.
-    purity: fitness penalty per unit of contact fraction on the legs whose bit is 0 (0: none).
-    """
+    """How a body motion is evaluated (hashable): `samples` chained seconds of `steps` control steps;
+    max_step (m) / max_turn (rad): |x|, |y| / |yaw| range of the primary descriptor; a leg's bit is 1
+    above `contact_threshold` of the second; purity: fitness penalty per unit of contact on lifted legs."""
 
     samples: int = 10
     steps: int = 100
@@ -89,17 +66,13 @@ class MiddleTask:
 
 
 def middle_spec(capacity: int, l: float = ARCHIVE_L, evaluate: EvaluateFn | None = None) -> TaskSpec:
-    """The middle layer as a QD task: 18 genes, an archive of `capacity` slots over [0, 1]^9 with
-    distance threshold `l`, the extras `evaluate_middle` returns."""
+    """The middle layer as a QD task: 18 genes, an archive of `capacity` slots over [0, 1]^9, threshold `l`."""
     return TaskSpec("hbr-middle", GENES, Archive(capacity, (0.0,) * DESCRIPTORS, (1.0,) * DESCRIPTORS, l), evaluate,
                     EXTRAS, QD_OFFSET)
 
 
 def nearest_index(points: jax.Array, mask: jax.Array, queries: jax.Array, chunk: int = 4096) -> jax.Array:
-    """Index of the nearest point among `mask`-ed rows of points (C, D) for each query (..., D).
-
-    Squared Euclidean distance; ties go to the lowest index; -1 where the mask is empty.
-    """
+    """(...,) index of the nearest `mask`-ed row of points (C, D) to queries (..., D) (ties: lowest; -1: none)."""
     shape = queries.shape[:-1]
     flat = queries.reshape(-1, queries.shape[-1])
 
@@ -108,23 +81,18 @@ def nearest_index(points: jax.Array, mask: jax.Array, queries: jax.Array, chunk:
         dist = jnp.where(mask[None, :], squared_distance(q, points), jnp.inf)
         return jnp.argmin(dist, axis=-1).astype(jnp.int32)
 
-    index = map_rows(block, (flat,), (0.0,), chunk)
-    return jnp.where(mask.any(), index, -1).reshape(shape)
+    return jnp.where(mask.any(), map_rows(block, (flat,), (0.0,), chunk), -1).reshape(shape)
 
 
 def leg_controllers(bottom: Repertoire, targets: jax.Array) -> jax.Array:
     """(..., 6, 3) per-leg targets in bottom descriptor space -> (..., 36) controllers."""
     index = nearest_index(bottom.descriptors, bottom.filled, targets)
-    genes = bottom.genotypes[jnp.maximum(index, 0)]  # (..., 6, 6)
-    return genes.reshape(*targets.shape[:-2], NUM_LEGS * 6)
+    return bottom.genotypes[jnp.maximum(index, 0)].reshape(*targets.shape[:-2], NUM_LEGS * 6)
 
 
 def elite_controllers(bottom: Repertoire, genotypes: jax.Array, filled: jax.Array) -> jax.Array:
-    """(C, 36) controllers of the `filled` rows of (C, 18) middle genotypes, zeros elsewhere: the
-    values of `where(filled, leg_controllers(bottom, decode(genotypes)), 0)`. Outside a jit only the
-    filled rows are looked up, among the filled bottom elites kept in their order (so ties still go
-    to the lowest index, and the same distances are compared): for the shipped HBR 23 641 of 65 536
-    rows against 11 088 of 16 384 cells, a quarter of the work, paid at every `load_hbr`."""
+    """(C, 36) controllers of the `filled` rows of (C, 18) middle genotypes, zeros elsewhere; outside a jit only
+    filled rows are looked up, among the filled bottom elites in order (same values, a quarter of the work)."""
     inputs = (bottom.descriptors, bottom.filled, bottom.genotypes, genotypes, filled)
     if any(isinstance(x, jax.core.Tracer) for x in inputs) or not np.asarray(bottom.filled).any():
         return jnp.where(filled[:, None], leg_controllers(bottom, decode(genotypes)), 0.0)
@@ -152,42 +120,32 @@ def pattern_code(bits: jax.Array) -> jax.Array:
 
 def pattern_bits(code: jax.Array) -> jax.Array:
     """Inverse of `pattern_code`: (...,) int -> (..., 6) float32 bits."""
-    shifts = jnp.arange(NUM_LEGS - 1, -1, -1)
-    return ((jnp.asarray(code)[..., None] >> shifts) & 1).astype(jnp.float32)
+    return ((jnp.asarray(code)[..., None] >> jnp.arange(NUM_LEGS - 1, -1, -1)) & 1).astype(jnp.float32)
 
 
 def evaluate_controllers(robot: Robot, start: SimState, task: MiddleTask, params: jax.Array) -> Evaluation:
-    """Evaluate (B, 36) controllers as body motions from `start`.
-
-    Returns descriptors (B, 9), fitness (B,), validity, and extras {"contact_fraction": (B, 6),
-    "medoid": (B,) int32 index of the reported sample}.
-    """
+    """Evaluate (B, 36) controllers as body motions from `start`: descriptors (B, 9), extras (B, ...) `EXTRAS`."""
     batch = params.shape[0]
     tiled = jnp.broadcast_to(params[:, None, :], (batch, task.samples, params.shape[-1]))
     result = rollout(robot, tiled, jnp.zeros(NUM_LEGS, bool), start, task.spec)
     poses = planar_pose(result.base_pos, result.base_quat)  # (B, S + 1, 3)
     displacement = relative_pose(poses[:, :-1], poses[:, 1:])  # (B, S, 3)
     primary = task.normalise(displacement)
-    fraction = result.foot_contacts.reshape(batch, task.samples, task.steps, NUM_LEGS).mean(axis=2)
     medoid = medoid_index(primary)
     rows = jnp.arange(batch)
     chosen = primary[rows, medoid]
-    bits = (fraction[rows, medoid] > task.contact_threshold).astype(jnp.float32)
-    in_range = jnp.all((chosen >= 0.0) & (chosen <= 1.0), axis=-1)
+    fraction = result.foot_contacts.reshape(batch, task.samples, task.steps, NUM_LEGS).mean(axis=2)[rows, medoid]
+    bits = (fraction > task.contact_threshold).astype(jnp.float32)
+    valid = result.valid & jnp.all((chosen >= 0.0) & (chosen <= 1.0), axis=-1)
     fitness = angle_error(displacement[rows, medoid])
     if task.purity:
-        fitness = fitness - task.purity * jnp.sum(fraction[rows, medoid] * (1.0 - bits), axis=-1)
-    return Evaluation(
-        fitnesses=fitness,
-        descriptors=jnp.concatenate([chosen, bits], axis=-1),
-        valid=result.valid & in_range,
-        extras={"contact_fraction": fraction[rows, medoid], "medoid": medoid.astype(jnp.int32)},
-    )
+        fitness = fitness - task.purity * jnp.sum(fraction * (1.0 - bits), axis=-1)
+    return Evaluation(fitnesses=fitness, descriptors=jnp.concatenate([chosen, bits], axis=-1), valid=valid,
+                      extras={"contact_fraction": fraction, "medoid": medoid.astype(jnp.int32)})
 
 
-def evaluate_middle(
-    robot: Robot, start: SimState, task: MiddleTask, bottom: Repertoire, key: jax.Array, genotypes: jax.Array
-) -> Evaluation:
+def evaluate_middle(robot: Robot, start: SimState, task: MiddleTask, bottom: Repertoire, key: jax.Array,
+                    genotypes: jax.Array) -> Evaluation:
     """Evaluate (B, 18) middle genotypes (key unused: the evaluation is deterministic)."""
     del key
     return evaluate_controllers(robot, start, task, leg_controllers(bottom, decode(genotypes)))

@@ -1,12 +1,5 @@
-"""Secondary-descriptor modulation (paper section 5, Fig. 4 and 5).
-
-Every top-layer skill is re-executed from the standing state with each contact pattern held for
-its 3 steps. Per skill we count the patterns for which the robot (i) showed the wanted pattern,
-measured over the whole 3 s (a foot is "on the ground" when down more than the middle layer's
-contact threshold), and (ii) ended in the skill's own x-y cell of the top grid. `spread_skills`
-draws a seeded sample of skills spread over the whole map, for a study sized to a CPU.
-`execute_held` runs many (skill, pattern) pairs in fixed-size jitted chunks.
-"""
+"""Secondary-descriptor modulation (paper section 5, Fig. 4 and 5): every skill re-executed with each contact
+pattern held, counting the patterns (i) shown over the 3 s and (ii) ending in the skill's own top-grid cell."""
 
 from __future__ import annotations
 
@@ -28,14 +21,9 @@ from hte_jax.sim.rollout import SimState
 
 @dataclasses.dataclass(frozen=True)
 class Modulation:
-    """Re-executions of N skills with P contact patterns (host numpy arrays).
-
-    slots: (N,) top-grid cells of the skills. patterns: (P,) wanted patterns.
-    target_xy: (N, 2) m, the skills' stored final positions. final_xy: (N, P, 2) m reached.
-    measured: (N, P) int pattern shown over the 3 s. valid: (N, P) simulation stayed valid.
-    available: (N, P) a middle elite of the wanted pattern existed for all 3 steps.
-    final_cell: (N, P) top-grid cell reached (-1 outside the grid).
-    """
+    """Re-executions of N skills with P contact patterns (numpy): slots (N,) top-grid cells, patterns (P,),
+    target_xy (N, 2) m stored ends, final_xy (N, P, 2) m reached, measured (N, P) pattern shown, valid (N, P),
+    available (N, P) elites of the pattern for all 3 steps, final_cell (N, P) cell reached (-1 outside)."""
 
     slots: np.ndarray
     patterns: np.ndarray
@@ -64,8 +52,7 @@ class Modulation:
         return self.valid & (self.measured == self.patterns[None, :])
 
     def reaches(self, radius: float | None = None) -> np.ndarray:
-        """(N, P) the robot ended in the skill's own cell (radius None), or within `radius` m of
-        the skill's stored final position."""
+        """(N, P) the robot ended in the skill's own cell (radius None) or within `radius` m of its end."""
         if radius is None:
             return self.valid & (self.final_cell == self.slots[:, None])
         return self.valid & (self.error <= radius)
@@ -76,19 +63,14 @@ class Modulation:
         return np.linalg.norm(self.final_xy - self.target_xy[:, None, :], axis=-1)
 
     def counts(self, radius: float | None = None) -> dict[str, np.ndarray]:
-        """Per skill (N,): "shows" (i), "reaches" (ii, see `reaches`), "both", and "median_error" (m)
-        over the executions that showed the wanted pattern (NaN where none did)."""
+        """Per skill (N,): "shows" (i), "reaches" (ii), "both", "median_error" (m) of the shown (NaN: none)."""
         shows, reaches = self.shows_pattern, self.reaches(radius)
         error = np.where(shows, self.error, np.nan)
         some = shows.any(axis=1)
         median = np.full(self.slots.size, np.nan)
         median[some] = np.nanmedian(error[some], axis=1)
-        return {
-            "shows": shows.sum(axis=1),
-            "reaches": reaches.sum(axis=1),
-            "both": (shows & reaches).sum(axis=1),
-            "median_error": median,
-        }
+        return {"shows": shows.sum(axis=1), "reaches": reaches.sum(axis=1), "both": (shows & reaches).sum(axis=1),
+                "median_error": median}
 
     def summary(self, radii: tuple[float, ...] = (0.05, 0.1, 0.2)) -> dict:
         counts = self.counts()
@@ -100,24 +82,19 @@ class Modulation:
             share = near["both"][some] / near["shows"][some] if some.any() else np.array([np.nan])
             within[f"{radius:g}"] = {"reaches": float(near["reaches"].mean()), "both": float(near["both"].mean()),
                                      "share_of_shown": float(share.mean())}
-        return {
-            "skills": int(self.slots.size),
-            "patterns": int(self.patterns.size),
-            "mean_patterns_shown_per_skill": float(counts["shows"].mean()),
-            "mean_patterns_reaching_cell_per_skill": float(counts["reaches"].mean()),
-            "mean_patterns_both_per_skill": float(counts["both"].mean()),
-            "skills_with_a_shown_pattern": int((counts["shows"] > 0).sum()),
-            "median_error_m": float(np.nanmedian(counts["median_error"])) if np.isfinite(counts["median_error"]).any()
-            else float("nan"),
-            "skills_showing_each_pattern": per_pattern.tolist(),
-            "feasible_patterns": int((per_pattern > 0).sum()),
-            "mean_patterns_per_skill_within_radius_m": within,
-        }
+        error = counts["median_error"]
+        return {"skills": int(self.slots.size), "patterns": int(self.patterns.size),
+                "mean_patterns_shown_per_skill": float(counts["shows"].mean()),
+                "mean_patterns_reaching_cell_per_skill": float(counts["reaches"].mean()),
+                "mean_patterns_both_per_skill": float(counts["both"].mean()),
+                "skills_with_a_shown_pattern": int((counts["shows"] > 0).sum()),
+                "median_error_m": float(np.nanmedian(error)) if np.isfinite(error).any() else float("nan"),
+                "skills_showing_each_pattern": per_pattern.tolist(), "feasible_patterns": int((per_pattern > 0).sum()),
+                "mean_patterns_per_skill_within_radius_m": within}
 
 
 def checked_pairs(hbr: HBR, skills: np.ndarray | None, patterns: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
-    """(N,) top-grid cells (default every filled one) and (P,) patterns (default all 64), checked:
-    ValueError for a cell that holds no skill or a pattern outside [0, 64)."""
+    """(N,) top-grid cells (default all filled) and (P,) patterns (default all 64), else ValueError."""
     filled = np.flatnonzero(np.asarray(hbr.top.filled))
     slots = filled if skills is None else np.asarray(skills, np.int64)
     if not np.isin(slots, filled).all():
@@ -135,19 +112,12 @@ def stored_ends(hbr: HBR, task: TopTask, slots: np.ndarray) -> np.ndarray:
                                  task.extent))
 
 
-def execute_held(
-    robot: Robot, hbr: HBR, start: SimState, genes: np.ndarray, patterns: np.ndarray, ends: np.ndarray,
-    table: PatternTable | None, summarise: Callable[[SkillResult], tuple], *, chunk: int = 4096,
-    progress: bool = True, desc: str = "re-execution",
-) -> list[np.ndarray]:
-    """Execute M skills, row k with top genotype genes[k] (M, 9) and pattern patterns[k] (M,) held
-    for its three steps, towards ends[k] (M, 3) (its end in the start frame, where `table` plans
-    each step; None: the paper's nearest elite to each waypoint), from the unbatched state `start`.
-
-    summarise(skill) -> tuple of (B, ...) arrays, traced inside the jitted chunk: what to keep of
-    each execution. Runs ceil(M / chunk) chunks of one fixed size (the last padded with copies of
-    its last row, which are dropped). Returns summarise's arrays concatenated over the M rows.
-    """
+def execute_held(robot: Robot, hbr: HBR, start: SimState, genes: np.ndarray, patterns: np.ndarray, ends: np.ndarray,
+                 table: PatternTable | None, summarise: Callable[[SkillResult], tuple], *, chunk: int = 4096,
+                 progress: bool = True, desc: str = "re-execution") -> list[np.ndarray]:
+    """Execute M skills from the unbatched `start`: genotypes genes (M, 9), patterns (M,) each held 3 steps,
+    ends (M, 3) in the start frame (planned towards with `table`; None: nearest elite to each waypoint), in
+    fixed-size chunks. Returns `summarise(skill)`'s tuple of (B, ...) arrays concatenated over the M rows."""
     total = int(genes.shape[0])
     chunk = min(chunk, total)
     starts = jax.tree.map(lambda x: jnp.broadcast_to(x, (chunk, *x.shape)), start)
@@ -157,29 +127,23 @@ def execute_held(
         held = jnp.broadcast_to(wanted[:, None], (wanted.shape[0], STEPS_PER_SKILL))
         return summarise(execute_skill(robot, hbr, genes, starts, patterns=held, table=table, ends=ends))
 
-    def padded(rows: np.ndarray, pad: int) -> np.ndarray:
-        return np.concatenate([rows, np.repeat(rows[-1:], pad, axis=0)])
+    def padded(rows: np.ndarray) -> np.ndarray:  # to `chunk` rows, with copies of the last
+        return np.concatenate([rows, np.repeat(rows[-1:], chunk - len(rows), axis=0)])
 
     outputs = []
     for begin in tqdm(range(0, total, chunk), disable=not progress, desc=desc, unit="chunk", leave=False):
         stop = min(begin + chunk, total)
-        pad = chunk - (stop - begin)
-        out = jax.device_get(run_chunk(hbr, table, jnp.asarray(padded(genes[begin:stop], pad)),
-                                       jnp.asarray(padded(patterns[begin:stop], pad), jnp.int32),
-                                       jnp.asarray(padded(ends[begin:stop], pad))))
+        out = jax.device_get(run_chunk(hbr, table, jnp.asarray(padded(genes[begin:stop])),
+                                       jnp.asarray(padded(patterns[begin:stop]), jnp.int32),
+                                       jnp.asarray(padded(ends[begin:stop]))))
         outputs.append([np.asarray(o)[: stop - begin] for o in out])
     return [np.concatenate(parts) for parts in zip(*outputs)]
 
 
 def spread_skills(filled: np.ndarray, descriptors: np.ndarray, count: int, seed: int = 0) -> np.ndarray:
-    """Sorted cells of min(count, filled.sum()) skills spread over the whole map, drawn with `seed`.
-
-    filled: (C,) bool, the top grid's filled cells. descriptors: (C, 2) their final x-y, normalised
-    to [0, 1]. The skills are ordered along a Z-order curve over the map (so each run of
-    consecutive skills is a compact patch) and every (filled / count)-th is taken from a random
-    start: one skill per patch of equal size, each skill equally likely to be taken. Every filled
-    cell when count >= filled.sum().
-    """
+    """Sorted cells of min(count, filled.sum()) skills spread over the map, drawn with `seed`: filled (C,)
+    bool, descriptors (C, 2) normalised final x-y. Every (filled / count)-th skill along a Z-order
+    curve from a random start: one per equal patch, each skill equally likely."""
     if count < 1:
         raise ValueError(f"count must be >= 1, got {count}")
     slots = np.flatnonzero(np.asarray(filled))
@@ -195,24 +159,10 @@ def spread_skills(filled: np.ndarray, descriptors: np.ndarray, count: int, seed:
     return np.sort(ordered[np.floor(start + step * np.arange(count)).astype(np.int64)])
 
 
-def modulate(
-    robot: Robot,
-    hbr: HBR,
-    task: TopTask,
-    start: SimState,
-    *,
-    skills: np.ndarray | None = None,
-    patterns: np.ndarray | None = None,
-    chunk: int = 4096,
-    progress: bool = True,
-    table: PatternTable | None = None,
-) -> Modulation:
-    """Re-execute top skills (default all; `skills` = top-grid cells) with each pattern (default all 64).
-
-    start: the unbatched standing state. Runs in fixed-size jitted chunks of `chunk` executions.
-    table: plan each step among the pattern's elites towards the skill's end (`composition`)
-    instead of the paper's nearest elite to each waypoint.
-    """
+def modulate(robot: Robot, hbr: HBR, task: TopTask, start: SimState, *, skills: np.ndarray | None = None,
+             patterns: np.ndarray | None = None, chunk: int = 4096, progress: bool = True,
+             table: PatternTable | None = None) -> Modulation:
+    """Re-execute top skills (default all) with each pattern (default all 64) from the standing state `start`."""
     slots, patterns = checked_pairs(hbr, skills, patterns)
     threshold = hbr.middle_task.contact_threshold
 
@@ -220,7 +170,8 @@ def modulate(
         fraction = skill.steps.contact_fraction.mean(axis=0)  # (B, 6) over the 3 s
         xy = skill.displacement[:, :2]
         cell = task.grid().cell_index(task.normalise(xy))
-        return xy, pattern_code((fraction > threshold).astype(jnp.float32)), skill.valid, skill.steps.pattern_found.all(axis=0), cell
+        shown = pattern_code((fraction > threshold).astype(jnp.float32))
+        return xy, shown, skill.valid, skill.steps.pattern_found.all(axis=0), cell
 
     # skill-major pairs: pair k = (skill k // P, pattern k % P)
     xy, measured, valid, available, cell = execute_held(
@@ -228,13 +179,7 @@ def modulate(
         np.tile(patterns, slots.size), np.repeat(stored_ends(hbr, task, slots), patterns.size, axis=0), table,
         summarise, chunk=chunk, progress=progress, desc="modulation")
     shape = (slots.size, patterns.size)
-    return Modulation(
-        slots=slots,
-        patterns=patterns,
-        target_xy=np.asarray(task.denormalise(np.asarray(hbr.top.descriptors)[slots])),
-        final_xy=xy.reshape(*shape, 2),
-        measured=measured.reshape(shape),
-        valid=valid.reshape(shape),
-        available=available.reshape(shape),
-        final_cell=cell.reshape(shape),
-    )
+    return Modulation(slots=slots, patterns=patterns,
+                      target_xy=np.asarray(task.denormalise(np.asarray(hbr.top.descriptors)[slots])),
+                      final_xy=xy.reshape(*shape, 2), measured=measured.reshape(shape), valid=valid.reshape(shape),
+                      available=available.reshape(shape), final_cell=cell.reshape(shape))

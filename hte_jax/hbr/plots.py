@@ -12,11 +12,12 @@ import numpy as np  # noqa: E402
 
 from hte_jax.hbr.analysis import pattern_histogram  # noqa: E402
 from hte_jax.hbr.hierarchy import HBR  # noqa: E402
+from hte_jax.hbr.middle import pattern_bits  # noqa: E402
 from hte_jax.hbr.top import TopTask  # noqa: E402
 from hte_jax.qd.plots import grid_projection, plot_metrics  # noqa: E402
 
 
-def _save(fig, path):
+def save_figure(fig, path):
     Path(path).parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=120, bbox_inches="tight")
     plt.close(fig)
@@ -29,12 +30,20 @@ def _elites(repertoire):
 
 def draw_xy_map(fig, ax, image: np.ndarray, extent: float, title: str, colorbar: bool = True):
     """A (bins, bins) x-y fitness image (NaN where empty) over [-extent, extent]^2 m on `ax`."""
-    e = extent
-    mesh = ax.imshow(image.T, origin="lower", extent=(-e, e, -e, e), cmap="viridis", vmin=-np.pi / 2, vmax=0)
+    mesh = ax.imshow(image.T, origin="lower", extent=(-extent, extent, -extent, extent), cmap="viridis",
+                     vmin=-np.pi / 2, vmax=0)
     if colorbar:
         fig.colorbar(mesh, ax=ax, label="fitness (minus angle error, rad)")
     ax.set(xlabel="final x (m)", ylabel="final y (m)", title=title)
     return mesh
+
+
+def draw_pattern_counts(ax, counts: np.ndarray, prefix: str = ""):
+    """(64,) elites per contact pattern as bars on `ax`, titled `prefix` and the number of patterns present."""
+    ax.bar(np.arange(counts.size), counts, color="tab:blue")
+    ax.set_yscale("log" if counts.max(initial=0) > 50 else "linear")
+    ax.set(xlabel="contact pattern (leg 0 = most significant bit; 63 = all feet down)", ylabel="elites",
+           title=f"{prefix}{int((counts > 0).sum())} distinct contact patterns")
 
 
 def xy_title(name: str, image: np.ndarray) -> str:
@@ -48,7 +57,7 @@ def plot_top(hbr: HBR, task: TopTask, path):
     image = grid_projection(task.grid(), hbr.top)
     fig, ax = plt.subplots(figsize=(6, 5))
     draw_xy_map(fig, ax, image, task.extent, xy_title("top layer", image))
-    _save(fig, path)
+    save_figure(fig, path)
 
 
 def plot_middle(hbr: HBR, path):
@@ -56,23 +65,15 @@ def plot_middle(hbr: HBR, path):
     desc, _ = _elites(hbr.middle)
     task = hbr.middle_task
     motion = np.asarray(task.denormalise(desc[:, :3])) if len(desc) else np.zeros((0, 3))
-    histogram = pattern_histogram(hbr)
-    fig, (ax_xy, ax_pat) = plt.subplots(1, 2, figsize=(14, 5), gridspec_kw={"width_ratios": [1, 1.6]}, layout="constrained")
+    fig, (ax_xy, ax_pat) = plt.subplots(1, 2, figsize=(14, 5), gridspec_kw={"width_ratios": [1, 1.6]},
+                                        layout="constrained")
     points = ax_xy.scatter(motion[:, 0], motion[:, 1], c=motion[:, 2], s=2, cmap="twilight_shifted",
                            vmin=-task.max_turn, vmax=task.max_turn)
     fig.colorbar(points, ax=ax_xy, label="yaw (rad / s)")
-    ax_xy.set_xlim(-task.max_step, task.max_step)
-    ax_xy.set_ylim(-task.max_step, task.max_step)
-    ax_xy.set_aspect("equal")
-    ax_xy.set_xlabel("x (m / s)")
-    ax_xy.set_ylabel("y (m / s)")
-    ax_xy.set_title(f"middle layer: {len(desc)} body motions")
-    ax_pat.bar(np.arange(histogram.size), histogram, color="tab:blue")
-    ax_pat.set_yscale("log" if histogram.max(initial=0) > 50 else "linear")
-    ax_pat.set_xlabel("contact pattern (leg 0 = most significant bit; 63 = all feet down)")
-    ax_pat.set_ylabel("elites")
-    ax_pat.set_title(f"{int((histogram > 0).sum())} distinct contact patterns")
-    _save(fig, path)
+    ax_xy.set(xlim=(-task.max_step, task.max_step), ylim=(-task.max_step, task.max_step), aspect="equal",
+              xlabel="x (m / s)", ylabel="y (m / s)", title=f"middle layer: {len(desc)} body motions")
+    draw_pattern_counts(ax_pat, pattern_histogram(hbr))
+    save_figure(fig, path)
 
 
 def plot_bottom(hbr: HBR, path):
@@ -84,15 +85,13 @@ def plot_bottom(hbr: HBR, path):
     for ax, level in zip(axes[0], levels):
         rows = duty == level
         points = ax.scatter(desc[rows, 0], desc[rows, 1], c=fit[rows], s=3, cmap="viridis")
-        ax.set_xlim(0, 1)
-        ax.set_ylim(0, 1)
-        ax.set_xlabel("swing (normalised)")
-        ax.set_ylabel("height (normalised)" if ax is axes[0][0] else "")
-        ax.set_title(f"duty level {level:.2f}: {int(rows.sum())}")
+        ylabel = "height (normalised)" if ax is axes[0][0] else ""
+        ax.set(xlim=(0, 1), ylim=(0, 1), xlabel="swing (normalised)", ylabel=ylabel,
+               title=f"duty level {level:.2f}: {int(rows.sum())}")
     if len(desc):
         fig.colorbar(points, ax=axes[0].tolist(), label="fitness (minus activation)")
     fig.suptitle(f"bottom layer: {len(desc)} leg primitives")
-    _save(fig, path)
+    save_figure(fig, path)
 
 
 def plot_hbr(hbr: HBR, task: TopTask, run_dir, plot_dir):
@@ -104,38 +103,29 @@ def plot_hbr(hbr: HBR, task: TopTask, run_dir, plot_dir):
     for layer in ("bottom", "middle", "top"):
         log = Path(run_dir) / layer / "metrics.csv"
         if log.exists():
-            fig = plot_metrics(log, title=f"{layer} layer", path=plot_dir / f"{layer}_metrics.png")
-            plt.close(fig)
+            plt.close(plot_metrics(log, title=f"{layer} layer", path=plot_dir / f"{layer}_metrics.png"))
 
 
 def plot_modulation_map(modulation, path, extent: float = 1.5, radius: float | None = None):
-    """Paper Fig. 4: every skill at its final x-y, sized by the number of contact patterns that
-    show the wanted pattern and reach the skill's cell (or come within `radius` m of its final
-    position), coloured by the median position error over the executions showing the wanted pattern."""
+    """Paper Fig. 4: every skill at its final x-y, sized by its patterns that are shown and reach the cell
+    (or within `radius` m), coloured by the median error of the executions showing the pattern."""
     counts = modulation.counts(radius)
     reach = "reach their cell" if radius is None else f"end within {radius:g} m"
-    xy = modulation.target_xy
     fig, ax = plt.subplots(figsize=(6.5, 5.5))
     size = 4 + 60 * counts["both"] / max(1, modulation.patterns.size)
-    points = ax.scatter(xy[:, 0], xy[:, 1], s=size, c=counts["median_error"], marker="x", cmap="viridis_r",
-                        vmin=0, vmax=float(np.nanpercentile(counts["median_error"], 95)) if np.isfinite(counts["median_error"]).any() else 1)
+    error = counts["median_error"]
+    vmax = float(np.nanpercentile(error, 95)) if np.isfinite(error).any() else 1
+    points = ax.scatter(*modulation.target_xy.T, s=size, c=error, marker="x", cmap="viridis_r", vmin=0, vmax=vmax)
     fig.colorbar(points, ax=ax, label="median error to the skill's final x-y (m)")
-    ax.set_xlim(-extent, extent)
-    ax.set_ylim(-extent, extent)
-    ax.set_aspect("equal")
-    ax.set(xlabel="final x (m)", ylabel="final y (m)")
+    ax.set(xlim=(-extent, extent), ylim=(-extent, extent), aspect="equal", xlabel="final x (m)", ylabel="final y (m)")
     ax.set_title(f"{modulation.slots.size} skills x {modulation.patterns.size} contact patterns: "
                  f"{counts['both'].mean():.2f} per skill show it and {reach}", fontsize=9)
-    _save(fig, path)
+    save_figure(fig, path)
 
 
 def plot_modulation_grid(modulation, path, extent: float = 1.5):
-    """Paper Fig. 5: one subplot per wanted contact pattern with the final x-y of the executions
-    that showed it (legs not used in red, used in green; leg 0 first, top-left)."""
-    from hte_jax.hbr.middle import pattern_bits
-
-    shows = modulation.shows_pattern
-    error = modulation.error
+    """Paper Fig. 5: per wanted pattern, the final x-y of the executions showing it (dots: legs, red = lifted)."""
+    shows, error = modulation.shows_pattern, modulation.error
     count = modulation.patterns.size
     cols = int(np.ceil(np.sqrt(count)))
     rows = -(-count // cols)
@@ -152,10 +142,9 @@ def plot_modulation_grid(modulation, path, extent: float = 1.5):
         ax.scatter(0.08 + 0.09 * np.arange(bits.size), np.full(bits.size, 0.9), s=14, transform=ax.transAxes,
                    c=np.where(bits, "tab:green", "tab:red"), clip_on=False)
         ax.set_title(f"{int(pattern)}: {int(rows_shown.sum())}", fontsize=7, pad=2)
-        ax.set_xlim(-extent, extent)
-        ax.set_ylim(-extent, extent)
+        ax.set(xlim=(-extent, extent), ylim=(-extent, extent))
         ax.tick_params(labelsize=5)
     fig.suptitle("final x-y per wanted contact pattern (dots: legs 0-5, red = not on the ground); "
                  "title: pattern, skills showing it", fontsize=9)
     fig.tight_layout()
-    _save(fig, path)
+    save_figure(fig, path)

@@ -1,8 +1,5 @@
-"""Frontier selection: parents from the outer shell of the hexapod's displacement descriptors.
-
-Registered in `hte_jax.qd.selection.SELECTIONS` as "frontier", so `SelectionConfig(selection=
-"frontier")` (a `MapElitesConfig`'s or an HBR `LayerSchedule`'s parents; setting "selection") picks it.
-"""
+"""Frontier selection: parents from the outer shell of the hexapod's displacement descriptors
+("frontier" in `qd.selection.SELECTIONS`, picked by `SelectionConfig(selection="frontier")`)."""
 
 from __future__ import annotations
 
@@ -16,22 +13,14 @@ from hte_jax.qd.repertoire import Repertoire
 from hte_jax.qd.selection import uniform_among
 
 
-def frontier_elites(
-    repertoire: Repertoire, low: jax.Array, high: jax.Array, angle_bins: int, level_bins: int
-) -> jax.Array:
-    """(C,) bool: the elites farthest from the centre of the plane of descriptor dimensions 0 and 1.
-
-    Descriptors are scaled to [0, 1] by (low, high); the plane around (0.5, 0.5) is cut into
-    `angle_bins` equal sectors and, when the container has a third dimension, its range into
-    `level_bins` equal levels. In every occupied (sector, level) cell the elite at the largest
-    distance from the centre is marked (ties to the lowest slot). For displacement descriptors
-    (x, y[, yaw]) these are the fastest motions in every direction [at every turn rate]: the
-    outer shell of what the repertoire can do.
-    """
+def frontier_elites(repertoire: Repertoire, low: jax.Array, high: jax.Array, angle_bins: int,
+                    level_bins: int) -> jax.Array:
+    """(C,) bool: in every cell of `angle_bins` sectors around (0.5, 0.5) of descriptors 0 and 1 (scaled
+    to [0, 1] by low, high) x `level_bins` levels of descriptor 2 (if any), the elite farthest from the
+    centre (ties to the lowest slot): for (x, y[, yaw]) the fastest motions in every direction."""
     low, high = jnp.asarray(low, jnp.float32), jnp.asarray(high, jnp.float32)
     scaled = (repertoire.descriptors - low) / (high - low)
     offset = scaled[:, :2] - 0.5
-    radius = jnp.linalg.norm(offset, axis=-1)
     angle = jnp.arctan2(offset[:, 1], offset[:, 0])  # (-pi, pi]
     sector = jnp.clip(jnp.floor((angle + jnp.pi) / (2 * jnp.pi) * angle_bins), 0, angle_bins - 1).astype(jnp.int32)
     if scaled.shape[1] > 2 and level_bins > 1:
@@ -40,7 +29,7 @@ def frontier_elites(
         level = jnp.zeros_like(sector)
     cell = sector * level_bins + level
     cells = angle_bins * level_bins
-    radius = jnp.where(repertoire.filled, radius, -1.0)
+    radius = jnp.where(repertoire.filled, jnp.linalg.norm(offset, axis=-1), -1.0)
     farthest = jax.ops.segment_max(radius, cell, num_segments=cells)
     slots = jnp.arange(radius.shape[0], dtype=jnp.int32)
     is_max = repertoire.filled & (radius == farthest[cell])
@@ -48,35 +37,20 @@ def frontier_elites(
     return repertoire.filled & (slots == first[cell])
 
 
-def frontier_selection(
-    key: jax.Array,
-    repertoire: Repertoire,
-    num: int,
-    low: jax.Array,
-    high: jax.Array,
-    angle_bins: int,
-    level_bins: int,
-    fraction: float,
-) -> jax.Array:
-    """(num,) filled slots: the first round(fraction * num) drawn uniformly among the
-    `frontier_elites`, the rest uniformly among all elites (with replacement).
-
-    Uniform selection gives the few elites on the edge of the descriptor space a tiny share of
-    the offspring, so the edge moves outwards by novelty alone, slowly. Here a fixed share of
-    every batch is spent on exactly those elites; the rest keeps filling the interior.
-    """
+def frontier_selection(key: jax.Array, repertoire: Repertoire, num: int, low: jax.Array, high: jax.Array,
+                       angle_bins: int, level_bins: int, fraction: float) -> jax.Array:
+    """(num,) filled slots: the first round(fraction * num) uniformly among the `frontier_elites` (whom
+    uniform selection gives a tiny share), the rest uniformly among all elites (with replacement)."""
     edge = min(num, int(round(fraction * num)))
     key_edge, key_rest = jax.random.split(key)
     mask = frontier_elites(repertoire, low, high, angle_bins, level_bins)
-    return jnp.concatenate(
-        [uniform_among(key_edge, mask, edge), uniform_among(key_rest, repertoire.filled, num - edge)]
-    )
+    return jnp.concatenate([uniform_among(key_edge, mask, edge),
+                            uniform_among(key_rest, repertoire.filled, num - edge)])
 
 
 @dataclasses.dataclass(frozen=True)
 class FrontierSelection:
-    """A share `fraction` of every batch among the `frontier_elites` (`angle_bins` sectors x
-    `level_bins` levels, bounds low, high), the rest uniformly; `frontier_selection`."""
+    """`frontier_selection` with its settings, bounds from the container."""
 
     low: tuple[float, ...]
     high: tuple[float, ...]
@@ -92,6 +66,5 @@ class FrontierSelection:
     def select(self, key: jax.Array, repertoire: Repertoire, num: int) -> jax.Array:
         if repertoire.descriptors.shape[-1] < 2:
             raise ConfigError("selection='frontier' needs a container with at least 2 descriptor dimensions")
-        return frontier_selection(
-            key, repertoire, num, self.low, self.high, self.angle_bins, self.level_bins, self.fraction
-        )
+        return frontier_selection(key, repertoire, num, self.low, self.high, self.angle_bins, self.level_bins,
+                                  self.fraction)

@@ -1,8 +1,5 @@
-"""The top layer's grid of 3 s skills: `bins` x `bins` cells over the final (x, y) in [-extent, extent]^2 m.
-
-Kept apart from the top layer's evaluation (`hbr.top`) so that the HBR (`hierarchy.HBR.top_task`)
-and the flat repertoires (`flat.task`) can hold it without importing the skill execution.
-"""
+"""The top layer's grid of 3 s skills, apart from its evaluation (`hbr.top`) so that the HBR and the
+flat repertoires can hold it without importing the skill execution."""
 
 from __future__ import annotations
 

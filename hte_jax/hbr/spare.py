@@ -1,28 +1,16 @@
-"""Spare sets: the middle elites that really spare a set of legs (leave them off the floor).
-
-A contact pattern of the middle layer sets a leg's bit to 0 when its foot is down for less than
-the layer's threshold of the second (the paper's 30 %): a "lifted" leg may still carry the robot
-for a quarter of every step, and a damage that takes the leg away spoils those steps. The
-spare set of a pattern p holds every middle elite whose stored contact fraction is below a
-strict threshold (5 %) on each leg p lifts, whatever the other legs do. Planning a skill's steps
-among them (`composition.plan_step` on `spare_table`) executes the skill without the lifted legs.
-
-Elites may come from the HBR's own middle layer and from a second middle archive, trained on the
-same bottom layer at the strict threshold (`experiments.train_spare`), appended after the HBR's
-own slots (`with_spare`): the HBR's own lookups (RTE's nearest elite, the patterns of the paper's
-HTE, training, modulation) never see them, since they are not `filled` in its middle layer.
-"""
+"""Spare sets: a pattern's 0 bit allows a foot down up to 30 % of the second; the spare set of pattern p
+holds the middle elites below a strict 5 % on each leg p lifts, from the HBR and from a second archive
+trained at that threshold (`experiments.train_spare`) appended after its slots (`with_spare`)."""
 
 from __future__ import annotations
 
 import jax.numpy as jnp
 import numpy as np
 
-from hte_jax.hbr.composition import PatternTable, StepModel, descriptor_steps
+from hte_jax.hbr.composition import PatternTable, StepModel, descriptor_steps, hbr_steps, member_table
 from hte_jax.hbr.hierarchy import ANY_PATTERN, HBR
-from hte_jax.hbr.middle import NUM_PATTERNS, PRIMARY
+from hte_jax.hbr.middle import NUM_PATTERNS, PRIMARY, pattern_bits
 from hte_jax.qd.repertoire import Repertoire
-from hte_jax.sim.robot import NUM_LEGS
 
 STRICT_CONTACT = 0.05  # a leg counts as lifted by a step that has its foot down less than this share
 SPARE_L = 0.035  # the spare archive's distance threshold (the HBR's middle layer: 0.05)
@@ -31,8 +19,7 @@ SPARE_STREAM = 7  # folded into the seed's key: the spare archive's draws differ
 
 def lifted_legs(pattern: np.ndarray) -> np.ndarray:
     """(...,) pattern codes (leg 0 = most significant bit, 1 = down) -> (..., 6) bool, legs lifted."""
-    bits = (np.asarray(pattern)[..., None] >> (NUM_LEGS - 1 - np.arange(NUM_LEGS))) & 1
-    return bits == 0
+    return np.asarray(pattern_bits(pattern)) == 0
 
 
 def spare_members(contact_fraction: np.ndarray, present: np.ndarray, strict: float = STRICT_CONTACT) -> np.ndarray:
@@ -44,56 +31,35 @@ def spare_members(contact_fraction: np.ndarray, present: np.ndarray, strict: flo
 
 
 def spare_table(hbr: HBR, strict: float = STRICT_CONTACT) -> PatternTable:
-    """The spare sets of every pattern as a planning table (host-side: widths are static): rows
-    are patterns, members every usable middle elite (the HBR's own and any appended by `with_spare`);
-    the row of the pattern that lifts no leg holds that pattern's own elites."""
+    """The spare sets of every pattern as a planning table; the pattern that lifts no leg keeps its own elites."""
     present = np.asarray(hbr.middle_patterns) >= 0
     if hbr.spare_count:
         present = present | (np.arange(present.size) >= present.size - hbr.spare_count)
     members = spare_members(np.asarray(hbr.middle.extras["contact_fraction"]), present, strict)
-    # a pattern that lifts no leg spares nothing: its set is its own elites, not the whole layer
-    # (which would also make every row of the table as wide as the layer)
+    # a pattern that lifts no leg spares nothing: its own elites, not the whole layer (and as wide)
     members[NUM_PATTERNS - 1] = np.asarray(hbr.middle_patterns) == NUM_PATTERNS - 1
-    width = max(int(members.sum(axis=1).max()), 1)
-    index = np.full((NUM_PATTERNS, width), -1, np.int32)
-    for p in range(NUM_PATTERNS):
-        rows = np.flatnonzero(members[p])
-        index[p, : rows.size] = rows
-    model = hbr.step_model if hbr.step_model is not None else descriptor_steps(hbr.middle.descriptors)
-    rows = jnp.asarray(np.maximum(index, 0))
-    usable = jnp.asarray(index >= 0) & jnp.isfinite(jnp.asarray(model.spread)[rows])
-    return PatternTable(index=jnp.asarray(index), steps=jnp.asarray(model.steps)[rows],
-                       penalty=jnp.where(usable, 0.0, jnp.inf))
+    return member_table(members, hbr_steps(hbr))
 
 
 def with_spare(hbr: HBR, spare: Repertoire, spare_params: jnp.ndarray, spare_steps: StepModel | None) -> HBR:
-    """The HBR with a second middle archive's elites appended after its own slots.
+    """The HBR with the filled elites of a second middle archive `spare` (over its own bottom layer;
+    extras with "contact_fraction") appended after its own slots, with their (Cs, 36) controllers and
+    measured steps (None: descriptors); their contact bits re-computed at the HBR's threshold."""
+    rows = np.flatnonzero(np.asarray(spare.filled))
+    descriptors = np.asarray(spare.descriptors).copy()
+    descriptors[:, PRIMARY:] = np.asarray(spare.extras["contact_fraction"]) > hbr.middle_task.contact_threshold
 
-    spare: the archive (genotypes (Cs, 18) over the HBR's own bottom layer, descriptors (Cs, 9), extras
-    with "contact_fraction" (Cs, 6)); spare_params: (Cs, 36) their controllers; spare_steps: their
-    measured steps, or None (the stored descriptors). Only the filled elites are appended; their
-    contact bits are re-computed at the HBR's threshold, so every learning rule reads them alike.
-    """
-    filled = np.asarray(spare.filled)
-    rows = np.flatnonzero(filled)
-    fraction = np.asarray(spare.extras["contact_fraction"])[rows]
-    descriptors = np.asarray(spare.descriptors)[rows].copy()
-    descriptors[:, PRIMARY:] = fraction > hbr.middle_task.contact_threshold
-    main = hbr.middle
-    extras = {name: jnp.concatenate([value, jnp.asarray(np.asarray(spare.extras[name])[rows])])
-              for name, value in main.extras.items()}
-    middle = Repertoire(
-        genotypes=jnp.concatenate([main.genotypes, jnp.asarray(np.asarray(spare.genotypes)[rows])]),
-        descriptors=jnp.concatenate([main.descriptors, jnp.asarray(descriptors)]),
-        fitnesses=jnp.concatenate([main.fitnesses, jnp.asarray(np.asarray(spare.fitnesses)[rows])]),
-        filled=jnp.concatenate([main.filled, jnp.zeros(rows.size, bool)]),
-        extras=extras,
-    )
-    own = hbr.step_model if hbr.step_model is not None else descriptor_steps(main.descriptors)
+    def append(own, added):  # own's rows, then the spare's filled rows
+        return jnp.concatenate([own, jnp.asarray(np.asarray(added)[rows])])
+
+    main, own = hbr.middle, hbr_steps(hbr)
     added = spare_steps if spare_steps is not None else descriptor_steps(spare.descriptors)
-    steps = StepModel(steps=jnp.concatenate([own.steps, jnp.asarray(np.asarray(added.steps)[rows])]),
-                      spread=jnp.concatenate([own.spread, jnp.asarray(np.asarray(added.spread)[rows])]))
-    params = jnp.concatenate([hbr.middle_params, jnp.asarray(np.asarray(spare_params)[rows])])
+    middle = Repertoire(genotypes=append(main.genotypes, spare.genotypes),
+                        descriptors=append(main.descriptors, descriptors),
+                        fitnesses=append(main.fitnesses, spare.fitnesses),
+                        filled=jnp.concatenate([main.filled, jnp.zeros(rows.size, bool)]),
+                        extras={name: append(value, spare.extras[name]) for name, value in main.extras.items()})
     patterns = jnp.concatenate([hbr.middle_patterns, jnp.full(rows.size, ANY_PATTERN, jnp.int32)])
-    return hbr.replace(middle=middle, middle_params=params, middle_patterns=patterns, step_model=steps,
-                       spare_count=int(rows.size))
+    steps = StepModel(steps=append(own.steps, added.steps), spread=append(own.spread, added.spread))
+    return hbr.replace(middle=middle, middle_params=append(hbr.middle_params, spare_params), middle_patterns=patterns,
+                       step_model=steps, spare_count=int(rows.size))

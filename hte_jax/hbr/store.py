@@ -1,16 +1,10 @@
-"""HBR files: the three layers' elites in one compressed `.npz`, checked on load.
-
-Only elites are stored (archive slots are a prefix, so middle indices stay valid; top elites keep
-their grid cell), with the layers' tasks and capacities in the JSON header. Each layer is read by
-its task spec (`bottom.bottom_spec`, `middle.middle_spec`, `top.top_spec`; `qd.store.rebuild_elites`).
-`load_hbr` rebuilds fixed-size device repertoires and raises `CheckpointError` naming any problem:
-wrong format, missing or wrong-shaped arrays, non-finite values, descriptors out of range,
-elites outside their places in the containers, dangling indices.
-"""
+"""HBR files: the three layers' elites in one compressed `.npz` (archive slots a prefix, so middle indices
+stay valid; top elites in their cells), with the tasks and capacities in the header; checked on load."""
 
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 from pathlib import Path
 
 import jax.numpy as jnp
@@ -25,7 +19,7 @@ from hte_jax.hbr.spare import with_spare
 from hte_jax.hbr.top import TopTask, top_spec
 from hte_jax.qd.io import CheckpointError, elite_arrays, read_checkpoint, save_checkpoint
 from hte_jax.qd.repertoire import Repertoire
-from hte_jax.qd.store import rebuild_elites
+from hte_jax.qd.store import read_kind, rebuild_elites
 from hte_jax.qd.task_spec import TaskSpec
 from hte_jax.sim.robot import assets_dir
 
@@ -41,49 +35,31 @@ def shipped_hbr_path() -> Path:
 
 
 def layer_specs(capacity: dict[str, int], top_task: TopTask) -> dict[str, TaskSpec]:
-    """The layers' task specs at the given archive capacities ({"bottom": Cb, "middle": Cm}).
-
-    HBR files do not store the archives' distance thresholds: these specs carry the defaults,
-    which reading a file does not use.
-    """
-    return {"bottom": bottom_spec(capacity["bottom"]), "middle": middle_spec(capacity["middle"]), "top": top_spec(top_task)}
+    """The layers' task specs at capacities {"bottom": Cb, "middle": Cm} (distance thresholds are not stored)."""
+    return {"bottom": bottom_spec(capacity["bottom"]), "middle": middle_spec(capacity["middle"]),
+            "top": top_spec(top_task)}
 
 
 def save_hbr(path: str | Path, hbr: HBR, top_task: TopTask | None = None, metadata: dict | None = None) -> None:
     """Atomically write `hbr` (compressed) with its tasks and any extra JSON-able `metadata`.
-
-    top_task: None writes `hbr.top_task`; a given one must equal it.
-    """
+    top_task: None writes `hbr.top_task`; a given one must equal it."""
     if top_task is not None and top_task != hbr.top_task:
         raise ConfigError(f"save_hbr: top_task {top_task} is not the HBR's {hbr.top_task}")
     arrays = {}
     for layer in LAYERS:
         arrays.update(elite_arrays(getattr(hbr, layer), f"{layer}_"))
-    if hbr.step_model is not None:
-        count = int(np.asarray(hbr.middle.filled).sum())
-        arrays["middle_step_mean"] = np.asarray(hbr.step_model.steps, np.float32)[:count]
-        arrays["middle_step_spread"] = np.asarray(hbr.step_model.spread, np.float32)[:count]
-    header = {
-        "kind": KIND,
-        "kind_version": KIND_VERSION,
-        "capacity": {layer: getattr(hbr, layer).capacity for layer in LAYERS},
-        "middle_task": dataclasses.asdict(hbr.middle_task),
-        "top_task": dataclasses.asdict(hbr.top_task),
-        **(metadata or {}),
-    }
+    arrays.update(_step_arrays(hbr.middle, hbr.step_model, "middle_"))
+    header = {"kind": KIND, "kind_version": KIND_VERSION,
+              "capacity": {layer: getattr(hbr, layer).capacity for layer in LAYERS},
+              "middle_task": dataclasses.asdict(hbr.middle_task), "top_task": dataclasses.asdict(hbr.top_task),
+              **(metadata or {})}
     save_checkpoint(path, arrays, header, compress=True)
 
 
 def load_hbr(path: str | Path | None = None) -> tuple[HBR, TopTask, dict]:
-    """Read an HBR file (default: the shipped one): (HBR on device, its TopTask (also `hbr.top_task`),
-    the header metadata)."""
+    """Read an HBR file (default: the shipped one): (HBR on device, its TopTask, the header metadata)."""
     path = shipped_hbr_path() if path is None else path
-    arrays, header = read_checkpoint(path)
-    meta = header.get("metadata", {})
-    if meta.get("kind") != KIND:
-        raise CheckpointError(f"{path}: not an HBR file (kind {meta.get('kind')!r})")
-    if meta.get("kind_version") != KIND_VERSION:
-        raise CheckpointError(f"{path}: HBR file version {meta.get('kind_version')!r} is not supported")
+    arrays, meta = read_kind(path, KIND, KIND_VERSION, "HBR", article="an")
     try:
         middle_task = MiddleTask(**meta["middle_task"])
         top_task = TopTask(**meta["top_task"])
@@ -103,13 +79,21 @@ def load_hbr(path: str | Path | None = None) -> tuple[HBR, TopTask, dict]:
     return hbr, top_task, meta
 
 
+def _step_arrays(middle: Repertoire, steps: StepModel | None, prefix: str) -> dict:
+    """The stored arrays of a step model of the archive `middle` (its filled prefix); none without one."""
+    if steps is None:
+        return {}
+    count = int(np.asarray(middle.filled).sum())
+    return {f"{prefix}step_mean": np.asarray(steps.steps, np.float32)[:count],
+            f"{prefix}step_spread": np.asarray(steps.spread, np.float32)[:count]}
+
+
 def _step_model(path, arrays, count: int, capacity: int, prefix: str = "middle_") -> StepModel | None:
     """The measured step model (`composition.measure_steps`) if the file has one, padded to capacity."""
     mean_key, spread_key = f"{prefix}step_mean", f"{prefix}step_spread"
     if mean_key not in arrays and spread_key not in arrays:
         return None
-    want = {mean_key: (count, 3), spread_key: (count,)}
-    for key, shape in want.items():
+    for key, shape in {mean_key: (count, 3), spread_key: (count,)}.items():
         value = arrays.get(key)
         if value is None or value.shape != shape or value.dtype != np.float32:
             got = "missing" if value is None else f"shape {value.shape} {value.dtype}"
@@ -117,11 +101,9 @@ def _step_model(path, arrays, count: int, capacity: int, prefix: str = "middle_"
     steps, spread = arrays[mean_key], arrays[spread_key]
     if not np.isfinite(steps).all() or np.isnan(spread).any() or (spread < 0).any():
         raise CheckpointError(f"{path}: the measured step model has non-finite steps or negative spreads")
-    padded_steps = np.zeros((capacity, 3), np.float32)
-    padded_steps[:count] = steps
-    padded_spread = np.full(capacity, np.inf, np.float32)
-    padded_spread[:count] = spread
-    return StepModel(steps=jnp.asarray(padded_steps), spread=jnp.asarray(padded_spread))
+    pad = capacity - count
+    return StepModel(steps=jnp.asarray(np.pad(steps, ((0, pad), (0, 0)))),
+                     spread=jnp.asarray(np.pad(spread, (0, pad), constant_values=np.inf)))
 
 
 SPARE_KIND = "hte_jax.hbr.spare"
@@ -130,29 +112,21 @@ SPARE_FILE = "spare.npz"  # beside an hbr.npz: its spare archive (`spare.with_sp
 
 def bottom_fingerprint(hbr: HBR) -> str:
     """A short digest of the HBR's bottom layer: a spare archive's genotypes index it."""
-    import hashlib
-
     return hashlib.sha256(np.asarray(hbr.bottom.genotypes).tobytes()).hexdigest()[:16]
 
 
 def save_spare(path: str | Path, hbr: HBR, spare: Repertoire, steps: StepModel | None, l: float,
                metadata: dict | None = None) -> None:
-    """Atomically write a second middle archive `spare` trained on `hbr`'s bottom layer (distance
-    threshold `l`), with its measured steps, tied to that bottom layer by its fingerprint."""
-    arrays = elite_arrays(spare, "spare_")
-    if steps is not None:
-        count = int(np.asarray(spare.filled).sum())
-        arrays["spare_step_mean"] = np.asarray(steps.steps, np.float32)[:count]
-        arrays["spare_step_spread"] = np.asarray(steps.spread, np.float32)[:count]
+    """Atomically write a spare archive trained on `hbr`'s bottom layer (tied to it by its fingerprint)."""
+    arrays = {**elite_arrays(spare, "spare_"), **_step_arrays(spare, steps, "spare_")}
     header = {"kind": SPARE_KIND, "kind_version": KIND_VERSION, "capacity": spare.capacity, "l": l,
               "bottom": bottom_fingerprint(hbr), **(metadata or {})}
     save_checkpoint(path, arrays, header, compress=True)
 
 
 def load_spare(path: str | Path, hbr: HBR) -> HBR:
-    """`hbr` with the spare archive of `path` appended (`spare.with_spare`). The file is a spare
-    file of `save_spare` trained on this HBR's bottom layer, or another HBR file (its middle layer
-    joins with its own controllers)."""
+    """`hbr` with the spare archive of `path` appended (`spare.with_spare`): a `save_spare` file trained on
+    this HBR's bottom layer, or another HBR file (its middle layer joins with its own controllers)."""
     arrays, header = read_checkpoint(path)
     meta = header.get("metadata", {})
     if meta.get("kind") == KIND:
@@ -167,10 +141,8 @@ def load_spare(path: str | Path, hbr: HBR) -> HBR:
     except (KeyError, TypeError, ValueError) as error:
         raise CheckpointError(f"{path}: bad spare header: {error}") from None
     spare = rebuild_elites(path, arrays, middle_spec(capacity, l), "spare_")
-    count = int(spare.filled.sum())
-    steps = _step_model(path, arrays, count, capacity, "spare_")
-    params = elite_controllers(hbr.bottom, spare.genotypes, spare.filled)
-    return with_spare(hbr, spare, params, steps)
+    steps = _step_model(path, arrays, int(spare.filled.sum()), capacity, "spare_")
+    return with_spare(hbr, spare, elite_controllers(hbr.bottom, spare.genotypes, spare.filled), steps)
 
 
 def spare_beside(hbr_path: str | Path | None) -> Path | None:

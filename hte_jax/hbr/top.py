@@ -1,11 +1,6 @@
-"""Top layer: 3 s omnidirectional skills on a 100 x 100 grid (paper section 3; `docs/original_code.md` §5).
-
-Genotype: three middle-layer primary descriptors (9 numbers), decoded and executed by
-`hierarchy.execute_skill` from the standing state, choosing middle elites by primary descriptor
-only (the secondary one is ignored during training, paper section 4).
-Descriptor: final (x, y) in the start frame, ((x + extent) / (2 extent), (y + extent) / (2 extent)),
-invalid outside [0, 1]. Fitness: the circular-trajectory angle error of the whole skill.
-"""
+"""Top layer: 3 s skills on a 100 x 100 grid (paper section 3; `docs/original_code.md` §5). Genotype: three
+middle-layer primary steps, run by `hierarchy.execute_skill` by primary descriptor only (paper section 4);
+descriptor: final (x, y) on the `TopTask` grid; fitness: the skill's angle error."""
 
 from __future__ import annotations
 
@@ -32,23 +27,15 @@ def top_spec(task: TopTask, evaluate: EvaluateFn | None = None) -> TaskSpec:
     return TaskSpec("hbr-top", GENES, task.grid(), evaluate, EXTRAS, QD_OFFSET)
 
 
-def evaluate_top(robot: Robot, start: SimState, task: TopTask, hbr: HBR, key: jax.Array, genotypes: jax.Array) -> Evaluation:
-    """Evaluate (B, 9) skills from the standing state `start` (unbatched; key unused).
-
-    Extras: "middle_indices" (B, 3) int32 middle elites executed, "arrival_yaw" (B,) rad.
-    """
+def evaluate_top(robot: Robot, start: SimState, task: TopTask, hbr: HBR, key: jax.Array,
+                 genotypes: jax.Array) -> Evaluation:
+    """Evaluate (B, 9) skills from the unbatched standing state `start`; extras (B, ...) `EXTRAS` (yaw in rad)."""
     del key
     batch = genotypes.shape[0]
     starts = jax.tree.map(lambda x: jnp.broadcast_to(x, (batch, *x.shape)), start)
     skill = execute_skill(robot, hbr, genotypes, starts)
     descriptors = task.normalise(skill.displacement[:, :2])
     in_range = jnp.all((descriptors >= 0.0) & (descriptors <= 1.0), axis=-1)
-    return Evaluation(
-        fitnesses=angle_error(skill.displacement),
-        descriptors=descriptors,
-        valid=skill.valid & in_range,
-        extras={
-            "middle_indices": jnp.swapaxes(skill.steps.middle_index, 0, 1).reshape(batch, STEPS_PER_SKILL),
-            "arrival_yaw": skill.displacement[:, 2],
-        },
-    )
+    used = jnp.swapaxes(skill.steps.middle_index, 0, 1).reshape(batch, STEPS_PER_SKILL)
+    return Evaluation(fitnesses=angle_error(skill.displacement), descriptors=descriptors, valid=skill.valid & in_range,
+                      extras={"middle_indices": used, "arrival_yaw": skill.displacement[:, 2]})

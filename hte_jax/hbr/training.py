@@ -1,18 +1,11 @@
-"""Training an HBR: bottom, then middle, then top, each a resumable MAP-Elites run.
-
-`train_hbr(config, out_dir)` writes, under out_dir:
-  config.json                      the full configuration (a resumed run must match it)
-  <layer>/checkpoint.npz, metrics.csv   per layer (bottom, middle, top)
-  hbr.npz                          the trained repertoire (`store.load_hbr`)
-  summary.json                     per-layer metrics, evaluations and wall times
-  plots/*.png                      maps of every layer and metric curves
-A killed run continues with `resume=True` from the last block of the layer it was in and gives
-bit-identical repertoires for the same seed.
-"""
+"""Training an HBR: bottom, then middle, then top, each a resumable MAP-Elites run. `train_hbr` writes
+config.json, <layer>/checkpoint.npz and metrics.csv, hbr.npz (`store.load_hbr`), summary.json and plots/;
+a killed run resumes (`resume_run=True`) from its last block, bit-identical for the same seed."""
 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -33,10 +26,10 @@ from hte_jax.hbr.hierarchy import HBR
 from hte_jax.hbr.middle import PRIMARY, MiddleTask, elite_controllers, evaluate_middle, middle_spec, pattern_code
 from hte_jax.hbr.plots import plot_hbr
 from hte_jax.hbr.spare import SPARE_L, SPARE_STREAM, STRICT_CONTACT
-from hte_jax.hbr.store import SPARE_FILE, bottom_fingerprint, save_hbr, save_spare
+from hte_jax.hbr.store import LAYERS, SPARE_FILE, bottom_fingerprint, save_hbr, save_spare
 from hte_jax.hbr.top import TopTask, evaluate_top, top_spec
 from hte_jax.qd import io
-from hte_jax.qd.loop import MapElites, MapElitesConfig, QDState, run, start_or_resume
+from hte_jax.qd.loop import MapElites, MapElitesConfig, QDState, run_to_end
 from hte_jax.qd.selection import SelectionConfig
 from hte_jax.sharding import mesh_size
 from hte_jax.sim.mjx_import import require_impl
@@ -45,21 +38,28 @@ from hte_jax.sim.rollout import standing_state
 
 with_overrides = _with_overrides  # the configurations' one override rule, re-exported
 
-LAYERS = ("bottom", "middle", "top")
+
+class StoredConfig:
+    """What a training configuration with an inlined `solver: SolverConfig` shares: robot, stored layout."""
+
+    @property
+    def robot(self) -> RobotConfig:
+        return self.solver.robot()
+
+    def to_dict(self) -> dict:  # the stored layout: the solver's settings among the others
+        return config_dict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict):
+        """From `to_dict`'s layout or `dataclasses.asdict`'s; missing solver settings: `LEGACY_SOLVER`."""
+        return config_from_dict(cls, {**data, **stored_solver(data)})
 
 
 @dataclasses.dataclass(frozen=True)
 class LayerSchedule:
-    """MAP-Elites budget and variation of one layer.
-
-    batch_size: offspring per generation; init_size: random individuals first (a multiple of
-    batch_size); generations: after the initial batch; block_size: generations per jitted block
-    (one progress tick, CSV row and checkpoint each); mutation_rate / eta_m: polynomial mutation;
-    capacity: archive slots (bottom and middle; the top layer is a fixed grid).
-    parents: parent selection (`qd.selection.SelectionConfig`, inlined: settings selection
-    ("uniform", the original's, "density" or "frontier"), density_bins, density_dims,
-    frontier_fraction, frontier_angle_bins, frontier_level_bins).
-    """
+    """MAP-Elites budget and variation of one layer: `MapElitesConfig`'s settings, generations after the
+    initial batch, block_size generations per jitted block (one CSV row and checkpoint), capacity: archive
+    slots (bottom and middle; the top layer is a grid)."""
 
     batch_size: int
     init_size: int
@@ -81,30 +81,16 @@ class LayerSchedule:
         return self.init_size + self.generations * self.batch_size
 
     def map_elites_config(self, qd_offset: float) -> MapElitesConfig:
-        """The MapElitesConfig of this layer: its batch, variation and parent selection, and `qd_offset`."""
         return MapElitesConfig(batch_size=self.batch_size, init_size=self.init_size, mutation_rate=self.mutation_rate,
                                eta_m=self.eta_m, qd_offset=qd_offset, parents=self.parents)
 
 
 @dataclasses.dataclass(frozen=True)
-class HBRConfig:
-    """Everything that defines a trained HBR (the paper's values are in docs/design.md).
-
-    bottom / middle / top: the layers' schedules. seed: PRNG seed.
-    middle_samples: chained 1 s samples per middle evaluation (original 10).
-    contact_threshold: fraction of a second a foot must be down for its contact bit.
-    contact_purity: middle fitness penalty per unit of contact on the legs a pattern lifts (0: the
-      paper's fitness; `MiddleTask.purity`).
-    bottom_l / middle_l: archive distance thresholds. top_bins: grid cells per axis.
-    bottom_fitness: "commands" (measured joint commands) or "genes" (the original's gene sum).
-    solver: the physics' Newton solver and MJX implementation (`SolverConfig`, inlined: settings
-      solver_iterations, ls_iterations, solver_tolerance, impl); a configuration stored without them
-      ran 4 / 8 / 1e-8 on "jax" and resumes with that.
-    step_starts: start states from which every middle elite's step is measured once the layers
-      are trained (`composition.measure_steps`, stored in hbr.npz); 0: no step model.
-    step_chunk: samples per jitted rollout of the step model (memory; on a CPU the block's size
-      also sets the last bits of its steps).
-    """
+class HBRConfig(StoredConfig):
+    """Everything that defines a trained HBR (the paper's values: docs/design.md): the layers' schedules, the
+    tasks' settings (`MiddleTask`'s samples, contact_threshold, purity; `BottomTask.fitness`; top_bins),
+    bottom_l / middle_l archive distance thresholds, solver (`SolverConfig`, inlined; stored without:
+    `LEGACY_SOLVER`), step_starts / step_chunk: `composition.measure_steps`'s (0 starts: no step model)."""
 
     bottom: LayerSchedule
     middle: LayerSchedule
@@ -134,11 +120,6 @@ class HBRConfig:
         require_choice("bottom_fitness", self.bottom_fitness, BOTTOM_FITNESSES)
 
     @property
-    def robot(self) -> RobotConfig:
-        """The simulated robot's options."""
-        return self.solver.robot()
-
-    @property
     def bottom_task(self) -> BottomTask:
         return BottomTask(fitness=self.bottom_fitness)
 
@@ -151,58 +132,29 @@ class HBRConfig:
     def top_task(self) -> TopTask:
         return TopTask(bins=self.top_bins)
 
-    def to_dict(self) -> dict:
-        """The stored layout (`config.config_dict`: the solver's settings among the others)."""
-        return config_dict(self)
 
-    @classmethod
-    def from_dict(cls, data: dict) -> HBRConfig:
-        """A configuration from `to_dict`'s output or the nested layout of `dataclasses.asdict`;
-        missing solver settings are the ones it ran with (`LEGACY_SOLVER`)."""
-        return config_from_dict(cls, {**data, **stored_solver(data)})
+def _preset(bottom: tuple, middle: tuple, top: tuple, **settings) -> HBRConfig:
+    """bottom / middle: (batch, init, generations, block, capacity); top: the first four; Table 1's mutation."""
+    return HBRConfig(LayerSchedule(*bottom[:4], 0.17, capacity=bottom[4]),
+                     LayerSchedule(*middle[:4], 0.11, capacity=middle[4]), LayerSchedule(*top, 0.14), **settings)
 
 
-def _schedule(batch, init, generations, block, mutation, capacity=1) -> LayerSchedule:
-    return LayerSchedule(batch, init, generations, block, mutation, capacity=capacity)
-
-
-# Mutation rates are the paper's (Table 1): 0.17 bottom, 0.11 middle, 0.14 top; eta_m = 10.
 PRESETS: dict[str, HBRConfig] = {
     # CI: all three layers end to end in seconds of compute (plus compilation).
-    "tiny": HBRConfig(
-        bottom=_schedule(16, 32, 2, 1, 0.17, capacity=256),
-        middle=_schedule(16, 32, 2, 1, 0.11, capacity=256),
-        top=_schedule(16, 32, 2, 1, 0.14),
-        middle_samples=2,
-        step_starts=2,
-    ),
+    "tiny": _preset((16, 32, 2, 1, 256), (16, 32, 2, 1, 256), (16, 32, 2, 1), middle_samples=2, step_starts=2),
     # The default: a usable small HBR on a 2-core CPU in about 15 minutes.
-    "cpu": HBRConfig(
-        bottom=_schedule(256, 512, 8, 4, 0.17, capacity=2048),
-        middle=_schedule(256, 512, 14, 2, 0.11, capacity=8192),
-        top=_schedule(256, 512, 14, 2, 0.14),
-        middle_samples=3,
-    ),
+    "cpu": _preset((256, 512, 8, 4, 2048), (256, 512, 14, 2, 8192), (256, 512, 14, 2), middle_samples=3),
     # One H100 / H200 in about 10 minutes.
-    "gpu": HBRConfig(
-        bottom=_schedule(16384, 16384, 16, 8, 0.17, capacity=16384),
-        middle=_schedule(32768, 32768, 36, 4, 0.11, capacity=65536),
-        top=_schedule(16384, 16384, 120, 10, 0.14),
-        middle_samples=5,
-    ),
+    "gpu": _preset((16384, 16384, 16, 8, 16384), (32768, 32768, 36, 4, 65536), (16384, 16384, 120, 10),
+                   middle_samples=5),
     # The paper's evaluation counts (5001 / 30000 / 20000 generations of 200) in batches of 8000.
-    "paper": HBRConfig(
-        bottom=_schedule(8000, 8000, 125, 5, 0.17, capacity=32768),
-        middle=_schedule(8000, 8000, 750, 10, 0.11, capacity=131072),
-        top=_schedule(8000, 8000, 500, 10, 0.14),
-        middle_samples=10,
-    ),
+    "paper": _preset((8000, 8000, 125, 5, 32768), (8000, 8000, 750, 10, 131072), (8000, 8000, 500, 10),
+                     middle_samples=10),
 }
 
 
 def normalised_config(data: dict) -> dict:
-    """A stored configuration read through today's HBRConfig: settings added since take their defaults,
-    except the solver settings, which take the values such runs were trained with (`LEGACY_SOLVER`)."""
+    """A stored configuration read through today's HBRConfig (settings added since take their defaults)."""
     return HBRConfig.from_dict(data).to_dict()
 
 
@@ -214,27 +166,23 @@ def preset(name: str) -> HBRConfig:
 
 def layer_algorithms(config: HBRConfig, robot: Robot, start, lower: dict,
                      mesh: Mesh | None = None) -> dict[str, Callable[[], MapElites]]:
-    """Factories of each layer's MapElites; `lower` holds the already trained layers' repertoires.
-    mesh: the devices each generation's batch is spread over (`sharding.batch_mesh`; None: all)."""
+    """Factories of each layer's MapElites over `mesh` (None: all devices); `lower`: the trained layers so far."""
+
+    def algorithm(layer: str, spec) -> MapElites:
+        return MapElites.from_spec(spec, getattr(config, layer).map_elites_config(spec.qd_offset), mesh=mesh)
 
     def bottom() -> MapElites:
-        task = config.bottom_task
-        spec = bottom_spec(config.bottom.capacity, config.bottom_l,
-                           evaluate=lambda key, genes: evaluate_bottom(robot, start, task, key, genes))
-        return MapElites.from_spec(spec, config.bottom.map_elites_config(qd_offset=spec.qd_offset), mesh=mesh)
+        evaluate = functools.partial(evaluate_bottom, robot, start, config.bottom_task)
+        return algorithm("bottom", bottom_spec(config.bottom.capacity, config.bottom_l, evaluate=evaluate))
 
     def middle() -> MapElites:
-        task, repertoire = config.middle_task, lower["bottom"]
-        spec = middle_spec(config.middle.capacity, config.middle_l,
-                           evaluate=lambda key, genes: evaluate_middle(robot, start, task, repertoire, key, genes))
-        return MapElites.from_spec(spec, config.middle.map_elites_config(qd_offset=spec.qd_offset), mesh=mesh)
+        evaluate = functools.partial(evaluate_middle, robot, start, config.middle_task, lower["bottom"])
+        return algorithm("middle", middle_spec(config.middle.capacity, config.middle_l, evaluate=evaluate))
 
     def top() -> MapElites:
         task = config.top_task
-        empty_top = top_spec(task).empty()
-        hbr = HBR.build(lower["bottom"], lower["middle"], empty_top, config.middle_task, top_task=task)
-        spec = top_spec(task, evaluate=lambda key, genes: evaluate_top(robot, start, task, hbr, key, genes))
-        return MapElites.from_spec(spec, config.top.map_elites_config(qd_offset=spec.qd_offset), mesh=mesh)
+        hbr = HBR.build(lower["bottom"], lower["middle"], top_spec(task).empty(), config.middle_task, top_task=task)
+        return algorithm("top", top_spec(task, evaluate=functools.partial(evaluate_top, robot, start, task, hbr)))
 
     return {"bottom": bottom, "middle": middle, "top": top}
 
@@ -245,19 +193,11 @@ class TrainingOutcome:
     summary: dict
 
 
-def train_hbr(
-    config: HBRConfig,
-    out_dir: str | Path,
-    *,
-    resume_run: bool = False,
-    progress: bool = True,
-    on_block: Callable[[str, int, QDState, dict], None] | None = None,
-    plots: bool = True,
-    mesh: Mesh | None = None,
-) -> TrainingOutcome:
-    """Train (or finish training) the three layers; see the module docstring for the outputs.
-    mesh: the devices every generation is spread over (None: all visible); the repertoires do not
-    depend on it. In a multi-process run only process 0 writes files."""
+def train_hbr(config: HBRConfig, out_dir: str | Path, *, resume_run: bool = False, progress: bool = True,
+              on_block: Callable[[str, int, QDState, dict], None] | None = None, plots: bool = True,
+              mesh: Mesh | None = None) -> TrainingOutcome:
+    """Train (or finish training) the three layers (see the module docstring), spread over `mesh` (None: all
+    devices; the results do not depend on it). In a multi-process run only process 0 writes files."""
     out = Path(out_dir)
     writer = jax.process_index() == 0
     require_impl(config.robot.impl, jax.device_count() if mesh is None else mesh_size(mesh))  # before the run folder
@@ -271,34 +211,17 @@ def train_hbr(
     for layer in LAYERS:
         algo = layer_algorithms(config, robot, start, lower, mesh)[layer]()
         schedule: LayerSchedule = getattr(config, layer)
-        checkpoint = out / layer / "checkpoint.npz"
         began = time.perf_counter()
-        state = start_or_resume(algo, keys[layer], checkpoint, progress=progress, description=layer)
         hook = None if on_block is None else (lambda block, st, row, _layer=layer: on_block(_layer, block, st, row))
-        state = run(
-            algo,
-            state,
-            schedule.generations,
-            block_size=schedule.block_size,
-            log_path=out / layer / "metrics.csv",
-            checkpoint_path=checkpoint,
-            progress=progress,
-            on_block=hook,
-            description=layer,
-        )
-        if writer and not checkpoint.exists():  # no block ran (generations = 0)
-            io.save_checkpoint(checkpoint, state, algo.checkpoint_metadata())
+        state = run_to_end(algo, keys[layer], out / layer, schedule.generations, schedule.block_size,
+                           progress=progress, on_block=hook, description=layer, write=writer)
         metrics = jax.device_get(algo.metrics(state))
         lower[layer] = state.repertoire
         summary["layers"][layer] = {
-            "evaluations": algo.evaluations(state),
-            "filled": int(metrics.filled),
-            "capacity": state.repertoire.capacity,
-            "mean_fitness": float(metrics.mean_fitness),
-            "max_fitness": float(metrics.max_fitness),
-            "qd_score": float(metrics.qd_score),
-            "wall_time_s": time.perf_counter() - began,
-        }
+            "evaluations": algo.evaluations(state), "filled": int(metrics.filled),
+            "capacity": state.repertoire.capacity, "mean_fitness": float(metrics.mean_fitness),
+            "max_fitness": float(metrics.max_fitness), "qd_score": float(metrics.qd_score),
+            "wall_time_s": time.perf_counter() - began}
     hbr = HBR.build(lower["bottom"], lower["middle"], lower["top"], config.middle_task, top_task=config.top_task)
     if config.step_starts:
         began = time.perf_counter()
@@ -309,27 +232,24 @@ def train_hbr(
         summary["step_model"] = {"starts": config.step_starts, "wall_time_s": time.perf_counter() - began}
     summary["statistics"] = hbr_statistics(hbr, config.top_task)
     summary["devices"] = [str(d) for d in jax.devices()]
-    if not writer:
-        return TrainingOutcome(hbr=hbr, summary=summary)
-    save_hbr(out / "hbr.npz", hbr, metadata={"training": summary})
-    io.write_json(out / "summary.json", summary)
-    if plots:
-        plot_hbr(hbr, config.top_task, out, out / "plots")
+    if writer:
+        save_hbr(out / "hbr.npz", hbr, metadata={"training": summary})
+        io.write_json(out / "summary.json", summary)
+        if plots:
+            plot_hbr(hbr, config.top_task, out, out / "plots")
     return TrainingOutcome(hbr=hbr, summary=summary)
 
 
 def _normalised_spare(stored: dict) -> dict:
-    """A spare run's stored configuration with its HBR configuration read through today's (settings added since)."""
+    """A spare run's stored configuration with its HBR configuration read through today's."""
     return {**stored, "hbr_config": normalised_config(stored["hbr_config"])} if "hbr_config" in stored else stored
 
 
 def train_spare(hbr: HBR, base: HBRConfig, out_dir: str | Path, *, threshold: float = STRICT_CONTACT,
                 l: float = SPARE_L, resume_run: bool = False, progress: bool = True) -> dict:
-    """Train a second middle archive for `hbr`'s spare sets (`hbr.spare`): its middle layer's task and budget
-    (`base.middle`, samples, solver) at contact threshold `threshold` and distance threshold `l`, on
-    the HBR's own bottom layer; then measure its steps (`base.step_starts`). Writes the run folder
-    (config.json, middle/ checkpoint and metrics, spare.npz, summary.json; a killed run resumes)
-    and returns the summary."""
+    """Train a second middle archive for `hbr`'s spare sets on its bottom layer (`base`'s middle task and
+    budget at contact threshold `threshold`, distance threshold `l`) and measure its steps; writes
+    config.json, middle/, spare.npz and summary.json (resumable); returns the summary."""
     config = dataclasses.replace(base, contact_threshold=threshold, middle_l=l, contact_purity=0.0)
     out = Path(out_dir)
     require_impl(config.robot.impl, jax.device_count())  # before the run folder is made: a missing extra writes nothing
@@ -339,14 +259,9 @@ def train_spare(hbr: HBR, base: HBRConfig, out_dir: str | Path, *, threshold: fl
     start = standing_state(robot)
     algo = layer_algorithms(config, robot, start, {"bottom": hbr.bottom})["middle"]()
     key, step_key = jax.random.split(jax.random.fold_in(jax.random.PRNGKey(config.seed), SPARE_STREAM))
-    checkpoint = out / "middle" / "checkpoint.npz"
     began = time.perf_counter()
-    state = start_or_resume(algo, key, checkpoint, progress=progress, description="spare")
-    state = run(algo, state, config.middle.generations, block_size=config.middle.block_size,
-                log_path=out / "middle" / "metrics.csv", checkpoint_path=checkpoint, progress=progress,
-                description="spare")
-    if not checkpoint.exists():  # no block ran (generations = 0)
-        io.save_checkpoint(checkpoint, state, algo.checkpoint_metadata())
+    state = run_to_end(algo, key, out / "middle", config.middle.generations, config.middle.block_size,
+                       progress=progress, description="spare")
     trained = time.perf_counter() - began
     spare = state.repertoire
     steps = None
@@ -363,8 +278,7 @@ def train_spare(hbr: HBR, base: HBRConfig, out_dir: str | Path, *, threshold: fl
         "lifting_each_leg": {"spare": (fraction < threshold).sum(axis=0).tolist(),
                              "hbr": (own < threshold).sum(axis=0).tolist()},
         "wall_time_s": {"training": trained, "steps": time.perf_counter() - began - trained},
-        "devices": [str(d) for d in jax.devices()],
-    }
+        "devices": [str(d) for d in jax.devices()]}
     save_spare(out / SPARE_FILE, hbr, spare, steps, l, metadata={"training": summary})
     io.write_json(out / "summary.json", summary)
     return summary

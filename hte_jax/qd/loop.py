@@ -307,3 +307,17 @@ def start_or_resume(algo: MapElites, key: jax.Array, checkpoint_path: str | Path
         state = jax.block_until_ready(algo.init(key))
         bar.update()
     return state
+
+
+def run_to_end(algo: MapElites, key: jax.Array, out_dir: Path, generations: int, block_size: int, *,
+               progress: bool = True, on_block: Callable[[int, QDState, dict], None] | None = None,
+               description: str | None = None, write: bool = True) -> QDState:
+    """`start_or_resume` then `run` with out_dir/checkpoint.npz and out_dir/metrics.csv; if no block ran
+    (generations = 0), the checkpoint is written here (when `write`)."""
+    checkpoint = out_dir / "checkpoint.npz"
+    state = start_or_resume(algo, key, checkpoint, progress=progress, description=description)
+    state = run(algo, state, generations, block_size=block_size, log_path=out_dir / "metrics.csv",
+                checkpoint_path=checkpoint, progress=progress, on_block=on_block, description=description)
+    if write and not checkpoint.exists():
+        io.save_checkpoint(checkpoint, state, algo.checkpoint_metadata())
+    return state

@@ -88,3 +88,15 @@ def rebuild_elites(path, arrays: dict, spec: TaskSpec, prefix: str = "", label: 
     if isinstance(container, Archive) and not np.array_equal(slots, np.arange(slots.shape[0])):
         raise CheckpointError(f"{path}: {label} elites are not a prefix of the archive")
     return repertoire
+
+
+def read_kind(path, kind: str, version: int, what: str, article: str = "a") -> tuple[dict, dict]:
+    """(arrays, header metadata) of a checkpoint file whose header has `kind` and `version`, else
+    CheckpointError naming the file `what` ("not {article} {what} file")."""
+    arrays, header = read_checkpoint(path)
+    meta = header.get("metadata", {})
+    if meta.get("kind") != kind:
+        raise CheckpointError(f"{path}: not {article} {what} file (kind {meta.get('kind')!r})")
+    if meta.get("kind_version") != version:
+        raise CheckpointError(f"{path}: {what} file version {meta.get('kind_version')!r} is not supported")
+    return arrays, meta
