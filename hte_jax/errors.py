@@ -1,5 +1,4 @@
-"""The exception raised on bad user input and the checks that raise it (one-line messages that
-name the setting)."""
+"""The exception raised on bad user input and the checks that raise it (one-line messages naming the setting)."""
 
 import math
 

@@ -1,26 +1,18 @@
 """Unstructured archive of fixed capacity (the original's sferes `Archive`, `docs/original_code.md` §5).
 
-Rules for one candidate c against the archive, with l the distance threshold ("l value"),
-k = 15 and eps = 0.1 (Euclidean distances in descriptor space):
+A candidate c, with l the distance threshold, k = 15 and eps = 0.1 (Euclidean in descriptor space):
+1. invalid, non-finite or outside the bounds: rejected;
+2. empty archive, or c's nearest neighbour farther than l: added;
+3. a single elite in the archive (too close to c): rejected;
+4. c's second-nearest neighbour closer than (1 - eps) l: rejected;
+5. else c replaces its nearest neighbour n if it exclusively eps-dominates n on (fitness f, novelty v),
+   v the mean distance to the k nearest elites other than n (for c) or itself (for n):
+   f_c >= (1 - sign(f_n) eps) f_n  and  v_c >= (1 - sign(v_n) eps) v_n  and  (f_c - f_n) |v_n| > -(v_c - v_n) |f_n|.
 
-1. invalid, non-finite or outside the descriptor bounds: rejected;
-2. the archive is empty, or c's nearest neighbour is farther than l: c is added;
-3. the archive holds a single elite (too close to c): rejected;
-4. c's second-nearest neighbour is closer than (1 - eps) l: rejected;
-5. otherwise c replaces its nearest neighbour n if c exclusively eps-dominates n on
-   (fitness f, novelty v), where v is the mean distance to the k nearest elites other
-   than n (for c) or other than itself (for n):
-   f_c >= (1 - sign(f_n) eps) f_n  and  v_c >= (1 - sign(v_n) eps) v_n  and
-   (f_c - f_n) |v_n| > -(v_c - v_n) |f_n|.
-
-Batched semantics (well defined, parallel): every candidate of a batch is judged against the
-archive as it was before the batch. Then (a) several candidates replacing the same elite: the
-one with the highest fitness wins, ties to the first in the batch; (b) of the candidates still
-accepted (additions and replacements), one is dropped if another one within l of it ranks
-higher (higher fitness, ties to the first in the batch); (c) new elites take free slots in
-batch order and, once the archive is full, further additions are dropped. As in the sequential
-original, elites therefore always stay at least (1 - eps) l apart. Elites are never removed, so
-filled slots are always a prefix of the storage. Nearest-neighbour ties go to the lowest slot.
+A batch is judged against the archive before it; then (a) of several replacements of one elite the
+fittest wins (ties: first in the batch); (b) an accepted candidate within l of a higher-ranked accepted
+one is dropped; (c) new elites fill free slots in batch order until the archive is full. Elites thus stay
+(1 - eps) l apart and are never removed (filled slots are a prefix). Nearest-neighbour ties: lowest slot.
 """
 
 from __future__ import annotations
@@ -31,15 +23,8 @@ import jax
 import jax.numpy as jnp
 
 from hte_jax.errors import ConfigError, require_bounds, require_int, require_number
-from hte_jax.qd.repertoire import (
-    Evaluation,
-    Insertion,
-    Repertoire,
-    best_per_target,
-    empty_repertoire,
-    insertable,
-    write,
-)
+from hte_jax.qd.repertoire import (Evaluation, Insertion, Repertoire, best_per_target, empty_repertoire, insertable,
+                                   write)
 
 _BIG = jnp.inf
 
@@ -59,10 +44,8 @@ def pairwise_distance(queries: jax.Array, points: jax.Array) -> jax.Array:
 
 
 def map_rows(fn, arrays: tuple, fills: tuple, chunk: int):
-    """fn over row-blocks of `arrays` (same leading size N) with lax.map, bounding memory.
-
-    The last block is padded with `fills` (one per array); results are cut back to N rows.
-    """
+    """fn over row-blocks of `arrays` (same leading size N) with lax.map, bounding memory; the last block
+    is padded with `fills` (one per array) and the results cut back to N rows."""
     num = arrays[0].shape[0]
     chunk = max(1, min(chunk, num))
     blocks = -(-num // chunk)
@@ -121,10 +104,8 @@ class Archive:
         return empty_repertoire(self.capacity, genotype_dim, self.descriptor_dim, extras)
 
     def _neighbours(self, repertoire: Repertoire, queries: jax.Array, exclude: jax.Array):
-        """For each query: the k+1 smallest distances to elites (ascending) and their slots.
-
-        exclude: (Q,) slot to ignore per query (-1 for none). Missing neighbours are inf.
-        """
+        """For each query: the k+1 smallest distances to elites (ascending; missing ones inf) and their
+        slots, ignoring slot exclude (Q,) per query (-1: none)."""
         k1 = min(self.k + 1, self.capacity)
         slots = jnp.arange(self.capacity)
 
@@ -168,10 +149,8 @@ class Archive:
             & ((fit - fit_n) * jnp.abs(nov_n) > -(nov_c - nov_n) * jnp.abs(fit_n))
         )
         replaces = contested & dominates
-
         # 2a. Replacements of the same elite: highest fitness, then first in the batch.
         replace_ok = best_per_target(fit, nn, replaces, self.capacity)
-
         # 2b. Accepted candidates within l of a higher-ranked accepted candidate are dropped.
         kept = is_new | replace_ok
 
@@ -184,11 +163,9 @@ class Archive:
         beaten = map_rows(outranked, (desc, fit, order), (0.0, 0.0, batch), self.chunk_size)
         add_ok = is_new & ~beaten
         replace_ok = replace_ok & ~beaten
-
         # 2c. Free slots in batch order (filled slots are a prefix); drop past capacity.
         new_slot = size + jnp.cumsum(add_ok.astype(jnp.int32)) - 1
         add_ok = add_ok & (new_slot < self.capacity)
-
         slot = jnp.where(add_ok, new_slot, jnp.where(replace_ok, nn, -1)).astype(jnp.int32)
         new = write(repertoire, slot, genotypes, evaluation)
         return new, Insertion(accepted=add_ok | replace_ok, new_slot=add_ok, slot=slot)

@@ -1,15 +1,9 @@
-"""Emitters: what makes each generation's offspring. `MapElites` asks its emitter for a batch,
-evaluates it, inserts it and shows the emitter the outcome; swapping the emitter swaps the search
-without touching the loop.
+"""Emitters: what makes each generation's offspring; swapping the emitter swaps the search, not the loop.
 
-An emitter has
-- `init(repertoire, key) -> emitter_state`, after the initial random batch is inserted (also
-  called on an empty repertoire to get the template checkpoints are loaded into);
-- `emit(repertoire, emitter_state, key) -> (genotypes (B, G) in [0, 1], emitter_state)`,
-  B = `MapElitesConfig.batch_size`;
-- `update(emitter_state, repertoire, genotypes, evaluation, insertion) -> emitter_state`, after
-  the batch is inserted.
-The state is a pytree (a `flax.struct` dataclass) carried in `QDState`, so checkpoints hold it.
+An emitter has `init(repertoire, key) -> state` (after the initial batch; on an empty repertoire: the
+checkpoint template), `emit(repertoire, state, key) -> (genotypes (B, G) in [0, 1], state)` with
+B = `MapElitesConfig.batch_size`, and `update(state, repertoire, genotypes, evaluation, insertion) -> state`
+after insertion. The state is a pytree (`flax.struct` dataclass) carried, and checkpointed, in `QDState`.
 """
 
 from __future__ import annotations
@@ -49,9 +43,8 @@ class Emitter(abc.ABC):
 
 @dataclasses.dataclass(frozen=True)
 class VariationEmitter(Emitter):
-    """`batch_size` children of parents: `variation.vary(key, draw_parents)`, where every call of
-    `draw_parents(key)` draws `batch_size` elites by `selection.select` (see `qd.selection` and
-    `qd.variation` for what the two objects provide)."""
+    """`batch_size` children: `variation.vary(key, draw_parents)` (`qd.variation`), each `draw_parents(key)`
+    drawing `batch_size` elites by `selection.select` (`qd.selection`)."""
 
     selection: Any
     variation: Any

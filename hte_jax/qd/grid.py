@@ -1,13 +1,6 @@
-"""MAP-Elites grid with arithmetic cell indexing, any number of dimensions and bins.
-
-Dimension i spans [low_i, high_i] cut into bins_i equal bins; a descriptor's cell is
-floor((x - low) / (high - low) * bins), with x = high falling in the last bin. Cells are
-numbered row-major (the last dimension varies fastest). A descriptor outside the bounds
-is rejected, like the original's "dead" individuals.
-
-Insertion of a batch: per cell, the best valid candidate of the batch (ties: the first in
-the batch) replaces the cell's elite if its fitness is strictly higher (an empty cell has
-fitness -inf).
+"""MAP-Elites grid: dimension i spans [low_i, high_i] in bins_i equal bins (x = high in the last bin),
+cells numbered row-major; descriptors outside the bounds are rejected. Per cell, the best valid candidate
+of a batch (ties: first in the batch) replaces the elite if strictly fitter (empty cells: -inf).
 """
 
 from __future__ import annotations
@@ -20,15 +13,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from hte_jax.errors import ConfigError, require_bounds, require_int
-from hte_jax.qd.repertoire import (
-    Evaluation,
-    Insertion,
-    Repertoire,
-    best_per_target,
-    empty_repertoire,
-    insertable,
-    write,
-)
+from hte_jax.qd.repertoire import (Evaluation, Insertion, Repertoire, best_per_target, empty_repertoire, insertable,
+                                   write)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -76,9 +62,7 @@ class Grid:
 
     def cell_centres(self) -> np.ndarray:
         """(C, D) centre of every cell, row-major."""
-        axes = [
-            lo + (np.arange(b) + 0.5) * (hi - lo) / b for b, lo, hi in zip(self.bins, self.low, self.high)
-        ]
+        axes = [lo + (np.arange(b) + 0.5) * (hi - lo) / b for b, lo, hi in zip(self.bins, self.low, self.high)]
         mesh = np.meshgrid(*axes, indexing="ij")
         return np.stack([m.reshape(-1) for m in mesh], axis=-1).astype(np.float32)
 

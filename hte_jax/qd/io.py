@@ -1,11 +1,6 @@
-"""Checkpoints: any pytree of arrays as `.npz`, with JSON metadata, written atomically.
-
-Layout: one npz entry per leaf, named by its pytree path, plus `__metadata__` (a JSON string
-with the format version, every leaf's shape and dtype, and the caller's metadata such as the
-container and config). Writes go to a temporary file in the same folder, are fsync-ed, then
-renamed over the target, so a kill mid-write leaves the previous checkpoint intact (and a
-temporary file, which the next write of that checkpoint removes).
-Loading checks everything against a template and raises `CheckpointError` naming the problem.
+"""Checkpoints: any pytree of arrays as `.npz` (one entry per leaf, named by its path) plus `__metadata__`, a
+JSON header (format version, leaves' shapes and dtypes, the caller's metadata). Written to a temporary file,
+fsync-ed and renamed, so a kill mid-write keeps the previous checkpoint; loads raise `CheckpointError`.
 """
 
 from __future__ import annotations
@@ -48,12 +43,7 @@ def _flatten(tree) -> dict[str, np.ndarray]:
 
 def save_checkpoint(path: str | Path, tree: Any, metadata: dict | None = None, *, compress: bool = False) -> None:
     """Atomically write `tree` (a pytree of arrays) and JSON-able `metadata` to `path` (zip-deflated if compress).
-
-    For tests and `benchmarks/resume_kill.py` only: with the environment variable
-    HTE_JAX_CHECKPOINT_PAUSE set to a number of seconds, every write sleeps that long after the
-    temporary file is written and fsync-ed and before it is renamed over `path`, so that a kill
-    can land between the two.
-    """
+    $HTE_JAX_CHECKPOINT_PAUSE (seconds; tests and `benchmarks/resume_kill.py`) sleeps before the rename."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     arrays = _flatten(tree)
@@ -85,8 +75,7 @@ def save_checkpoint(path: str | Path, tree: Any, metadata: dict | None = None, *
 
 
 def _remove_leftovers(path: Path) -> None:
-    """Remove the temporary files of `path` that writers killed mid-write left behind (those of
-    processes no longer running here): they are never read, only in the way."""
+    """Remove the temporary files of `path` left by writers killed mid-write (processes no longer running)."""
     for leftover in path.parent.glob(f".{path.name}.tmp-*"):
         pid = leftover.name.rpartition("-")[2]
         if not pid.isdigit() or int(pid) == os.getpid():
@@ -106,15 +95,14 @@ def read_checkpoint(path: str | Path) -> tuple[dict[str, np.ndarray], dict]:
 
 
 def read_header(path: str | Path) -> dict:
-    """The header of a checkpoint file (format, version, leaves, metadata) without reading its
-    arrays: a quick check that a file is a checkpoint (CheckpointError as `read_checkpoint`, except
-    that a damaged array is only found when it is read)."""
+    """The header of a checkpoint file (format, version, leaves, metadata) without reading its arrays
+    (CheckpointError as `read_checkpoint`, but a damaged array goes unnoticed)."""
     return _header(Path(path), _read(Path(path), only=_META).get(_META))
 
 
 def _read(path: Path, only: str | None = None) -> dict[str, np.ndarray]:
-    """The arrays of an .npz file (only the one named `only`, if given); CheckpointError for a
-    missing file, or one that is not an .npz of plain arrays or is truncated or corrupt."""
+    """The arrays of an .npz file (only the one named `only`, if given); CheckpointError for a missing,
+    truncated or corrupt file, or one that is not an .npz of plain arrays."""
     if not path.is_file():
         raise CheckpointError(f"{path}: no such checkpoint file")
     try:
@@ -147,26 +135,20 @@ def _header(path: Path, stored: np.ndarray | None) -> dict:
     if header.get("format") != FORMAT:
         raise CheckpointError(f"{path}: not an hte-jax checkpoint (format {header.get('format')!r})")
     if header.get("version") != FORMAT_VERSION:
-        raise CheckpointError(
-            f"{path}: checkpoint format version {header.get('version')!r} is not supported "
-            f"(this hte-jax reads version {FORMAT_VERSION})"
-        )
+        raise CheckpointError(f"{path}: checkpoint format version {header.get('version')!r} is not supported "
+                              f"(this hte-jax reads version {FORMAT_VERSION})")
     return header
 
 
 def load_checkpoint(path: str | Path, template: Any, expected_metadata: dict | None = None) -> Any:
-    """Load a checkpoint into the structure of `template`, checking names, shapes and dtypes.
-
-    expected_metadata: if given, every key in it must equal the stored metadata's value.
-    """
+    """Load a checkpoint into the structure of `template`, checking names, shapes, dtypes and that every
+    key of `expected_metadata` has the stored value."""
     arrays, header = read_checkpoint(path)
     stored = header.get("metadata", {})
     for key, value in (expected_metadata or {}).items():
         if jsonable(value) != stored.get(key):
-            raise CheckpointError(
-                f"{path}: checkpoint was written with {key} = {stored.get(key)!r}, "
-                f"this run has {key} = {jsonable(value)!r}"
-            )
+            raise CheckpointError(f"{path}: checkpoint was written with {key} = {stored.get(key)!r}, "
+                                  f"this run has {key} = {jsonable(value)!r}")
     leaves, treedef = jax.tree_util.tree_flatten_with_path(template)
     restored = []
     for leaf_path, leaf in leaves:
@@ -214,13 +196,9 @@ def _read_config(path: Path) -> dict:
 
 
 def prepare_run_dir(out: str | Path, config: dict, resume_run: bool, normalise: Callable[[dict], dict] | None = None) -> Path:
-    """Start a run folder holding `config.json`, or check that the run already in it has `config`.
-
-    normalise: reads a stored config as today's code would (say, filling in the defaults of
-    settings added since the run started), before comparing.
-    Raises ConfigError (naming the differing top-level keys) when the folder holds another run,
-    or holds a run and `resume_run` is False.
-    """
+    """Start a run folder holding `config.json`, or check that the run in it has `config` (after `normalise`,
+    which reads a stored config as today's code would); ConfigError (naming the differing top-level keys)
+    for another run, or any run without `resume_run`."""
     out = Path(out)
     config_path = out / "config.json"
     wanted = jsonable(config)
@@ -254,17 +232,11 @@ def elite_arrays(repertoire: Repertoire, prefix: str = "") -> dict[str, np.ndarr
     return {f"{prefix}{name}": value for name, value in out.items()}
 
 
-def rebuild_repertoire(
-    path, arrays: dict, prefix: str, capacity: int, genes: int, dims: int, extras: dict,
-    low: tuple[float, ...] | None = None, high: tuple[float, ...] | None = None,
-) -> Repertoire:
-    """Inverse of `elite_arrays`: a fixed-size Repertoire, every array checked.
-
-    extras: {name: (shape without rows, numpy dtype)}. low / high: the descriptors' bounds per
-    dimension (None: [0, 1]). Raises CheckpointError naming the missing or wrong-shaped array,
-    non-finite values, genotypes outside [0, 1], descriptors outside their bounds, or slots that
-    are not unique indices below `capacity`.
-    """
+def rebuild_repertoire(path, arrays: dict, prefix: str, capacity: int, genes: int, dims: int, extras: dict,
+                       low: tuple[float, ...] | None = None, high: tuple[float, ...] | None = None) -> Repertoire:
+    """Inverse of `elite_arrays`: a fixed-size Repertoire. extras: {name: (shape without rows, numpy dtype)};
+    low / high: descriptor bounds (None: [0, 1]). CheckpointError for a missing or wrong-shaped array,
+    non-finite values, genotypes or descriptors out of bounds, or slots not unique indices below `capacity`."""
     want = {"slots": ((), np.int32), "genotypes": ((genes,), np.float32), "descriptors": ((dims,), np.float32),
             "fitnesses": ((), np.float32)}
     want.update({f"extra_{name}": spec for name, spec in extras.items()})
@@ -278,9 +250,8 @@ def rebuild_repertoire(
         if rows is None:
             rows = value.shape[0] if value.ndim else -1
         if value.dtype != dtype or value.shape != (rows, *shape):
-            raise CheckpointError(
-                f"{path}: {key} has shape {value.shape} and dtype {value.dtype}, expected {(rows, *shape)} {np.dtype(dtype)}"
-            )
+            raise CheckpointError(f"{path}: {key} has shape {value.shape} and dtype {value.dtype}, "
+                                  f"expected {(rows, *shape)} {np.dtype(dtype)}")
         if value.dtype.kind == "f" and not np.isfinite(value).all():
             raise CheckpointError(f"{path}: {key} holds NaN or inf values")
         columns[name] = value

@@ -1,9 +1,5 @@
-"""Repertoire metrics and their CSV log.
-
-QD score = sum over filled slots of (fitness - offset). The offset is a lower bound of the
-task's fitness (e.g. -pi for the hexapod's angle-error fitness, which lies in [-pi, 0]), so
-every elite adds a non-negative amount and the score can only grow when cells fill.
-"""
+"""Repertoire metrics and their CSV log. QD score = sum over elites of (fitness - offset), the offset a
+lower bound of the fitness (-pi for the angle error in [-pi, 0]), so the score only grows as cells fill."""
 
 from __future__ import annotations
 
@@ -17,18 +13,8 @@ from flax import struct
 
 from hte_jax.qd.repertoire import Repertoire
 
-FIELDS = (
-    "block",
-    "generation",
-    "evaluations",
-    "filled",
-    "coverage",
-    "qd_score",
-    "mean_fitness",
-    "max_fitness",
-    "accepted",
-    "wall_time_s",
-)
+FIELDS = ("block", "generation", "evaluations", "filled", "coverage", "qd_score", "mean_fitness", "max_fitness",
+          "accepted", "wall_time_s")
 
 
 @struct.dataclass
@@ -97,13 +83,9 @@ def _plain(value):
 
 
 def projected_statistics(descriptors, fitnesses, filled, bins: int) -> dict:
-    """The paper's Table 2 columns for one repertoire, on the host.
-
-    descriptors (C, D) whose first two dimensions are x, y in [0, 1]; fitnesses (C,); filled (C,).
-    Returns: "size" (elites), "effective_size" (cells of the bins x bins x-y grid holding at least
-    one elite), "mean_fitness" (mean over those cells of the best elite in each, i.e. the 2-D
-    repertoire a planner sees), "mean_fitness_all" (mean over all elites).
-    """
+    """The paper's Table 2 columns of a repertoire (host): descriptors (C, D), the first two x, y in [0, 1];
+    fitnesses (C,); filled (C,). "size": elites; "effective_size": occupied cells of a bins x bins x-y grid;
+    "mean_fitness": mean of those cells' best (what a planner sees); "mean_fitness_all": mean of all elites."""
     filled = np.asarray(filled, bool)
     xy = np.asarray(descriptors, np.float64)[filled, :2]
     fitness = np.asarray(fitnesses, np.float64)[filled]

@@ -1,9 +1,5 @@
-"""The data every container stores: a fixed-size block of elites, with explicit empty slots.
-
-Containers (`Grid`, `Archive`) are static, hashable descriptions with pure `add` functions;
-the `Repertoire` below is the pytree they read and write. Genotype, descriptor, fitness and
-extras of an elite are always written together, in one masked scatter.
-"""
+"""The pytree every container (`Grid`, `Archive`: static, with pure `add`) reads and writes: a fixed-size
+block of elites with explicit empty slots, an elite's fields always written together in one masked scatter."""
 
 from __future__ import annotations
 
@@ -86,11 +82,8 @@ def empty_repertoire(capacity: int, genotype_dim: int, descriptor_dim: int, extr
 
 
 def write(repertoire: Repertoire, slot: jax.Array, genotypes, evaluation: Evaluation) -> Repertoire:
-    """Write the rows of a batch into `slot` (B,) int32; rows with slot -1 are skipped.
-
-    Slots must be unique among the rows written (containers guarantee it), so the scatter
-    is deterministic.
-    """
+    """Write the rows of a batch into `slot` (B,) int32, skipping rows with slot -1; slots must be unique
+    among the rows written (containers guarantee it), so the scatter is deterministic."""
     target = jnp.where(slot >= 0, slot, repertoire.capacity)  # out of range -> dropped
 
     def put(store, rows):
@@ -106,10 +99,8 @@ def write(repertoire: Repertoire, slot: jax.Array, genotypes, evaluation: Evalua
 
 
 def best_per_target(fitness: jax.Array, target: jax.Array, candidate: jax.Array, num_targets: int) -> jax.Array:
-    """(B,) bool: the candidate with the highest fitness for its target, ties to the first in the batch.
-
-    fitness (B,); target (B,) int in [0, num_targets); candidate (B,) bool marks who competes.
-    """
+    """(B,) bool: the candidate with the highest fitness (B,) for its target (B,) int in [0, num_targets), ties
+    to the first in the batch; candidate (B,) bool marks who competes."""
     batch = fitness.shape[0]
     order = jnp.arange(batch, dtype=jnp.int32)
     segment = jnp.where(candidate, target, num_targets)  # non-candidates share a dummy segment
@@ -121,8 +112,4 @@ def best_per_target(fitness: jax.Array, target: jax.Array, candidate: jax.Array,
 
 def insertable(evaluation: Evaluation) -> jax.Array:
     """(B,) bool: valid, finite fitness and finite descriptors."""
-    return (
-        evaluation.valid
-        & jnp.isfinite(evaluation.fitnesses)
-        & jnp.isfinite(evaluation.descriptors).all(axis=-1)
-    )
+    return evaluation.valid & jnp.isfinite(evaluation.fitnesses) & jnp.isfinite(evaluation.descriptors).all(axis=-1)

@@ -1,12 +1,6 @@
-"""Repertoire files of any task spec: one Repertoire's elites in a compressed `.npz`, checked on load.
-
-Layout: the elites as `io.elite_arrays` writes them (slots, genotypes, descriptors, fitnesses,
-extra_<name>) and a header with kind "hte_jax.repertoire", the spec's `metadata()` (name,
-genotype size, container, extras) and the caller's metadata. `load_repertoire(path, spec)` reads
-a file back only for a spec with the same metadata and raises `CheckpointError` naming any
-problem. `rebuild_elites`, the spec-driven check of one repertoire's arrays, also reads the HBR
-and flat files (`hbr.store`, `flat.store`), whose layouts predate this one.
-"""
+"""Repertoire files of any task spec: the elites (`io.elite_arrays`) in a compressed `.npz` whose header holds
+kind "hte_jax.repertoire", the spec's `metadata()` and the caller's metadata; a file loads only for a spec of
+the same metadata. `rebuild_elites` also checks the HBR and flat files (`hbr.store`, `flat.store`)."""
 
 from __future__ import annotations
 
@@ -37,10 +31,8 @@ def check_repertoire(spec: TaskSpec, repertoire: Repertoire) -> None:
     for (path, expected), (_, leaf) in zip(want_leaves, got_leaves):
         if tuple(np.shape(leaf)) != expected.shape or np.asarray(leaf).dtype != expected.dtype:
             name = jax.tree_util.keystr(path)
-            raise ConfigError(
-                f"task {spec.name!r}: repertoire{name} is {np.shape(leaf)} {np.asarray(leaf).dtype}, "
-                f"the spec's is {expected.shape} {expected.dtype}"
-            )
+            raise ConfigError(f"task {spec.name!r}: repertoire{name} is {np.shape(leaf)} {np.asarray(leaf).dtype}, "
+                              f"the spec's is {expected.shape} {expected.dtype}")
 
 
 def save_repertoire(path: str | Path, spec: TaskSpec, repertoire: Repertoire, metadata: dict | None = None) -> None:

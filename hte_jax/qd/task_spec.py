@@ -1,10 +1,5 @@
-"""A QD problem in one place: what an elite is, where it is kept and how it is evaluated.
-
-A `TaskSpec` is read by the loop (`MapElites.from_spec`, `BatchedMapElites.from_spec`) and by the
-repertoire files (`qd.store`), so a task's genotype size, container and per-elite extras are
-written once. The flat repertoires (`flat.task.flat_spec`) and the HBR layers
-(`hbr.bottom.bottom_spec`, `hbr.middle.middle_spec`, `hbr.top.top_spec`) are such specs.
-"""
+"""A QD problem in one place (what an elite is, where it is kept, how it is evaluated), read by the loops
+(`MapElites.from_spec`) and the repertoire files (`qd.store`); e.g. `flat.task.flat_spec`, `hbr.top.top_spec`."""
 
 from __future__ import annotations
 
@@ -31,16 +26,11 @@ def container_metadata(container) -> dict:
 class TaskSpec:
     """One QD problem (static; the evaluation is compared by identity).
 
-    name: label stored in repertoire files (a file is loaded only by a spec of the same name).
-    genotype_dim: G, genes per individual, each in [0, 1].
-    container: `Grid` or `Archive` (its capacity C, descriptor_dim D, low and high).
-    evaluate: `evaluate(key, genotypes (B, G)) -> Evaluation`, or None for a spec that only
-      describes stored repertoires (`with_evaluate` adds one).
-    extras: {name: (shape, dtype)} of the per-elite arrays the evaluation returns in
-      `Evaluation.extras`, shapes without the row axis, e.g. {"leg": ((), "int32")}; read as
-      (tuple of ints, numpy dtype).
-    qd_offset: the fitness lower bound of the QD score (`MapElitesConfig.qd_offset`), or None to
-      keep the config's.
+    name: label stored in repertoire files (a file loads only for a spec of the same name).
+    genotype_dim: G, genes per individual, each in [0, 1]. container: `Grid` or `Archive` (C slots, D dims).
+    evaluate: `evaluate(key, genotypes (B, G)) -> Evaluation`, or None (`with_evaluate` adds one).
+    extras: {name: (shape without rows, dtype)} of `Evaluation.extras`, e.g. {"leg": ((), "int32")}.
+    qd_offset: the QD score's fitness lower bound (`MapElitesConfig.qd_offset`), or None: the config's.
     """
 
     name: str
@@ -93,11 +83,6 @@ class TaskSpec:
         return dataclasses.replace(self, evaluate=evaluate)
 
     def metadata(self) -> dict:
-        """The spec as JSON-able data (what repertoire files store and compare): name, genotype_dim,
-        container, extras."""
-        return {
-            "name": self.name,
-            "genotype_dim": self.genotype_dim,
-            "container": container_metadata(self.container),
-            "extras": {name: [list(shape), dtype.name] for name, (shape, dtype) in sorted(self.extras.items())},
-        }
+        """The spec as JSON-able data, what repertoire files store and compare."""
+        return {"name": self.name, "genotype_dim": self.genotype_dim, "container": container_metadata(self.container),
+                "extras": {name: [list(shape), dtype.name] for name, (shape, dtype) in sorted(self.extras.items())}}

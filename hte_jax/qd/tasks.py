@@ -1,10 +1,6 @@
-"""Cheap analytic QD tasks for testing and demonstrating the engine in seconds.
-
-planar_arm: the classic QD arm (Cully et al. 2015; Vassiliades et al. 2018). Genotype: n joint
-angles in [0, 1] mapped to [-pi, pi]; links of length 1/n. Descriptor: end-effector position
-mapped from [-1, 1]^2 to [0, 1]^2. Fitness: minus the standard deviation of the angles (a
-smooth arm is better), in [-pi, 0].
-"""
+"""Cheap analytic QD tasks for tests and demos. planar_arm (Cully et al. 2015): n joint angles in [-pi, pi]
+(genes in [0, 1]), links of length 1/n; descriptor: the hand's position mapped from [-1, 1]^2 to [0, 1]^2;
+fitness: minus the angles' standard deviation, in [-pi, 0]."""
 
 from __future__ import annotations
 

@@ -1,16 +1,6 @@
-"""`mujoco.mjx`, imported without its warp notices; MJX's Warp backend started quietly on request.
-
-MJX 3.17 prints "Failed to import warp: ..." and "Failed to import mujoco_warp: ..." on stdout
-whenever the optional warp-lang package is absent. The JAX implementation (the default) does not
-need it, so the notice is noise a user cannot act on: those two lines are kept here
-(`WARP_IMPORT_ERRORS`) for the error that asking for the Warp backend without it gives, and not
-printed; anything else the import prints is passed on unchanged.
-
-The Warp backend (`require_impl("warp")`, the `warp` extra) announces itself when it starts (a
-banner, a line per compiled kernel module, on a machine without an NVIDIA driver a CUDA warning):
-Warp's log level is raised to warnings and that start's output is dropped, except lines that are
-not these notices.
-"""
+"""`mujoco.mjx`, imported without its notices about a missing warp-lang (MJX 3.17 prints them on stdout; they
+are kept in `WARP_IMPORT_ERRORS` for the error of asking for Warp without it), and MJX's Warp backend started
+on request without its banner and per-module lines (other output passes through)."""
 
 from __future__ import annotations
 
@@ -26,8 +16,7 @@ WARP_NOTICES = ("Failed to import warp:", "Failed to import mujoco_warp:")
 # The physics implementations MJX offers that the project runs (`RobotConfig.impl`).
 IMPLS = ("jax", "warp")
 WARP_EXTRA = 'pip install -e ".[warp]"'
-# What Warp prints when it starts, none of which a user can act on (device list, kernel cache, the
-# missing CUDA driver of a CPU-only machine).
+# What Warp prints when it starts (device list, kernel cache, a CPU-only machine's missing CUDA driver).
 _WARP_START = ("Warp ", "   ", "Warp CUDA warning: Could not find or load the NVIDIA CUDA driver")
 
 with contextlib.redirect_stdout(io.StringIO()) as _captured:
@@ -49,8 +38,7 @@ def warp_installed() -> bool:
 
 
 def require_impl(impl: str, devices: int = 1) -> None:
-    """ConfigError unless MJX's implementation `impl` ("jax" or "warp") can run here on `devices`
-    devices; the first request for "warp" starts Warp quietly."""
+    """ConfigError unless MJX's `impl` ("jax" or "warp") can run here on `devices` devices; starts Warp quietly."""
     require_choice("impl", impl, IMPLS)
     if impl != "warp":
         return
@@ -80,8 +68,7 @@ def _start_warp() -> None:
 
 @contextlib.contextmanager
 def _native_output():
-    """Collects, as a list of lines, what is written to file descriptors 1 and 2 inside (native code's
-    printf included)."""
+    """Collects the lines written to file descriptors 1 and 2 inside (native printf included)."""
     lines: list[str] = []
     sys.stdout.flush()
     sys.stderr.flush()

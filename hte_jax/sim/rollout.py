@@ -1,12 +1,6 @@
-"""Batched, jitted hexapod rollouts: `vmap` over individuals, `lax.scan` over control steps.
-
-One call simulates a whole population. Each individual has its own controller
-parameters (one or several 36-parameter controllers run back to back), its own
-damage mask and its own initial state, so damages and reset-free starts batch
-with no recompilation. Rollouts that go non-finite, explode, flip or collapse
-are flagged invalid per individual and frozen at their last valid state, so a
-blow-up never leaks NaNs into the outputs.
-"""
+"""Batched, jitted hexapod rollouts: `vmap` over individuals (each with its own controllers, damage and start
+state), `lax.scan` over control steps. A rollout that goes non-finite, explodes, flips or collapses is flagged
+invalid and frozen at its last valid state, so no NaN leaks out."""
 
 from __future__ import annotations
 
@@ -19,12 +13,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from flax import struct
-from hte_jax.sim.mjx_import import mjx
 
 from hte_jax import sharding
 from hte_jax.errors import ConfigError
 from hte_jax.sim.controller import NUM_PARAMS, SAMPLES_PER_PERIOD, servo_command, target_table
 from hte_jax.sim.damage import apply_damage, damaged_joint_mask, damaged_pose
+from hte_jax.sim.mjx_import import mjx
 from hte_jax.sim.robot import FOOT_RADIUS, NUM_JOINTS, NUM_LEGS, Robot, mj_model, warp_capacity
 
 
@@ -43,12 +37,9 @@ class InvalidReason(enum.IntFlag):
 class ValidityLimits:
     """When a rollout is declared invalid.
 
-    max_tilt: largest angle (rad) between the body's z axis and the world's z axis.
-    min_base_height / max_base_height: allowed base-origin height in metres (the belly
-      touches the floor at 0.021 m; no gait of the controller lowers the base below 0.079 m).
-    max_speed: largest allowed |qvel| entry (m/s or rad/s).
-    body_on_floor: a body corner below the floor is invalid (turn off when the body collides
-      with the floor, `RobotConfig.body_floor_contact`).
+    max_tilt: largest angle (rad) between the body's and the world's z axes. max_speed: largest |qvel| entry.
+    min_base_height / max_base_height: base-origin height range, m (belly on the floor: 0.021; gaits: >= 0.079).
+    body_on_floor: a body corner below the floor is invalid (off with `RobotConfig.body_floor_contact`).
     """
 
     max_tilt: float = math.pi / 4
@@ -62,17 +53,11 @@ class ValidityLimits:
 class RolloutSpec:
     """Static description of a rollout (hashable; changing it recompiles).
 
-    num_steps: control steps (100 per simulated second at the default control_dt).
-    pose_steps: control-step indices in [0, num_steps] at which the base pose is recorded;
-      index k is the state after k steps (0 = initial, num_steps = final).
-    record_contacts: return per-step foot contacts (B, T, 6).
-    record_feet: return per-step foot-sphere centres (B, T, 6, 3) (memory: 72 B per step).
-    record_joints: return per-step joint angles (B, T, 18) (memory: 72 B per step).
-    record_joint_travel: return each joint's travel sum |q(t+1) - q(t)| over the rollout (B, 18).
-    record_qpos_every: k > 0 returns the full qpos at the start of every k-th step (B, ceil(T / k), 25),
-      for replay and rendering; 0 (default) records nothing and costs nothing.
-    contact_tolerance: a foot is in contact when its sphere is closer than this to the floor (m).
-    limits: validity limits.
+    num_steps: control steps (100 per simulated second by default).
+    pose_steps: steps k in [0, num_steps] after which the base pose is recorded (0: initial).
+    record_contacts / record_feet / record_joints / record_joint_travel / record_qpos_every (k > 0): what
+      `RolloutResult` returns (foot_contacts, foot_pos, joint_pos, joint_travel, qpos); else None.
+    contact_tolerance: a foot touches when its sphere is closer than this to the floor (m).
     """
 
     num_steps: int = 300
@@ -114,18 +99,14 @@ class SimState:
 class RolloutResult:
     """What a batched rollout returns, B individuals, T = num_steps, P = len(pose_steps).
 
-    final_state: SimState (B, ...) after the rollout (frozen at the last valid state if invalid).
-    valid: (B,) bool, False if the rollout was ever invalid.
-    invalid_step: (B,) int32 control step at which it became invalid (T if valid).
+    final_state: SimState (B, ...) after the rollout (the last valid state if invalid).
+    valid: (B,) bool. invalid_step: (B,) int32 step it became invalid (T if valid).
     invalid_reason: (B,) int32 `InvalidReason` bits seen at that step (0 if valid).
-    base_pos: (B, P, 3) base position at `pose_steps`.
-    base_quat: (B, P, 4) base orientation (w, x, y, z) at `pose_steps`.
-    foot_contacts: (B, T, 6) bool, foot touching the floor during step t, or None.
-    foot_pos: (B, T, 6, 3) foot-sphere centres at the start of step t, or None.
+    base_pos: (B, P, 3) and base_quat: (B, P, 4) (w, x, y, z) at `pose_steps`.
+    foot_contacts: (B, T, 6) bool, foot touching the floor during step t. foot_pos: (B, T, 6, 3) foot centres.
     command_abs_sum: (B, 18) sum over steps of |commanded joint velocity| * control_dt (rad).
-    joint_pos: (B, T, 18) joint angles at the start of step t, or None.
-    joint_travel: (B, 18) sum over the valid steps of |joint angle change| (rad), or None.
-    qpos: (B, ceil(T / k), 25) full qpos at the start of steps 0, k, 2k, ... (k = record_qpos_every), or None.
+    joint_pos: (B, T, 18) joint angles. joint_travel: (B, 18) sum over valid steps of |joint angle change| (rad).
+    qpos: (B, ceil(T / k), 25) at steps 0, k, 2k, ... (k = record_qpos_every). Per-step arrays: at step start.
     """
 
     final_state: SimState
@@ -143,10 +124,8 @@ class RolloutResult:
 
 
 def initial_state(robot: Robot, damage: jax.Array | None = None) -> SimState:
-    """The model's reference pose (base 0.15 m up, joints at 0), damaged legs in their pose.
-
-    Args: damage (6,) bool or None. Returns: unbatched SimState.
-    """
+    """Unbatched SimState of the model's reference pose (base 0.15 m up, joints at 0), legs damaged by
+    `damage` (6,) bool (or None) in their pose."""
     model = mj_model(robot.config)
     qpos = jnp.asarray(model.qpos0, jnp.float32)
     if damage is not None:
@@ -155,10 +134,6 @@ def initial_state(robot: Robot, damage: jax.Array | None = None) -> SimState:
         qpos = qpos.at[joints].set(jnp.where(damaged_joint_mask(jnp.asarray(damage)), pose, qpos[joints]))
     zeros = jnp.zeros(model.nv, jnp.float32)
     return SimState(qpos=qpos, qvel=zeros, qacc_warmstart=zeros)
-
-
-def _broadcast(tree, batch: int):
-    return jax.tree.map(lambda x: jnp.broadcast_to(x, (batch, *x.shape)), tree)
 
 
 # Bottom corners of the body box in the body frame (half sizes 0.114 x 0.0905 x 0.021).
@@ -173,25 +148,21 @@ def _world_z_of(qpos: jax.Array, points: np.ndarray) -> jax.Array:
 
 
 def up_z(qpos):
-    """World z of the body's z axis (cosine of its tilt) for a base pose qpos[:7] (unit quaternion; a
-    jax or NumPy array)."""
+    """World z of the body's z axis (cosine of its tilt) for a base pose qpos[:7] (jax or NumPy)."""
     return 1.0 - 2.0 * (qpos[4] ** 2 + qpos[5] ** 2)
 
 
 def up_z_drop_rate(qpos, qvel):
-    """How fast `up_z` falls (1/s; positive while the body tilts further) for a base pose qpos[:7]
-    and velocity qvel[:6] (the free joint's angular velocity qvel[3:6] is in the body frame): the
-    world z of omega x z_body. d(tilt)/dt = this / sin(tilt). A jax or NumPy array."""
+    """How fast `up_z` falls (1/s; > 0 while tilting further): the world z of omega x z_body, omega = qvel[3:6]
+    in the body frame; d(tilt)/dt = this / sin(tilt). Jax or NumPy."""
     w, x, y, z = qpos[3], qpos[4], qpos[5], qpos[6]
     r20, r21 = 2.0 * (x * z - w * y), 2.0 * (y * z + w * x)  # world z of the body's x and y axes
     return r21 * qvel[3] - r20 * qvel[4]
 
 
 def reflex_braced(braced, fresh, qpos, qvel, config):
-    """The tilt reflex's state after one control step's check (`RobotConfig.reflex_tilt`,
-    `reflex_release`, `reflex_rate`): `braced` (bool) whether the neutral pose was held, `fresh`
-    whether a new controller segment starts now (the reflex lets go), qpos / qvel the state now.
-    Operators only, so jax arrays and NumPy scalars (np.bool_, not Python bool) both work."""
+    """Whether the tilt reflex (`RobotConfig.reflex_*`) holds the neutral pose after this step's check: `braced`
+    whether it held it, `fresh` whether a controller segment starts now (it lets go). Jax or NumPy (np.bool_)."""
     cos_tilt = up_z(qpos)
     braced = braced & ~fresh
     if config.reflex_release > 0.0:  # back below the release angle: the gait resumes
@@ -210,19 +181,14 @@ def check_state(qpos: jax.Array, qvel: jax.Array, limits: ValidityLimits) -> jax
     flipped = up_z(qpos) < math.cos(limits.max_tilt)
     height = (qpos[2] < limits.min_base_height) | (qpos[2] > limits.max_base_height)
     on_floor = (_world_z_of(qpos, _BODY_BOTTOM).min() < 0.0) & limits.body_on_floor
-    return (
-        jnp.where(finite, 0, InvalidReason.NON_FINITE)
-        | jnp.where(exploded, InvalidReason.EXPLODED, 0)
-        | jnp.where(flipped, InvalidReason.FLIPPED, 0)
-        | jnp.where(height, InvalidReason.HEIGHT, 0)
-        | jnp.where(on_floor, InvalidReason.BODY_ON_FLOOR, 0)
-    ).astype(jnp.int32)
+    return (jnp.where(finite, 0, InvalidReason.NON_FINITE) | jnp.where(exploded, InvalidReason.EXPLODED, 0)
+            | jnp.where(flipped, InvalidReason.FLIPPED, 0) | jnp.where(height, InvalidReason.HEIGHT, 0)
+            | jnp.where(on_floor, InvalidReason.BODY_ON_FLOOR, 0)).astype(jnp.int32)
 
 
 def warp_overflow(data: mjx.Data) -> jax.Array:
-    """`InvalidReason.WARP_OVERFLOW` (int32 scalar) if MuJoCo Warp has dropped contacts or constraint
-    rows of this robot since its data was made (buffers too small: physics no longer trustworthy),
-    else 0. Solver iteration caps (settings, not losses) do not count."""
+    """`InvalidReason.WARP_OVERFLOW` (int32 scalar) if MuJoCo Warp has dropped contacts or constraint rows of
+    this robot (buffers too small), else 0; solver iteration caps do not count."""
     from mujoco.mjx.third_party.mujoco_warp import OverflowType
 
     lost = (OverflowType.NEFC | OverflowType.NJMAX_NNZ | OverflowType.BROADPHASE | OverflowType.NARROWPHASE
@@ -230,9 +196,8 @@ def warp_overflow(data: mjx.Data) -> jax.Array:
     return jnp.where((data._impl.overflow & int(lost)) != 0, InvalidReason.WARP_OVERFLOW, 0).astype(jnp.int32)
 
 
-def _rollout_one(
-    robot: Robot, spec: RolloutSpec, template: mjx.Data, tables: jax.Array, damage: jax.Array, init: SimState
-):
+def _rollout_one(robot: Robot, spec: RolloutSpec, template: mjx.Data, tables: jax.Array, damage: jax.Array,
+                 init: SimState):
     """One individual: tables (S, 100, 18) joint targets, damage (6,), init unbatched."""
     info, config = robot.info, robot.config
     num_segments = tables.shape[0]
@@ -271,11 +236,9 @@ def _rollout_one(
         new_reason = jnp.where(reason == 0, found, reason)
         ok = new_reason == 0
         # Freeze an invalid individual at its last valid state (no NaN leaks out).
-        stepped = stepped.replace(
-            qpos=jnp.where(ok, stepped.qpos, data.qpos),
-            qvel=jnp.where(ok, stepped.qvel, data.qvel),
-            qacc_warmstart=jnp.where(ok, stepped.qacc_warmstart, data.qacc_warmstart),
-        )
+        stepped = stepped.replace(qpos=jnp.where(ok, stepped.qpos, data.qpos),
+                                  qvel=jnp.where(ok, stepped.qvel, data.qvel),
+                                  qacc_warmstart=jnp.where(ok, stepped.qacc_warmstart, data.qacc_warmstart))
         invalid_step = jnp.where((reason == 0) & ~ok, step, invalid_step)
         command_sum = command_sum + jnp.where(ok, jnp.abs(command), 0.0) * config.control_dt
         if spec.record_joint_travel:
@@ -295,50 +258,27 @@ def _rollout_one(
 
     data = template.replace(qpos=init.qpos, qvel=init.qvel, qacc_warmstart=init.qacc_warmstart)
     data = mjx.kinematics(robot.model, data)  # geom_xpos of the initial state
-    carry = (
-        data,
-        check_state(init.qpos, init.qvel, spec.limits),
-        jnp.int32(spec.num_steps),
-        jnp.zeros((num_poses, 7), jnp.float32),
-        jnp.zeros(NUM_JOINTS, jnp.float32),
-        jnp.zeros(NUM_JOINTS, jnp.float32),
-        jnp.bool_(False),
-    )
-    (data, reason, invalid_step, poses, command_sum, travel, _), outputs = jax.lax.scan(
-        control_step, carry, jnp.arange(spec.num_steps)
-    )
+    zeros = jnp.zeros(NUM_JOINTS, jnp.float32)
+    carry = (data, check_state(init.qpos, init.qvel, spec.limits), jnp.int32(spec.num_steps),
+             jnp.zeros((num_poses, 7), jnp.float32), zeros, zeros, jnp.bool_(False))
+    scanned = jax.lax.scan(control_step, carry, jnp.arange(spec.num_steps))
+    (data, reason, invalid_step, poses, command_sum, travel, _), outputs = scanned
     poses = record_pose(poses, data.qpos, spec.num_steps)
     invalid_step = jnp.where((reason != 0) & (invalid_step == spec.num_steps), 0, invalid_step)
     return RolloutResult(
-        final_state=SimState(qpos=data.qpos, qvel=data.qvel, qacc_warmstart=data.qacc_warmstart),
-        valid=reason == 0,
-        invalid_step=invalid_step,
-        invalid_reason=reason,
-        base_pos=poses[:, :3],
-        base_quat=poses[:, 3:],
-        foot_contacts=outputs.get("contacts"),
-        foot_pos=outputs.get("feet"),
-        command_abs_sum=command_sum,
-        joint_pos=outputs.get("joints"),
-        qpos=outputs["qpos"][:: spec.record_qpos_every] if spec.record_qpos_every else None,
-        joint_travel=travel if spec.record_joint_travel else None,
-    )
+        final_state=SimState(qpos=data.qpos, qvel=data.qvel, qacc_warmstart=data.qacc_warmstart), valid=reason == 0,
+        invalid_step=invalid_step, invalid_reason=reason, base_pos=poses[:, :3], base_quat=poses[:, 3:],
+        foot_contacts=outputs.get("contacts"), foot_pos=outputs.get("feet"), command_abs_sum=command_sum,
+        joint_pos=outputs.get("joints"), joint_travel=travel if spec.record_joint_travel else None,
+        qpos=outputs["qpos"][:: spec.record_qpos_every] if spec.record_qpos_every else None)
 
 
 @functools.partial(jax.jit, static_argnames=("spec",))
-def rollout(
-    robot: Robot, params: jax.Array, damage: jax.Array, init: SimState, spec: RolloutSpec
-) -> RolloutResult:
-    """Simulate a population of hexapods, one jitted call.
+def rollout(robot: Robot, params: jax.Array, damage: jax.Array, init: SimState, spec: RolloutSpec) -> RolloutResult:
+    """Simulate a population of hexapods in one jitted call: a RolloutResult with leading dim B.
 
-    Args:
-      robot: from `load_robot`.
-      params: (B, 36) controllers, or (B, S, 36) controllers run back to back, each for
-        num_steps / S control steps with its clock reset to 0 (S must divide num_steps).
-      damage: (B, 6) or (6,) bool masks of legs blocked in the air.
-      init: SimState batched (B, ...) or unbatched (broadcast to all individuals).
-      spec: static `RolloutSpec`.
-    Returns: RolloutResult with leading dim B.
+    params: (B, 36) controllers, or (B, S, 36) run back to back for num_steps / S steps each, clock reset.
+    damage: (B, 6) or (6,) bool damaged legs. init: SimState batched (B, ...) or unbatched (broadcast).
     """
     if params.ndim == 2:
         params = params[:, None, :]
@@ -353,7 +293,7 @@ def rollout(
     if damage.ndim == 1:
         damage = jnp.broadcast_to(damage, (batch, NUM_LEGS))
     if init.qpos.ndim == 1:
-        init = _broadcast(init, batch)
+        init = jax.tree.map(lambda x: jnp.broadcast_to(x, (batch, *x.shape)), init)
     tables = jax.vmap(jax.vmap(target_table))(params.astype(jnp.float32))  # (B, S, 100, 18)
     template = empty_data(robot, batch)
 
@@ -364,9 +304,8 @@ def rollout(
 
 
 def empty_data(robot: Robot, rows: int) -> mjx.Data:
-    """The mjx.Data that `rows` robots simulated together start from, in the robot's MJX
-    implementation. The Warp backend keeps one contact buffer for the whole batch (sized for `rows`
-    robots, `warp_capacity`) and a constraint buffer per robot."""
+    """The mjx.Data that `rows` robots simulated together start from (Warp: one contact buffer for all
+    `rows`, `warp_capacity`, and a constraint buffer per robot)."""
     if robot.config.impl == "jax":
         return mjx.make_data(robot.model, impl="jax")
     contacts, constraint_rows = warp_capacity(robot.config)
@@ -374,10 +313,8 @@ def empty_data(robot: Robot, rows: int) -> mjx.Data:
 
 
 def standing_state(robot: Robot, damage: jax.Array | None = None, settle_steps: int = 100) -> SimState:
-    """A settled standing pose: zero controller for `settle_steps`, then re-centred at x = y = 0.
-
-    Args: damage (6,) bool, (B, 6) bool or None. Returns: SimState, batched like `damage`.
-    """
+    """A settled standing pose (zero controller for `settle_steps`, re-centred at x = y = 0), batched like
+    `damage` (6,) or (B, 6) bool (or None)."""
     damage = jnp.zeros(NUM_LEGS, bool) if damage is None else jnp.asarray(damage, bool)
     batched = damage.ndim == 2
     damage = damage.reshape(-1, NUM_LEGS)

@@ -11,12 +11,8 @@ CAMERAS = ("track", "top")
 
 @dataclasses.dataclass(frozen=True)
 class Camera:
-    """Where the camera looks from.
-
-    mode: "track" follows the robot's base from behind-left at `distance` (m), `elevation` and
-    `azimuth` (degrees); "top" looks straight down on the point `centre` (x, y) from `distance`,
-    image right = world +x, image up = world +y.
-    """
+    """mode: "track" follows the base from `distance` (m), `elevation` and `azimuth` (degrees); "top" looks
+    straight down on `centre` (x, y) from `distance`, image right = world +x, up = +y."""
 
     mode: str = "track"
     distance: float = 1.2

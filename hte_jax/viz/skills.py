@@ -1,11 +1,6 @@
-"""Videos of repertoire skills (`python -m experiments.render skills` and `patterns`).
-
-Each chosen skill is simulated for 3 s from standing (an HBR top-layer skill through its three
-1 s steps, or a flat repertoire's controller), intact or under a damage, with its state recorded
-every frame; the clips are rendered with `hte_jax.viz.render` (damaged legs red) and laid out on a
-grid. `patterns` runs one HBR skill once per contact pattern, the pattern held for all three steps
-("any": RTE's nearest elite of any pattern), each clip labelled.
-"""
+"""Videos of repertoire skills (`python -m experiments.render skills` and `patterns`): each skill (an HBR
+top-layer skill or a flat controller) simulated for 3 s from standing, intact or damaged, its clip rendered
+and tiled; `patterns` runs one HBR skill once per contact pattern held for all three steps."""
 
 from __future__ import annotations
 
