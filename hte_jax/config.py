@@ -95,8 +95,7 @@ def config_from_dict(cls, data: dict, base=None):
 
 
 def settings(cls) -> dict[str, dataclasses.Field]:
-    """Every leaf setting of configuration dataclass `cls` by its `with_overrides` key, in field order (what a
-    command line offers)."""
+    """Every leaf setting of configuration dataclass `cls` by its `with_overrides` key, in field order."""
     out = {}
     types = typing.get_type_hints(cls)
     for field in dataclasses.fields(cls):

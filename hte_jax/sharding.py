@@ -1,16 +1,9 @@
-"""Spreading a batch axis over devices: a 1-D `Mesh` over the first N devices splits the rows of a population
-or an episode batch (`jax.shard_map`: each device runs its rows with no collective inside), everything else
-(repertoires, robot, planner inputs) replicated. MJX rollouts split over the mesh `spread_over` makes current
-while tracing; `online.episode.run_episodes` splits its episodes.
-
-Only a function given devices places arrays, at its entry (docs/design.md, "Which arrays are replicated and which
-are split"): `MapElites.place`, `hbr.composition.measure_steps`, `run_episodes`; everything else makes
-uncommitted arrays (`uncommitted` undoes `mjx.put_model`'s commitment to one device, which no mesh could take).
-Rows are independent and drawn before the split, a batch padded with copies of its last row (`pad_rows`), and
-N = 1 runs the plain jit program. On a CPU, XLA compiles a vmapped MJX step differently per rows per device
-(3, 5, 6, 12 agree; 1, 2, 4, 8, 24 each differ by up to 1.5e-3 after 3 s), so runs are bit-identical across
-device counts only within such a class (`tests/test_sharding.py`).
-"""
+"""Spreading a batch axis over devices (docs/design.md, "Which arrays are replicated and which are split"): a 1-D
+`Mesh` over the first N devices splits a population's or an episode batch's rows (`jax.shard_map`, no collective
+inside), everything else replicated. Only a function given devices places arrays, at its entry; the rest makes
+uncommitted ones (`uncommitted`). Rows are drawn before the split and padded with copies of the last (`pad_rows`);
+N = 1 runs the plain jit program. XLA:CPU compiles a vmapped MJX step differently per rows per device, so runs
+agree bit for bit across device counts only within such a class (3, 5, 6, 12 rows; `tests/test_sharding.py`)."""
 
 from __future__ import annotations
 
@@ -73,7 +66,6 @@ def batch_sharding(mesh: Mesh, ndim: int = 1) -> NamedSharding:
 
 
 def replicated(mesh: Mesh) -> NamedSharding:
-    """Every device holds the whole array."""
     return NamedSharding(mesh, PartitionSpec())
 
 
@@ -139,8 +131,7 @@ def replica_digests(tree: Any) -> dict[str, list[str]]:
 
 
 def check_replicas(tree: Any, what: str = "state") -> None:
-    """Raise ReplicaMismatchError unless every device (of every process) holds the same bytes of every
-    replicated array of `tree`."""
+    """Raise ReplicaMismatchError unless every device of every process holds the same bytes of `tree`."""
     digests = replica_digests(tree)
     for name, values in digests.items():
         if len(set(values)) > 1:
@@ -149,7 +140,6 @@ def check_replicas(tree: Any, what: str = "state") -> None:
                                        "stopping")
     if jax.process_count() > 1:
         from jax.experimental import multihost_utils
-
         local = np.array([int(v[0][:15], 16) for v in digests.values()], np.int64)
         everywhere = np.asarray(multihost_utils.process_allgather(local))
         if not (everywhere == everywhere[0]).all():

@@ -30,7 +30,7 @@ from hte_jax.qd import io as qd_io
 from hte_jax.qd.plots import grid_projection, plot_metrics
 from hte_jax.qd.tasks import planar_arm, planar_arm_evaluate
 from hte_jax.hbr.selection import frontier_elites, frontier_selection
-from hte_jax.qd.selection import SelectionConfig, density_selection, uniform_selection
+from hte_jax.qd.selection import SelectionConfig, UniformSelection, density_selection
 from hte_jax.qd.variation import polynomial_mutation, sbx_crossover
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -118,7 +118,7 @@ def test_polynomial_mutation_formula():
 def test_uniform_selection_only_picks_elites_uniformly():
     rep = Grid(bins=(10,), low=(0.0,), high=(1.0,)).empty(1)
     rep = rep.replace(filled=jnp.zeros(10, bool).at[jnp.asarray([1, 4, 5, 9])].set(True))
-    picks = np.asarray(uniform_selection(jax.random.PRNGKey(0), rep, 40_000))
+    picks = np.asarray(UniformSelection().select(jax.random.PRNGKey(0), rep, 40_000))
     counts = np.bincount(picks, minlength=10)
     assert set(np.flatnonzero(counts)) == {1, 4, 5, 9}
     assert np.all(np.abs(counts[[1, 4, 5, 9]] - 10_000) < 500)

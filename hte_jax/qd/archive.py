@@ -12,8 +12,7 @@ A candidate c, with l the distance threshold, k = 15 and eps = 0.1 (Euclidean in
 A batch is judged against the archive before it; then (a) of several replacements of one elite the
 fittest wins (ties: first in the batch); (b) an accepted candidate within l of a higher-ranked accepted
 one is dropped; (c) new elites fill free slots in batch order until the archive is full. Elites thus stay
-(1 - eps) l apart and are never removed (filled slots are a prefix). Nearest-neighbour ties: lowest slot.
-"""
+(1 - eps) l apart and are never removed (filled slots are a prefix). Nearest-neighbour ties: lowest slot."""
 
 from __future__ import annotations
 
@@ -50,10 +49,8 @@ def map_rows(fn, arrays: tuple, fills: tuple, chunk: int):
     chunk = max(1, min(chunk, num))
     blocks = -(-num // chunk)
     pad = blocks * chunk - num
-    padded = tuple(
-        jnp.pad(a, [(0, pad)] + [(0, 0)] * (a.ndim - 1), constant_values=f).reshape(blocks, chunk, *a.shape[1:])
-        for a, f in zip(arrays, fills)
-    )
+    padded = tuple(jnp.pad(a, [(0, pad)] + [(0, 0)] * (a.ndim - 1), constant_values=f) for a, f in zip(arrays, fills))
+    padded = tuple(a.reshape(blocks, chunk, *a.shape[1:]) for a in padded)
     out = jax.lax.map(fn, padded)
     return jax.tree.map(lambda x: x.reshape(blocks * chunk, *x.shape[2:])[:num], out)
 
@@ -70,13 +67,9 @@ def _ordered_mean(values: jax.Array) -> jax.Array:
 
 @dataclasses.dataclass(frozen=True)
 class Archive:
-    """An unstructured archive container (static, hashable).
-
-    capacity: number of slots (fixed; additions beyond it are dropped).
-    low, high: descriptor bounds; candidates outside are rejected.
-    l: distance threshold; k: neighbours for novelty; eps: dominance tolerance.
-    chunk_size: candidates per block in the distance computations (memory ~ chunk x capacity).
-    """
+    """An unstructured archive container (static, hashable): `capacity` slots, descriptor bounds `low`, `high`,
+    distance threshold `l`, `k` neighbours for novelty, dominance tolerance `eps`, and `chunk_size` candidates
+    per block of distance computations (memory ~ chunk x capacity)."""
 
     capacity: int
     low: tuple[float, ...]
@@ -143,11 +136,8 @@ class Archive:
         nov_n = _ordered_mean(nn_dist[:, : self.k])
         fit_n = repertoire.fitnesses[nn]
         eps = jnp.float32(self.eps)
-        dominates = (
-            (fit >= (1.0 - jnp.sign(fit_n) * eps) * fit_n)
-            & (nov_c >= (1.0 - jnp.sign(nov_n) * eps) * nov_n)
-            & ((fit - fit_n) * jnp.abs(nov_n) > -(nov_c - nov_n) * jnp.abs(fit_n))
-        )
+        dominates = ((fit >= (1.0 - jnp.sign(fit_n) * eps) * fit_n) & (nov_c >= (1.0 - jnp.sign(nov_n) * eps) * nov_n)
+                     & ((fit - fit_n) * jnp.abs(nov_n) > -(nov_c - nov_n) * jnp.abs(fit_n)))
         replaces = contested & dominates
         # 2a. Replacements of the same elite: highest fitness, then first in the batch.
         replace_ok = best_per_target(fit, nn, replaces, self.capacity)

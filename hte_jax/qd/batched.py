@@ -1,10 +1,7 @@
-"""Several independent MAP-Elites runs in one jitted call, `vmap`-ped over a per-run condition.
-
-The runs share container, genotype size and hyper-parameters and differ by the condition their
-evaluation receives (APROL's damage masks and start states, a task parameter, a seed). Run r uses the
-keys of `single(r)` run alone (vmapped physics may differ in the last bits). `QDState` holds (R, ...)
-repertoires, (R, 2) keys and (R, ...) emitter states with one shared generation, so `loop.run` drives it.
-"""
+"""Several independent MAP-Elites runs in one jitted call, `vmap`-ped over a per-run condition of the evaluation
+(APROL's damages and start states, a task parameter, a seed); run r has the keys of `single(r)` run alone (vmapped
+physics may differ in the last bits). `QDState` holds (R, ...) repertoires, (R, 2) keys, (R, ...) emitter states
+and one generation, so `loop.run` drives it."""
 
 from __future__ import annotations
 
@@ -19,7 +16,7 @@ from jax.sharding import Mesh
 
 from hte_jax import sharding
 from hte_jax.errors import ConfigError
-from hte_jax.qd.loop import MapElites, MapElitesConfig, QDState, scan_generations, spec_config
+from hte_jax.qd.loop import MapElites, MapElitesConfig, OnMesh, QDState, scan_generations, spec_config
 from hte_jax.qd.metrics import RepertoireMetrics, repertoire_metrics
 from hte_jax.qd.repertoire import Evaluation
 from hte_jax.qd.task_spec import TaskSpec
@@ -32,13 +29,9 @@ _STATE_AXES = QDState(repertoire=0, key=0, generation=None, emitter_state=0)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
-class BatchedMapElites:
-    """R MAP-Elites runs, one per condition.
-
-    container, genotype_dim, config, extras, emitter, mesh: as in `MapElites`, shared by all runs.
-    evaluate: (key, genotypes, condition) -> Evaluation. conditions: pytree of (R, ...) arrays, row r run r's.
-    names: R labels of the runs (stored in checkpoints; a resume must use the same runs).
-    """
+class BatchedMapElites(OnMesh):
+    """R MAP-Elites runs, one per row of `conditions` (pytree of (R, ...) arrays) and label of `names` (stored in
+    checkpoints); evaluate: (key, genotypes, condition) -> Evaluation; the other fields as in `MapElites`."""
 
     container: Any
     evaluate: ConditionedEvaluateFn
@@ -63,15 +56,6 @@ class BatchedMapElites:
         config = spec_config(spec, config)
         return cls(spec.container, spec.evaluate, spec.genotype_dim, conditions, tuple(names), config,
                    spec.extras_example(), emitter, mesh)
-
-    @functools.cached_property
-    def active_mesh(self) -> Mesh:
-        """`mesh`, or one over all visible devices."""
-        return sharding.batch_mesh() if self.mesh is None else self.mesh
-
-    def place(self, state: QDState) -> QDState:
-        """`state` replicated on the mesh's devices."""
-        return sharding.put_replicated(state, self.active_mesh)
 
     @property
     def num_runs(self) -> int:

@@ -1,7 +1,6 @@
 """MAP-Elites grid: dimension i spans [low_i, high_i] in bins_i equal bins (x = high in the last bin),
 cells numbered row-major; descriptors outside the bounds are rejected. Per cell, the best valid candidate
-of a batch (ties: first in the batch) replaces the elite if strictly fitter (empty cells: -inf).
-"""
+of a batch (ties: first in the batch) replaces the elite if strictly fitter (empty cells: -inf)."""
 
 from __future__ import annotations
 
@@ -19,11 +18,8 @@ from hte_jax.qd.repertoire import (Evaluation, Insertion, Repertoire, best_per_t
 
 @dataclasses.dataclass(frozen=True)
 class Grid:
-    """A grid container (static, hashable).
-
-    bins: cells per dimension, e.g. (100, 100) or (100, 100, 2, 2, 2, 2, 2, 2).
-    low, high: descriptor bounds per dimension.
-    """
+    """A grid container (static, hashable): `bins` cells per dimension, e.g. (100, 100) or (100, 100, 2, 2, 2, 2,
+    2, 2), over descriptor bounds `low`, `high` per dimension."""
 
     bins: tuple[int, ...]
     low: tuple[float, ...]
@@ -45,7 +41,6 @@ class Grid:
         return len(self.bins)
 
     def empty(self, genotype_dim: int, extras=None) -> Repertoire:
-        """An empty repertoire with one slot per cell."""
         return empty_repertoire(self.capacity, genotype_dim, self.descriptor_dim, extras)
 
     def cell_index(self, descriptors: jax.Array) -> jax.Array:

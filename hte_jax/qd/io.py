@@ -1,7 +1,6 @@
 """Checkpoints: any pytree of arrays as `.npz` (one entry per leaf, named by its path) plus `__metadata__`, a
 JSON header (format version, leaves' shapes and dtypes, the caller's metadata). Written to a temporary file,
-fsync-ed and renamed, so a kill mid-write keeps the previous checkpoint; loads raise `CheckpointError`.
-"""
+fsync-ed and renamed, so a kill mid-write keeps the previous checkpoint; loads raise `CheckpointError`."""
 
 from __future__ import annotations
 
@@ -36,23 +35,14 @@ def _leaf_name(path) -> str:
     return "/".join(str(getattr(k, "name", getattr(k, "key", getattr(k, "idx", k)))) for k in path)
 
 
-def _flatten(tree) -> dict[str, np.ndarray]:
-    leaves, _ = jax.tree_util.tree_flatten_with_path(tree)
-    return {_leaf_name(path): np.asarray(leaf) for path, leaf in leaves}
-
-
 def save_checkpoint(path: str | Path, tree: Any, metadata: dict | None = None, *, compress: bool = False) -> None:
     """Atomically write `tree` (a pytree of arrays) and JSON-able `metadata` to `path` (zip-deflated if compress).
     $HTE_JAX_CHECKPOINT_PAUSE (seconds; tests and `benchmarks/resume_kill.py`) sleeps before the rename."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    arrays = _flatten(tree)
-    header = {
-        "format": FORMAT,
-        "version": FORMAT_VERSION,
-        "leaves": {name: {"shape": list(a.shape), "dtype": str(a.dtype)} for name, a in arrays.items()},
-        "metadata": metadata or {},
-    }
+    arrays = {_leaf_name(leaf_path): np.asarray(leaf) for leaf_path, leaf in jax.tree_util.tree_leaves_with_path(tree)}
+    leaves = {name: {"shape": list(a.shape), "dtype": str(a.dtype)} for name, a in arrays.items()}
+    header = {"format": FORMAT, "version": FORMAT_VERSION, "leaves": leaves, "metadata": metadata or {}}
     tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
     try:
         with open(tmp, "wb") as handle:
@@ -141,8 +131,7 @@ def _header(path: Path, stored: np.ndarray | None) -> dict:
 
 
 def load_checkpoint(path: str | Path, template: Any, expected_metadata: dict | None = None) -> Any:
-    """Load a checkpoint into the structure of `template`, checking names, shapes, dtypes and that every
-    key of `expected_metadata` has the stored value."""
+    """Load a checkpoint into `template`'s structure, checking leaves and every key of `expected_metadata`."""
     arrays, header = read_checkpoint(path)
     stored = header.get("metadata", {})
     for key, value in (expected_metadata or {}).items():
@@ -219,16 +208,10 @@ def prepare_run_dir(out: str | Path, config: dict, resume_run: bool, normalise: 
 
 def elite_arrays(repertoire: Repertoire, prefix: str = "") -> dict[str, np.ndarray]:
     """The filled rows of a Repertoire as flat arrays `<prefix>slots/genotypes/descriptors/fitnesses/extra_*`."""
-    filled = np.asarray(repertoire.filled)
-    rows = np.flatnonzero(filled)
-    out = {
-        "slots": rows.astype(np.int32),
-        "genotypes": np.asarray(repertoire.genotypes)[rows],
-        "descriptors": np.asarray(repertoire.descriptors)[rows],
-        "fitnesses": np.asarray(repertoire.fitnesses)[rows],
-    }
-    for name, value in repertoire.extras.items():
-        out[f"extra_{name}"] = np.asarray(value)[rows]
+    rows = np.flatnonzero(np.asarray(repertoire.filled))
+    out = {"slots": rows.astype(np.int32), "genotypes": np.asarray(repertoire.genotypes)[rows],
+           "descriptors": np.asarray(repertoire.descriptors)[rows], "fitnesses": np.asarray(repertoire.fitnesses)[rows],
+           **{f"extra_{name}": np.asarray(value)[rows] for name, value in repertoire.extras.items()}}
     return {f"{prefix}{name}": value for name, value in out.items()}
 
 
@@ -240,8 +223,7 @@ def rebuild_repertoire(path, arrays: dict, prefix: str, capacity: int, genes: in
     want = {"slots": ((), np.int32), "genotypes": ((genes,), np.float32), "descriptors": ((dims,), np.float32),
             "fitnesses": ((), np.float32)}
     want.update({f"extra_{name}": spec for name, spec in extras.items()})
-    columns = {}
-    rows = None
+    columns, rows = {}, None
     for name, (shape, dtype) in want.items():
         key = f"{prefix}{name}"
         if key not in arrays:
@@ -272,12 +254,6 @@ def rebuild_repertoire(path, arrays: dict, prefix: str, capacity: int, genes: in
         store[slots] = values
         return jnp.asarray(store)
 
-    filled = np.zeros(capacity, bool)
-    filled[slots] = True
-    return Repertoire(
-        genotypes=scatter(columns["genotypes"], 0),
-        descriptors=scatter(columns["descriptors"], 0),
-        fitnesses=scatter(columns["fitnesses"], EMPTY_FITNESS),
-        filled=jnp.asarray(filled),
-        extras={name: scatter(columns[f"extra_{name}"], 0) for name in extras},
-    )
+    return Repertoire(genotypes=scatter(columns["genotypes"], 0), descriptors=scatter(columns["descriptors"], 0),
+                      fitnesses=scatter(columns["fitnesses"], EMPTY_FITNESS), filled=scatter(np.ones(rows, bool), 0),
+                      extras={name: scatter(columns[f"extra_{name}"], 0) for name in extras})

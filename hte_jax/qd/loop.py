@@ -1,9 +1,6 @@
-"""MAP-Elites as pure `init` / `ask` / `tell` functions plus a thin host-side runner.
-
-A generation (emit, evaluate the batch, insert, update the emitter) is one jitted call; blocks of them
-run under `lax.scan`, and between blocks the host logs metrics and writes a checkpoint, so a killed
-run resumes bit-identically.
-"""
+"""MAP-Elites as pure `init` / `ask` / `tell` functions plus a thin host-side runner: a generation (emit, evaluate,
+insert, update the emitter) is one jitted call, blocks of them run under `lax.scan`, and between blocks the host
+logs metrics and writes a checkpoint, so a killed run resumes bit-identically."""
 
 from __future__ import annotations
 
@@ -36,13 +33,10 @@ EvaluateFn = Callable[[jax.Array, jax.Array], Evaluation]
 
 @dataclasses.dataclass(frozen=True)
 class MapElitesConfig:
-    """Hyper-parameters (hashable; the original's values per layer are in docs/design.md).
-
-    batch_size: offspring per generation. init_size: random individuals first (a multiple of batch_size).
-    mutation_rate / eta_m: per-gene polynomial mutation. crossover_rate / eta_c: share of offspring made
-    by SBX crossover. qd_offset: fitness lower bound of the QD score. parents: `SelectionConfig`, inlined.
-    All make the default emitter; a `MapElites` given its own reads only batch_size, init_size, qd_offset.
-    """
+    """Hyper-parameters (hashable; the original's per layer in docs/design.md): batch_size offspring per generation
+    after init_size random ones (a multiple), per-gene polynomial mutation (mutation_rate, eta_m), a share
+    crossover_rate of SBX crossovers (eta_c), the QD score's fitness lower bound qd_offset, parent selection
+    (`SelectionConfig`, inlined). A `MapElites` given its own emitter reads only batch_size, init_size, qd_offset."""
 
     batch_size: int = 200
     init_size: int = 200
@@ -67,12 +61,8 @@ class MapElitesConfig:
 
 @struct.dataclass
 class QDState:
-    """Everything a run needs to continue.
-
-    repertoire: the container's Repertoire. key: (2,) uint32 PRNG key of the next generation.
-    generation: int32 scalar, generations done after the initial batch.
-    emitter_state: the emitter's state (`emitters.EmptyState` for stateless ones).
-    """
+    """Everything a run needs to continue: the container's repertoire, the next generation's (2,) uint32 PRNG key,
+    generation (int32 scalar, done after the initial batch) and emitter_state (`emitters.EmptyState`: none)."""
 
     repertoire: Repertoire
     key: jax.Array
@@ -88,21 +78,27 @@ def spec_config(spec: TaskSpec, config: MapElitesConfig) -> MapElitesConfig:
 
 
 def scan_generations(step: Callable, state: QDState, generations: int, mesh: Mesh) -> tuple[QDState, jax.Array]:
-    """`generations` calls of `step` (state -> (state, accepted)) under lax.scan, replicated on `mesh`:
-    the state and the total accepted."""
+    """`generations` calls of `step` (state -> (state, accepted)) under lax.scan: (state, total accepted)."""
     state, accepted = jax.lax.scan(lambda s, _: step(s), state, None, length=generations)
     return sharding.replicate((state, accepted.sum()), mesh)
 
 
-@dataclasses.dataclass(frozen=True, eq=False)
-class MapElites:
-    """A MAP-Elites algorithm: a container (`Grid` or `Archive`), an evaluation, a config.
+class OnMesh:
+    """`active_mesh`, the `mesh` field or (None) all visible devices, and `place`, a state replicated on it."""
 
-    genotype_dim: genes per individual, each in [0, 1].
-    extras: example pytree of per-individual extras the evaluation returns (shapes without B).
-    emitter: makes the offspring (`qd.emitters`); None: the one `config` describes.
-    mesh: devices each batch's rows are spread over (`sharding.batch_mesh`; None: all). Results do not depend on it.
-    """
+    @functools.cached_property
+    def active_mesh(self) -> Mesh:
+        return sharding.batch_mesh() if self.mesh is None else self.mesh
+
+    def place(self, state: QDState) -> QDState:
+        return sharding.put_replicated(state, self.active_mesh)
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class MapElites(OnMesh):
+    """A MAP-Elites algorithm: a container (`Grid` or `Archive`), an evaluation of genotype_dim genes in [0, 1],
+    a config; extras: example pytree of the evaluation's per-individual extras (shapes without B); emitter
+    (`qd.emitters`; None: `config`'s); mesh: the devices a batch is spread over (None: all; results the same)."""
 
     container: Any
     evaluate: EvaluateFn
@@ -119,15 +115,6 @@ class MapElites:
         config = spec_config(spec, config)
         return cls(spec.container, spec.evaluate, spec.genotype_dim, config, spec.extras_example(), emitter, mesh)
 
-    @functools.cached_property
-    def active_mesh(self) -> Mesh:
-        """`mesh`, or one over all visible devices."""
-        return sharding.batch_mesh() if self.mesh is None else self.mesh
-
-    def place(self, state: QDState) -> QDState:
-        """`state` (from `init`, a checkpoint, another run) replicated on the mesh's devices."""
-        return sharding.put_replicated(state, self.active_mesh)
-
     def evaluate_batch(self, key: jax.Array, genotypes: jax.Array) -> Evaluation:
         """`evaluate`, its rollouts' rows spread over the mesh (`sharding.spread_over`)."""
         with sharding.spread_over(self.active_mesh):
@@ -135,7 +122,6 @@ class MapElites:
 
     @functools.cached_property
     def active_emitter(self) -> Emitter:
-        """`emitter`, or the one `config` describes."""
         return config_emitter(self.config, self.container) if self.emitter is None else self.emitter
 
     def evaluations(self, state: QDState) -> int:
@@ -194,7 +180,6 @@ class MapElites:
 
     @functools.partial(jax.jit, static_argnums=(0, 2))
     def run_block(self, state: QDState, generations: int) -> tuple[QDState, jax.Array]:
-        """`generations` generations under lax.scan; returns the state and the accepted count."""
         return scan_generations(self.generation_step, state, generations, self.active_mesh)
 
     @functools.partial(jax.jit, static_argnums=0)
@@ -217,19 +202,15 @@ class MapElites:
 def run(algo: MapElites, state: QDState, generations: int, *, block_size: int = 10, log_path: str | Path | None = None,
         checkpoint_path: str | Path | None = None, progress: bool = True,
         on_block: Callable[[int, QDState, dict], None] | None = None, description: str | None = None) -> QDState:
-    """Run until `state.generation == generations`, one jitted block of generations at a time.
-
-    After every block: a replica check (`sharding.ReplicaMismatchError`), a CSV row (log_path), an
-    atomic checkpoint (checkpoint_path; process 0 only), the progress bar and `on_block(block, state, row)`.
-    A resumed state runs only the remaining generations; blocks stay at multiples of block_size.
-    """
+    """Run until `state.generation == generations` in jitted blocks (at multiples of block_size), each followed
+    by a replica check (`sharding.ReplicaMismatchError`), a CSV row (log_path), an atomic checkpoint
+    (checkpoint_path; process 0 only), the progress bar and `on_block(block, state, row)`."""
     require_int("block_size", block_size)
     log = MetricsLog(log_path) if log_path is not None and jax.process_index() == 0 else None
     done = int(state.generation)
     if log is not None:  # drop rows written after the checkpoint we start from
         log.truncate_after(done // block_size - 1 if done else -2)
-    total_blocks = -(-generations // block_size)
-    bar = tqdm(total=total_blocks, initial=done // block_size, disable=not progress, unit="block", desc=description)
+    bar = tqdm(total=-(-generations // block_size), initial=done // block_size, disable=not progress, unit="block", desc=description)
     start = time.perf_counter()
 
     def record(block, accepted):

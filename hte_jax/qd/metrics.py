@@ -19,11 +19,8 @@ FIELDS = ("block", "generation", "evaluations", "filled", "coverage", "qd_score"
 
 @struct.dataclass
 class RepertoireMetrics:
-    """Scalars describing a repertoire (all 0-d arrays).
-
-    filled: number of elites; coverage: filled / capacity; qd_score: sum(fitness - offset);
-    mean_fitness, max_fitness: over elites (NaN when empty).
-    """
+    """0-d arrays: filled (elites), coverage (filled / capacity), qd_score (sum of fitness - offset), and
+    mean_fitness, max_fitness over elites (NaN when empty)."""
 
     filled: jax.Array
     coverage: jax.Array
@@ -35,15 +32,11 @@ class RepertoireMetrics:
 def repertoire_metrics(repertoire: Repertoire, offset: float) -> RepertoireMetrics:
     filled = repertoire.filled
     count = filled.sum(dtype=jnp.int32)
-    fitness = jnp.where(filled, repertoire.fitnesses, 0.0)
-    total = fitness.sum()
-    return RepertoireMetrics(
-        filled=count,
-        coverage=count / repertoire.capacity,
-        qd_score=total - offset * count,
-        mean_fitness=jnp.where(count > 0, total / jnp.maximum(count, 1), jnp.nan),
-        max_fitness=jnp.where(count > 0, jnp.where(filled, repertoire.fitnesses, -jnp.inf).max(), jnp.nan),
-    )
+    total = jnp.where(filled, repertoire.fitnesses, 0.0).sum()
+    best = jnp.where(filled, repertoire.fitnesses, -jnp.inf).max()
+    return RepertoireMetrics(filled=count, coverage=count / repertoire.capacity, qd_score=total - offset * count,
+                             mean_fitness=jnp.where(count > 0, total / jnp.maximum(count, 1), jnp.nan),
+                             max_fitness=jnp.where(count > 0, best, jnp.nan))
 
 
 class MetricsLog:
@@ -55,10 +48,8 @@ class MetricsLog:
 
     def truncate_after(self, block: int) -> None:
         """Drop rows of blocks > `block` (written after the checkpoint a run resumes from)."""
-        if not self.path.exists():
-            return
-        rows = [r for r in self.read() if int(r["block"]) <= block]
-        self._write(rows, mode="w")
+        if self.path.exists():
+            self._write([r for r in self.read() if int(r["block"]) <= block], mode="w")
 
     def append(self, row: dict) -> None:
         self._write([row], mode="a")
@@ -94,9 +85,6 @@ def projected_statistics(descriptors, fitnesses, filled, bins: int) -> dict:
     best = np.full(bins * bins, -np.inf)
     np.maximum.at(best, flat, fitness)
     best = best[np.isfinite(best)]
-    return {
-        "size": int(filled.sum()),
-        "effective_size": int(best.size),
-        "mean_fitness": float(best.mean()) if best.size else float("nan"),
-        "mean_fitness_all": float(fitness.mean()) if fitness.size else float("nan"),
-    }
+    return {"size": int(filled.sum()), "effective_size": int(best.size),
+            "mean_fitness": float(best.mean()) if best.size else float("nan"),
+            "mean_fitness_all": float(fitness.mean()) if fitness.size else float("nan")}

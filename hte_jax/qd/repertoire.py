@@ -14,14 +14,8 @@ EMPTY_FITNESS = -jnp.inf
 
 @struct.dataclass
 class Repertoire:
-    """Elites of a container with C slots, genotypes of size G, descriptors of size D.
-
-    genotypes: (C, G) float32, zeros where empty.
-    descriptors: (C, D) float32, zeros where empty.
-    fitnesses: (C,) float32, -inf where empty.
-    filled: (C,) bool, which slots hold an elite.
-    extras: pytree of (C, ...) arrays stored with each elite (e.g. per-elite metadata), or {}.
-    """
+    """Elites of a container with C slots: genotypes (C, G) and descriptors (C, D) float32, zeros where empty;
+    fitnesses (C,) float32, -inf where empty; filled (C,) bool; extras: pytree of (C, ...) per-elite arrays, or {}."""
 
     genotypes: jax.Array
     descriptors: jax.Array
@@ -41,13 +35,8 @@ class Repertoire:
 
 @struct.dataclass
 class Evaluation:
-    """What an evaluation returns for B individuals.
-
-    fitnesses: (B,) float32 (higher is better).
-    descriptors: (B, D) float32.
-    valid: (B,) bool; invalid individuals are never inserted.
-    extras: pytree of (B, ...) arrays stored with inserted elites, or {}.
-    """
+    """What an evaluation returns for B individuals: fitnesses (B,) float32 (higher is better), descriptors
+    (B, D) float32, valid (B,) bool (invalid ones are never inserted), extras: pytree of (B, ...) arrays, or {}."""
 
     fitnesses: jax.Array
     descriptors: jax.Array
@@ -57,12 +46,8 @@ class Evaluation:
 
 @struct.dataclass
 class Insertion:
-    """Outcome of adding a batch of B individuals.
-
-    accepted: (B,) bool, the individual is now an elite.
-    new_slot: (B,) bool, it took a slot that was empty (grid: new cell; archive: new entry).
-    slot: (B,) int32, where it went, -1 if rejected.
-    """
+    """Outcome of adding B individuals: accepted (B,) bool, now an elite; new_slot (B,) bool, in a slot that was
+    empty; slot (B,) int32, where it went (-1: rejected)."""
 
     accepted: jax.Array
     new_slot: jax.Array
@@ -72,13 +57,10 @@ class Insertion:
 def empty_repertoire(capacity: int, genotype_dim: int, descriptor_dim: int, extras: Any = None) -> Repertoire:
     """An empty repertoire; `extras` is a pytree of per-elite example arrays (shapes without C)."""
     extras = {} if extras is None else extras
-    return Repertoire(
-        genotypes=jnp.zeros((capacity, genotype_dim), jnp.float32),
-        descriptors=jnp.zeros((capacity, descriptor_dim), jnp.float32),
-        fitnesses=jnp.full((capacity,), EMPTY_FITNESS, jnp.float32),
-        filled=jnp.zeros((capacity,), bool),
-        extras=jax.tree.map(lambda x: jnp.zeros((capacity, *jnp.shape(x)), jnp.asarray(x).dtype), extras),
-    )
+    return Repertoire(genotypes=jnp.zeros((capacity, genotype_dim), jnp.float32),
+                      descriptors=jnp.zeros((capacity, descriptor_dim), jnp.float32),
+                      fitnesses=jnp.full((capacity,), EMPTY_FITNESS, jnp.float32), filled=jnp.zeros((capacity,), bool),
+                      extras=jax.tree.map(lambda x: jnp.zeros((capacity, *jnp.shape(x)), jnp.asarray(x).dtype), extras))
 
 
 def write(repertoire: Repertoire, slot: jax.Array, genotypes, evaluation: Evaluation) -> Repertoire:
@@ -90,12 +72,10 @@ def write(repertoire: Repertoire, slot: jax.Array, genotypes, evaluation: Evalua
         return store.at[target].set(rows.astype(store.dtype), mode="drop")
 
     return repertoire.replace(
-        genotypes=put(repertoire.genotypes, genotypes),
-        descriptors=put(repertoire.descriptors, evaluation.descriptors),
+        genotypes=put(repertoire.genotypes, genotypes), descriptors=put(repertoire.descriptors, evaluation.descriptors),
         fitnesses=put(repertoire.fitnesses, evaluation.fitnesses),
         filled=put(repertoire.filled, jnp.ones_like(slot, bool)),
-        extras=jax.tree.map(put, repertoire.extras, evaluation.extras),
-    )
+        extras=jax.tree.map(put, repertoire.extras, evaluation.extras))
 
 
 def best_per_target(fitness: jax.Array, target: jax.Array, candidate: jax.Array, num_targets: int) -> jax.Array:

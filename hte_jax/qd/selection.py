@@ -26,13 +26,10 @@ SELECTIONS: dict[str, tuple[str, tuple[str, ...]]] = {
 
 @dataclasses.dataclass(frozen=True)
 class SelectionConfig:
-    """The settings of the selections in `SELECTIONS` (inlined in `MapElitesConfig` and `LayerSchedule`).
-
-    selection: "uniform" (every elite equally likely, the original's), "density" (`density_selection`
-      over a `density_bins`^`density_dims` grid) or "frontier" (`hte_jax.hbr.selection`: a share
-      `frontier_fraction` drawn among the outermost elites of `frontier_angle_bins` sectors x
-      `frontier_level_bins` levels, the rest uniformly).
-    """
+    """The settings of the selections in `SELECTIONS` (inlined in `MapElitesConfig` and `LayerSchedule`): selection
+    "uniform" (the original's), "density" (`density_selection` over a `density_bins`^`density_dims` grid) or
+    "frontier" (`hte_jax.hbr.selection`: a share `frontier_fraction` drawn among the outermost elites of
+    `frontier_angle_bins` sectors x `frontier_level_bins` levels, the rest uniformly)."""
 
     selection: str = "uniform"
     density_bins: int = 16
@@ -59,14 +56,8 @@ def selection_from_config(config: SelectionConfig, container):
     return getattr(importlib.import_module(module), name).from_config(config, container)
 
 
-def uniform_selection(key: jax.Array, repertoire: Repertoire, num: int) -> jax.Array:
-    """(num,) slots drawn uniformly, with replacement, among the filled ones (there must be some)."""
-    return uniform_among(key, repertoire.filled, num)
-
-
 def uniform_among(key: jax.Array, mask: jax.Array, num: int) -> jax.Array:
-    """(num,) slots drawn uniformly, with replacement, among those where `mask` (C,) is True: the slots of
-    ranks drawn in [0, count), O(C + num log C)."""
+    """(num,) slots drawn uniformly, with replacement, among those where `mask` (C,) is True (by rank)."""
     cumulative = jnp.cumsum(mask, dtype=jnp.int32)
     rank = jax.random.randint(key, (num,), 0, jnp.maximum(cumulative[-1], 1))
     return jnp.searchsorted(cumulative, rank + 1, side="left").astype(jnp.int32)
@@ -92,20 +83,19 @@ def density_selection(key: jax.Array, repertoire: Repertoire, num: int, low: jax
 
 @dataclasses.dataclass(frozen=True)
 class UniformSelection:
-    """Every elite equally likely (the original's); `uniform_selection`."""
+    """Every elite equally likely (the original's; there must be some)."""
 
     @classmethod
     def from_config(cls, config, container) -> UniformSelection:
         return cls()
 
     def select(self, key: jax.Array, repertoire: Repertoire, num: int) -> jax.Array:
-        return uniform_selection(key, repertoire, num)
+        return uniform_among(key, repertoire.filled, num)
 
 
 @dataclasses.dataclass(frozen=True)
 class DensitySelection:
-    """Every occupied cell of a coarse `bins`^`dims` grid over the first `dims` descriptor
-    dimensions (bounds low, high) equally likely; `density_selection`."""
+    """`density_selection`: every occupied cell of a `bins`^`dims` grid over [low, high] equally likely."""
 
     low: tuple[float, ...]
     high: tuple[float, ...]

@@ -24,14 +24,10 @@ def container_metadata(container) -> dict:
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class TaskSpec:
-    """One QD problem (static; the evaluation is compared by identity).
-
-    name: label stored in repertoire files (a file loads only for a spec of the same name).
-    genotype_dim: G, genes per individual, each in [0, 1]. container: `Grid` or `Archive` (C slots, D dims).
-    evaluate: `evaluate(key, genotypes (B, G)) -> Evaluation`, or None (`with_evaluate` adds one).
-    extras: {name: (shape without rows, dtype)} of `Evaluation.extras`, e.g. {"leg": ((), "int32")}.
-    qd_offset: the QD score's fitness lower bound (`MapElitesConfig.qd_offset`), or None: the config's.
-    """
+    """One QD problem (static; the evaluation compared by identity). name: label of its repertoire files;
+    genotype_dim: G genes in [0, 1]; container: `Grid` or `Archive` (C slots, D dims); evaluate: `evaluate(key,
+    genotypes (B, G)) -> Evaluation` or None (`with_evaluate`); extras: {name: (shape without rows, dtype)} of
+    `Evaluation.extras`, e.g. {"leg": ((), "int32")}; qd_offset: `MapElitesConfig.qd_offset`, or None: the config's."""
 
     name: str
     genotype_dim: int
@@ -75,7 +71,6 @@ class TaskSpec:
         return {name: jnp.zeros(shape, dtype) for name, (shape, dtype) in self.extras.items()}
 
     def empty(self):
-        """An empty Repertoire of the container, with the spec's extras."""
         return self.container.empty(self.genotype_dim, self.extras_example())
 
     def with_evaluate(self, evaluate: EvaluateFn) -> TaskSpec:

@@ -18,11 +18,8 @@ def planar_arm(genotypes: jax.Array) -> Evaluation:
     x = length * jnp.cos(cumulative).sum(axis=-1)
     y = length * jnp.sin(cumulative).sum(axis=-1)
     descriptors = (jnp.stack([x, y], axis=-1) + 1.0) / 2.0
-    return Evaluation(
-        fitnesses=-jnp.std(angles, axis=-1),
-        descriptors=jnp.clip(descriptors, 0.0, 1.0),
-        valid=jnp.ones(genotypes.shape[0], bool),
-    )
+    return Evaluation(fitnesses=-jnp.std(angles, axis=-1), descriptors=jnp.clip(descriptors, 0.0, 1.0),
+                      valid=jnp.ones(genotypes.shape[0], bool))
 
 
 def planar_arm_evaluate(key: jax.Array, genotypes: jax.Array) -> Evaluation:

@@ -22,8 +22,7 @@ def polynomial_mutation(key: jax.Array, genotypes: jax.Array, rate: float, eta: 
 
 
 def sbx_crossover(key: jax.Array, parents_a: jax.Array, parents_b: jax.Array, eta: float) -> jax.Array:
-    """Simulated binary crossover (Deb & Agrawal) of parents (N, G) in [0, 1], each gene with p = 0.5:
-    (N, G) children clipped to [0, 1]."""
+    """Simulated binary crossover (Deb & Agrawal), each gene with p = 0.5: (N, G) children in [0, 1]."""
     key_gene, key_u, key_side = jax.random.split(key, 3)
     u = jax.random.uniform(key_u, parents_a.shape)
     beta = jnp.where(u <= 0.5, (2.0 * u) ** (1.0 / (eta + 1.0)), (1.0 / (2.0 * (1.0 - u))) ** (1.0 / (eta + 1.0)))

@@ -1,9 +1,7 @@
-"""Open-loop periodic controllers of the original HTE code (`docs/original_code.md` §2).
-
-Every joint follows a 1 s, 100-sample signal: a square wave (amplitude a, duty d) smoothed by a circular
-Gaussian (sigma 3 samples, 21 taps), shifted by phase p, all in [0, 1]. Leg L's params[6L:6L+3] = (a, p, d)
-drive hip = -(pi/8) s0, params[6L+3:6L+6] femur = tibia = (pi/4) s1 (opposite axes: the tibia stays vertical).
-"""
+"""Open-loop periodic controllers of the original HTE code (`docs/original_code.md` §2): every joint follows a 1 s,
+100-sample square wave (amplitude a, duty d) smoothed by a circular Gaussian (sigma 3 samples, 21 taps), shifted
+by phase p, all in [0, 1]. Leg L's params[6L:6L+3] = (a, p, d) drive hip = -(pi/8) s0, params[6L+3:6L+6]
+femur = tibia = (pi/4) s1 (opposite axes: the tibia stays vertical)."""
 
 from __future__ import annotations
 
@@ -52,8 +50,7 @@ def signal_table(amplitude: jax.Array, phase: jax.Array, duty: jax.Array) -> jax
 
 
 def target_table(params: jax.Array) -> jax.Array:
-    """(100, 18) joint targets (rad, leg-major: leg0 hip, femur, tibia, leg1 ...) of params (36,) in [0, 1];
-    row k is used during control step k mod 100."""
+    """(100, 18) joint targets (rad, leg-major) of params (36,) in [0, 1], row k for control step k mod 100."""
     signals = jax.vmap(signal_table)(*params.reshape(NUM_LEGS * 2, PARAMS_PER_SIGNAL).T)  # (12, 100)
     hip = -HIP_AMPLITUDE * signals[0::2]  # (6, 100)
     vertical = VERTICAL_AMPLITUDE * signals[1::2]

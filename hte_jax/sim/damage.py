@@ -1,8 +1,7 @@
 """Leg damages: a per-rollout (6,) bool mask; a damaged leg's servos hold a pose (`RobotConfig.damage_model`):
 "raised" (the paper's "blocked in the air": femur and tibia straight up, the foot 0.19 m above the hip, off the
 floor unless the body tilts ~80 degrees) or "locked" (standing, joints at 0: likely what the original simulated,
-`docs/original_code.md` §10). The paper's seven conditions: each single leg and the middle legs 1+4.
-"""
+`docs/original_code.md` §10). The paper's seven conditions: each single leg and the middle legs 1+4."""
 
 from __future__ import annotations
 
@@ -24,10 +23,8 @@ assert tuple(DAMAGED_POSES) == DAMAGE_MODELS
 PAPER_DAMAGES: dict[str, tuple[int, ...]] = {**{f"leg{i}": (i,) for i in range(NUM_LEGS)}, "legs1+4": (1, 4)}
 DAMAGE_NAMES = ("none", *PAPER_DAMAGES)
 # APROL's prior conditions (paper section 5): the 6 single-leg and the 15 two-leg damages.
-APROL_DAMAGES: dict[str, tuple[int, ...]] = {
-    **{f"leg{i}": (i,) for i in range(NUM_LEGS)},
-    **{f"legs{i}+{j}": (i, j) for i in range(NUM_LEGS) for j in range(i + 1, NUM_LEGS)},
-}
+APROL_DAMAGES: dict[str, tuple[int, ...]] = {f"leg{i}": (i,) for i in range(NUM_LEGS)} | {
+    f"legs{i}+{j}": (i, j) for i in range(NUM_LEGS) for j in range(i + 1, NUM_LEGS)}
 
 
 def damage_mask(legs: Iterable[int]) -> np.ndarray:
@@ -41,8 +38,7 @@ def damage_mask(legs: Iterable[int]) -> np.ndarray:
 
 
 def parse_damage(name: str | int) -> np.ndarray:
-    """Mask for a damage name ('none', 'leg0'..'leg5', 'legs<i>+<j>') or the original's -l index (0..5: one
-    leg, 6: legs 1+4, -1: none)."""
+    """Mask for a damage name ('none', 'leg<i>', 'legs<i>+<j>') or the original's -l index (6: legs 1+4, -1: none)."""
     if isinstance(name, (int, np.integer)):
         names = list(PAPER_DAMAGES)
         if name == -1:

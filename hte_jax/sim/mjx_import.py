@@ -33,7 +33,6 @@ _warp_started = False
 def warp_installed() -> bool:
     """Whether MJX can run its Warp backend here (warp-lang and MJX's MuJoCo Warp both imported)."""
     from mujoco.mjx import warp as mjx_warp
-
     return bool(mjx_warp.WARP_INSTALLED) and mjx_warp.mujoco_warp is not None
 
 
@@ -56,7 +55,6 @@ def _start_warp() -> None:
     if _warp_started:
         return
     import warp
-
     warp.config.log_level = warp.LOG_WARNING  # no banner, no line per kernel module loaded
     with _native_output() as lines:
         warp.init()
@@ -81,10 +79,9 @@ def _native_output():
         finally:
             sys.stdout.flush()
             sys.stderr.flush()
-            os.dup2(saved[0], 1)
-            os.dup2(saved[1], 2)
-            os.close(saved[0])
-            os.close(saved[1])
+            for fd, copy in zip((1, 2), saved):
+                os.dup2(copy, fd)
+                os.close(copy)
             sink.seek(0)
             lines.extend(sink.read().decode(errors="replace").splitlines())
 

@@ -45,44 +45,30 @@ def assets_dir() -> Path:
 
 @dataclasses.dataclass(frozen=True)
 class RobotConfig:
-    """Simulation options of the hexapod (hashable: a static jit argument).
+    """Simulation options of the hexapod (hashable: a static jit argument); reflex: past `reflex_tilt` the neutral
+    pose is held until the controller segment ends, or the tilt is back below `reflex_release`."""
 
-    timestep: physics step (s), dividing `control_dt`, the controller period (the original: 100 Hz).
-    solver_iterations / ls_iterations: Newton and line-search iteration caps. solver_tolerance: the Newton
-      loop stops early below this cost improvement or scaled gradient (MuJoCo's default 1e-8).
-    impl: MJX's physics, "jax" (any device) or "warp" (MuJoCo Warp: NVIDIA GPU or CPU, the `warp` extra);
-      same model and control, another floating-point path.
-    servo_gain: velocity-servo kv, N m s/rad (torque = kv (v_cmd - qdot), clipped). armature: kg m^2 per joint.
-    max_torque / max_joint_velocity: servo torque (N m) and command (rad/s) limits. joint_limits: +-pi/2 ranges.
-    walls: boxes (x1, y1, x2, y2) in metres, 0.9 m high. wall_contact: what touches walls: "bumper", an
-      invisible massless sphere of `bumper_radius` (m, the planner's disc; cheap sphere-box contacts),
-      "links" (body, links and feet: exact, but about 25x slower in the maze) or "feet".
-    body_floor_contact: body and links collide with the floor too (online: a robot that tips over lands).
-    damage_model: a damaged leg's pose, "raised" (the paper's) or "locked" (`hte_jax.sim.damage`).
-    reflex_tilt: past this tilt (rad) the neutral pose is held until the controller segment ends (0: never).
-    reflex_release: > 0: the gait resumes once the tilt is back below this angle (rad).
-    reflex_rate: > 0: the reflex fires only while the tilt also grows faster than this (rad/s: a fall).
-    """
-
-    timestep: float = 0.01
-    control_dt: float = 0.01
-    solver_iterations: int = 4
-    ls_iterations: int = 4
-    solver_tolerance: float = 1e-8
-    impl: str = "jax"
-    servo_gain: float = 1.0
-    armature: float = 0.01
-    max_torque: float = 4.0
-    max_joint_velocity: float = 5.0
-    joint_limits: bool = True
-    walls: tuple[tuple[float, float, float, float], ...] = ()
+    timestep: float = 0.01  # physics step (s), dividing control_dt
+    control_dt: float = 0.01  # controller period (s; the original's servos: 100 Hz)
+    solver_iterations: int = 4  # Newton iteration cap
+    ls_iterations: int = 4  # line-search iteration cap
+    solver_tolerance: float = 1e-8  # Newton early stop below this cost improvement or scaled gradient
+    impl: str = "jax"  # MJX's physics: "jax" (any device) or "warp" (MuJoCo Warp, the `warp` extra)
+    servo_gain: float = 1.0  # velocity servo kv, N m s/rad: torque = kv (v_cmd - qdot), clipped
+    armature: float = 0.01  # rotor inertia added to every leg joint, kg m^2
+    max_torque: float = 4.0  # N m
+    max_joint_velocity: float = 5.0  # commanded, rad/s
+    joint_limits: bool = True  # the +-pi/2 joint ranges
+    walls: tuple[tuple[float, float, float, float], ...] = ()  # boxes (x1, y1, x2, y2), m, 0.9 m high
+    # What touches walls: "bumper" (an invisible massless sphere, the planner's disc: cheap sphere-box contacts),
+    # "links" (body, links and feet: exact, about 25x slower in the maze) or "feet".
     wall_contact: str = "bumper"
-    bumper_radius: float = 0.25
-    body_floor_contact: bool = False
-    damage_model: str = "raised"
-    reflex_tilt: float = 0.0
-    reflex_release: float = 0.0
-    reflex_rate: float = 0.0
+    bumper_radius: float = 0.25  # m, the planner's robot radius
+    body_floor_contact: bool = False  # body and links collide with the floor (online: a robot that tips over)
+    damage_model: str = "raised"  # a damaged leg's pose, "raised" (the paper's) or "locked" (`sim.damage`)
+    reflex_tilt: float = 0.0  # rad; 0: no reflex (the paper's robot)
+    reflex_release: float = 0.0  # rad; 0: held until the segment ends
+    reflex_rate: float = 0.0  # rad/s; > 0: fires only while the tilt also grows faster than this (a fall)
 
     def __post_init__(self):
         for name in ("timestep", "control_dt", "servo_gain", "max_torque", "max_joint_velocity"):
@@ -138,11 +124,8 @@ SOLVER_FIELDS = tuple(field.name for field in dataclasses.fields(SolverConfig))
 
 @dataclasses.dataclass(frozen=True)
 class RobotInfo:
-    """Static facts about a compiled model (Python ints and tuples only).
-
-    joint_qpos / joint_dof: qpos / qvel address of the 18 leg joints, leg-major (leg0 hip, femur, tibia, leg1 ...).
-    foot_geoms: geom id of the six foot spheres, leg order. base_body: body id of base_link.
-    """
+    """Static facts about a compiled model (Python ints): the qpos / qvel addresses of the 18 leg joints (leg-major:
+    leg0 hip, femur, tibia, leg1 ...), the six foot spheres' geom ids, base_link's body id."""
 
     config: RobotConfig
     nq: int
@@ -208,15 +191,10 @@ def stored_solver(stored: dict) -> dict:
     return {name: stored.get(name, legacy) for name, legacy in zip(SOLVER_FIELDS, LEGACY_SOLVER)}
 
 
-def compile_model(config: RobotConfig = RobotConfig()) -> mujoco.MjModel:
-    """A newly compiled native MuJoCo model for `config`, the caller's own to alter (`without_idle_springs`)."""
-    return without_idle_springs(build_spec(config).compile())
-
-
 @functools.lru_cache(maxsize=16)
 def mj_model(config: RobotConfig = RobotConfig()) -> mujoco.MjModel:
-    """`compile_model(config)`, cached and shared: never alter it (use `compile_model`)."""
-    return compile_model(config)
+    """The native MuJoCo model of `config` (`without_idle_springs`), cached and shared: never alter it."""
+    return without_idle_springs(build_spec(config).compile())
 
 
 def without_idle_springs(model: mujoco.MjModel) -> mujoco.MjModel:
@@ -251,7 +229,6 @@ def without_solver_cap_notices(model: mjx.Model) -> mjx.Model:
     """A Warp-backend model that does not print a notice whenever a Newton solve or line search stops at its
     iteration cap (a setting, silent in MJX's JAX implementation); notices of lost contacts stay on."""
     from mujoco.mjx.third_party.mujoco_warp import OverflowType
-
     options = model.opt._impl
     quiet = int(options.warn_overflow) & ~int(OverflowType.ITERATIONS | OverflowType.LS_ITERATIONS)
     return model.replace(opt=model.opt.replace(_impl=options.replace(warn_overflow=quiet)))

@@ -35,12 +35,9 @@ class InvalidReason(enum.IntFlag):
 
 @dataclasses.dataclass(frozen=True)
 class ValidityLimits:
-    """When a rollout is declared invalid.
-
-    max_tilt: largest angle (rad) between the body's and the world's z axes. max_speed: largest |qvel| entry.
-    min_base_height / max_base_height: base-origin height range, m (belly on the floor: 0.021; gaits: >= 0.079).
-    body_on_floor: a body corner below the floor is invalid (off with `RobotConfig.body_floor_contact`).
-    """
+    """When a rollout is invalid: a tilt above max_tilt (rad), a |qvel| entry above max_speed, a base height out of
+    [min_base_height, max_base_height] (m; belly on the floor: 0.021, gaits: >= 0.079), a body corner below the
+    floor if body_on_floor (off with `RobotConfig.body_floor_contact`)."""
 
     max_tilt: float = math.pi / 4
     min_base_height: float = 0.04
@@ -51,14 +48,9 @@ class ValidityLimits:
 
 @dataclasses.dataclass(frozen=True)
 class RolloutSpec:
-    """Static description of a rollout (hashable; changing it recompiles).
-
-    num_steps: control steps (100 per simulated second by default).
-    pose_steps: steps k in [0, num_steps] after which the base pose is recorded (0: initial).
-    record_contacts / record_feet / record_joints / record_joint_travel / record_qpos_every (k > 0): what
-      `RolloutResult` returns (foot_contacts, foot_pos, joint_pos, joint_travel, qpos); else None.
-    contact_tolerance: a foot touches when its sphere is closer than this to the floor (m).
-    """
+    """Static description of a rollout (hashable; changing it recompiles): num_steps control steps (100 per
+    second), base poses recorded after steps `pose_steps` in [0, num_steps], what else `RolloutResult` holds
+    (record_*; record_qpos_every: k > 0), and the distance (m) below which a foot touches the floor."""
 
     num_steps: int = 300
     pose_steps: tuple[int, ...] = ()
@@ -82,13 +74,9 @@ class RolloutSpec:
 
 @struct.dataclass
 class SimState:
-    """Physical state of one or more robots (any leading batch shape).
-
-    qpos: (..., 25) base position (3), base quaternion w-x-y-z (4), 18 joint angles (leg-major).
-    qvel: (..., 24) base linear velocity (3, world), angular velocity (3, body), 18 joint rates.
-    qacc_warmstart: (..., 24) constraint-solver warm start; carrying it makes chained
-      rollouts identical to one long rollout.
-    """
+    """Physical state of robots (any leading batch shape): qpos (..., 25) base position, quaternion w-x-y-z and 18
+    joint angles (leg-major); qvel (..., 24) base linear (world) and angular (body) velocity, 18 joint rates;
+    qacc_warmstart (..., 24), the solver's warm start (carried: chained rollouts equal one long rollout)."""
 
     qpos: jax.Array
     qvel: jax.Array
@@ -97,17 +85,12 @@ class SimState:
 
 @struct.dataclass
 class RolloutResult:
-    """What a batched rollout returns, B individuals, T = num_steps, P = len(pose_steps).
-
-    final_state: SimState (B, ...) after the rollout (the last valid state if invalid).
-    valid: (B,) bool. invalid_step: (B,) int32 step it became invalid (T if valid).
-    invalid_reason: (B,) int32 `InvalidReason` bits seen at that step (0 if valid).
-    base_pos: (B, P, 3) and base_quat: (B, P, 4) (w, x, y, z) at `pose_steps`.
-    foot_contacts: (B, T, 6) bool, foot touching the floor during step t. foot_pos: (B, T, 6, 3) foot centres.
-    command_abs_sum: (B, 18) sum over steps of |commanded joint velocity| * control_dt (rad).
-    joint_pos: (B, T, 18) joint angles. joint_travel: (B, 18) sum over valid steps of |joint angle change| (rad).
-    qpos: (B, ceil(T / k), 25) at steps 0, k, 2k, ... (k = record_qpos_every). Per-step arrays: at step start.
-    """
+    """A batched rollout of B individuals, T = num_steps, P = len(pose_steps): final_state SimState (B, ...) (the
+    last valid one); valid (B,) bool; invalid_step (B,) int32 (T if valid); invalid_reason (B,) int32
+    `InvalidReason` bits (0 if valid); base_pos (B, P, 3), base_quat (B, P, 4) at `pose_steps`; command_abs_sum
+    (B, 18) sum of |commanded joint velocity| * control_dt (rad); if recorded (else None), at each step's start:
+    foot_contacts (B, T, 6) bool, foot_pos (B, T, 6, 3), joint_pos (B, T, 18), qpos (B, ceil(T / k), 25) every
+    k = record_qpos_every steps, and joint_travel (B, 18) the valid steps' summed |joint angle change| (rad)."""
 
     final_state: SimState
     valid: jax.Array
@@ -124,8 +107,7 @@ class RolloutResult:
 
 
 def initial_state(robot: Robot, damage: jax.Array | None = None) -> SimState:
-    """Unbatched SimState of the model's reference pose (base 0.15 m up, joints at 0), legs damaged by
-    `damage` (6,) bool (or None) in their pose."""
+    """Unbatched SimState of the reference pose (base 0.15 m up, joints at 0), `damage` (6,) bool legs in their pose."""
     model = mj_model(robot.config)
     qpos = jnp.asarray(model.qpos0, jnp.float32)
     if damage is not None:
@@ -190,7 +172,6 @@ def warp_overflow(data: mjx.Data) -> jax.Array:
     """`InvalidReason.WARP_OVERFLOW` (int32 scalar) if MuJoCo Warp has dropped contacts or constraint rows of
     this robot (buffers too small), else 0; solver iteration caps do not count."""
     from mujoco.mjx.third_party.mujoco_warp import OverflowType
-
     lost = (OverflowType.NEFC | OverflowType.NJMAX_NNZ | OverflowType.BROADPHASE | OverflowType.NARROWPHASE
             | OverflowType.CCD | OverflowType.NVMAX)
     return jnp.where((data._impl.overflow & int(lost)) != 0, InvalidReason.WARP_OVERFLOW, 0).astype(jnp.int32)
@@ -200,8 +181,7 @@ def _rollout_one(robot: Robot, spec: RolloutSpec, template: mjx.Data, tables: ja
                  init: SimState):
     """One individual: tables (S, 100, 18) joint targets, damage (6,), init unbatched."""
     info, config = robot.info, robot.config
-    num_segments = tables.shape[0]
-    segment_steps = spec.num_steps // num_segments
+    segment_steps = spec.num_steps // tables.shape[0]
     joint_qpos = np.asarray(info.joint_qpos)
     feet = np.asarray(info.foot_geoms)
     pose_slot = np.full(spec.num_steps + 1, -1, np.int32)  # step -> slot in pose buffer
@@ -214,7 +194,6 @@ def _rollout_one(robot: Robot, spec: RolloutSpec, template: mjx.Data, tables: ja
         hit = jnp.arange(num_poses) == pose_slot[step]
         return jnp.where(hit[:, None], qpos[None, :7], buffer)
 
-    reflex = config.reflex_tilt > 0.0
     neutral = target_table(jnp.zeros(NUM_PARAMS, jnp.float32))  # (100, 18) the all-zero controller
 
     def control_step(carry, step):
@@ -222,7 +201,7 @@ def _rollout_one(robot: Robot, spec: RolloutSpec, template: mjx.Data, tables: ja
         poses = record_pose(poses, data.qpos, step)
         row = (step % segment_steps) % SAMPLES_PER_PERIOD
         gait = tables[step // segment_steps, row]
-        if reflex:  # tilted past the reflex angle: the neutral pose (until the segment ends or the release)
+        if config.reflex_tilt > 0.0:  # tilted past it: the neutral pose (until the segment ends or the release)
             braced = reflex_braced(braced, step % segment_steps == 0, data.qpos, data.qvel, config)
             gait = jnp.where(braced, neutral[row], gait)
         target = apply_damage(gait, damage, damaged_pose(config.damage_model))
@@ -275,11 +254,8 @@ def _rollout_one(robot: Robot, spec: RolloutSpec, template: mjx.Data, tables: ja
 
 @functools.partial(jax.jit, static_argnames=("spec",))
 def rollout(robot: Robot, params: jax.Array, damage: jax.Array, init: SimState, spec: RolloutSpec) -> RolloutResult:
-    """Simulate a population of hexapods in one jitted call: a RolloutResult with leading dim B.
-
-    params: (B, 36) controllers, or (B, S, 36) run back to back for num_steps / S steps each, clock reset.
-    damage: (B, 6) or (6,) bool damaged legs. init: SimState batched (B, ...) or unbatched (broadcast).
-    """
+    """B hexapods simulated in one jitted call: params (B, 36) controllers, or (B, S, 36) run back to back for
+    num_steps / S steps each (clock reset); damage (B, 6) or (6,) bool; init SimState batched (B, ...) or not."""
     if params.ndim == 2:
         params = params[:, None, :]
     if params.ndim != 3 or params.shape[-1] != NUM_PARAMS:
@@ -313,8 +289,7 @@ def empty_data(robot: Robot, rows: int) -> mjx.Data:
 
 
 def standing_state(robot: Robot, damage: jax.Array | None = None, settle_steps: int = 100) -> SimState:
-    """A settled standing pose (zero controller for `settle_steps`, re-centred at x = y = 0), batched like
-    `damage` (6,) or (B, 6) bool (or None)."""
+    """A settled standing pose (zero controller, then x = y = 0), batched like `damage` (6,) or (B, 6) bool."""
     damage = jnp.zeros(NUM_LEGS, bool) if damage is None else jnp.asarray(damage, bool)
     batched = damage.ndim == 2
     damage = damage.reshape(-1, NUM_LEGS)

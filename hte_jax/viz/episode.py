@@ -31,8 +31,7 @@ def maze_region(replay: Replay) -> tuple[float, float, float, float]:
 
 
 def episode_model(replay: Replay, view_extent: float | None = None) -> mujoco.MjModel:
-    """The maze robot's render model with the goal disc; orthographic showing `view_extent` (m) of the world
-    vertically (the top view), or perspective (None)."""
+    """The maze robot's render model with the goal disc; orthographic showing `view_extent` (m) high, or None."""
     maze = replay.maze
     config = maze_config(maze, RobotConfig(damage_model=replay.info["damage_model"]))
     spec = render_spec(config, replay.damage, checks=2.0)
@@ -125,13 +124,11 @@ def render_episode(replay: Replay, width: int, height: int, camera: str = "top",
     finally:
         renderer.close()
     texts = [frame_text(replay, int(state)) for state in states]
-    if not panel:  # over the frame: two lines across its top
-        texts = [_two_lines(text.split("\n")) for text in texts]
     if panel:
         canvas = np.empty((len(frames), height, width, 3), np.uint8)
         canvas[:, :, :panel] = PANEL_RGB
         canvas[:, :, panel:] = frames
         frames = label(canvas, texts)
-    else:
-        frames = label(frames, texts, background=PANEL_RGB)
+    else:  # over the frame: two lines across its top
+        frames = label(frames, [_two_lines(text.split("\n")) for text in texts], background=PANEL_RGB)
     return np.concatenate([frames, np.repeat(frames[-1:], hold, axis=0)])

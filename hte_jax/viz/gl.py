@@ -1,11 +1,8 @@
-"""Which headless OpenGL backend MuJoCo renders with (`MUJOCO_GL`), chosen before `mujoco` is imported (mujoco
-loads it at import, and a missing one makes the import fail); this module imports neither mujoco nor OpenGL.
-
-`choose`: a MUJOCO_GL the user set is kept (egl, osmesa, glfw or glx) if it starts; unset: EGL (a GPU driver,
-or Mesa's software EGL) then OSMesa, the first that draws a frame. If none starts, `setup()` sets
-MUJOCO_GL=disable (mujoco still imports) and `require()` raises a one-line `RenderError` saying why.
-Each try is a short child process (about 2 s; a failed GL load can break or abort the process trying it);
-a process that has tried passes `HTE_JAX_GL_CHECKED=<backend>` to the render processes it starts.
+"""Which headless OpenGL backend MuJoCo renders with (`MUJOCO_GL`), chosen before `mujoco` is imported (which
+loads it, and fails if it is missing); this module imports neither. `choose`: the user's MUJOCO_GL (egl, osmesa,
+glfw or glx) if it starts, else EGL then OSMesa, the first that draws a frame in a short child process (a failed
+GL load can break the process trying it); none: `setup()` sets MUJOCO_GL=disable and `require()` raises a one-line
+`RenderError`. A process that has tried passes `HTE_JAX_GL_CHECKED=<backend>` to the render processes it starts.
 Tests fake a machine without EGL with `__EGL_VENDOR_LIBRARY_FILENAMES=/nonexistent`.
 
     python -m hte_jax.viz.gl     # prints the backend chosen here, or the one-line reason (exit 2)
@@ -39,8 +36,7 @@ class RenderError(RuntimeError):
 
 
 def try_backend(backend: str, env: dict | None = None, timeout: float = TRY_TIMEOUT_S) -> str | None:
-    """None if mujoco starts an OpenGL context with `MUJOCO_GL=backend` (a child process with `env`, default
-    os.environ), else a short reason why not."""
+    """None if mujoco starts OpenGL with `MUJOCO_GL=backend` (child process, `env` or os.environ), else why not."""
     env = dict(os.environ if env is None else env, MUJOCO_GL=backend)
     env.pop(CHECKED, None)
     try:

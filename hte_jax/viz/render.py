@@ -41,7 +41,6 @@ def render_spec(config: RobotConfig = RobotConfig(), damage: np.ndarray | None =
 
 
 def render_model(config: RobotConfig = RobotConfig(), damage: np.ndarray | None = None) -> mujoco.MjModel:
-    """The simulation model with a checkered floor and the links of damaged legs (6,) tinted."""
     return render_spec(config, damage).compile()
 
 
@@ -74,8 +73,7 @@ def _camera(camera: Camera, base: np.ndarray) -> mujoco.MjvCamera:
 
 
 def posed(model: mujoco.MjModel, qpos: np.ndarray) -> Iterator[mujoco.MjData]:
-    """For each recorded state of `qpos` (T, nq), the model's data with it set and its kinematics computed
-    (one MjData, updated in place)."""
+    """For each state of `qpos` (T, nq), the model's data (one MjData, updated) with it set and its kinematics."""
     qpos = np.asarray(qpos, np.float64)
     if qpos.ndim != 2 or qpos.shape[1] != model.nq:
         raise ConfigError(f"qpos must have shape (T, {model.nq}), got {qpos.shape}")
@@ -102,10 +100,8 @@ def render_frames(model: mujoco.MjModel, qpos: np.ndarray, renderer: mujoco.Rend
 
 
 def label(frames: np.ndarray, text: str | Sequence[str], background: tuple[int, int, int] | None = None) -> np.ndarray:
-    """Frames (T, H, W, 3) with `text` (one, or one per frame) top-left in Pillow's default font, on a box of
-    colour `background` if given."""
+    """Frames (T, H, W, 3) with `text` (one, or one per frame) top-left, on a `background` box if given."""
     from PIL import Image, ImageDraw
-
     texts = [text] * len(frames) if isinstance(text, str) else list(text)
     if len(texts) != len(frames):
         raise ConfigError(f"{len(texts)} labels for {len(frames)} frames")
@@ -143,13 +139,11 @@ def write_video(path: str | Path, frames: np.ndarray, fps: float) -> Path:
     if path.suffix == ".mp4":
         try:
             import imageio_ffmpeg
-
             _write_mp4(path, frames, fps, imageio_ffmpeg)
             return path
         except (ImportError, OSError, RuntimeError):
             path = path.with_suffix(".gif")
     from PIL import Image
-
     images = [Image.fromarray(frame) for frame in frames]
     images[0].save(path, save_all=True, append_images=images[1:], duration=round(1000 / fps), loop=0, optimize=True)
     return path

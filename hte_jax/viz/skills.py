@@ -64,8 +64,7 @@ def flat_states(robot, params, damage, every: int):
 
 @functools.partial(jax.jit, static_argnames=("every",))
 def hbr_states(robot, hbr, genotypes, damage, every: int, patterns=None):
-    """qpos (B, SKILL_STEPS / every + 1, 25) of HBR skills `genotypes` (B, G) under `damage` (B, 6),
-    with `patterns` (B, 3) held per step if given."""
+    """qpos (B, SKILL_STEPS / every + 1, 25) of HBR skills (B, G) under `damage` (B, 6), `patterns` (B, 3) held."""
     result = execute_skill(robot, hbr, genotypes, standing_state(robot, damage), damage, patterns, record_every=every)
     steps = jnp.swapaxes(result.steps.qpos, 0, 1)  # (B, 3, F, 25)
     return jnp.concatenate([steps.reshape(steps.shape[0], -1, steps.shape[-1]), result.state.qpos[:, None]], axis=1)
