@@ -1,9 +1,9 @@
-"""Overriding, storing and reading the settings of nested configuration dataclasses (`HBRConfig`, ...). A nested
-configuration's settings are "bottom.<name>" (`bottom: LayerSchedule`), or, declared with `inline`
-(`planner: PlannerConfig = inline(PlannerConfig())`), the parent's own ("iterations", stored flat)."""
+"""Overriding, storing and reading nested configuration dataclasses: a nested configuration's settings are
+"bottom.<name>", or, for a field declared with `inline(...)`, the parent's own ("iterations", stored flat)."""
 
 import copy
 import dataclasses
+import functools
 import typing
 
 from hte_jax.errors import ConfigError
@@ -23,27 +23,25 @@ def convert_setting(key: str, current, value):
 
 
 def inline(default):
-    """A field holding a nested configuration whose settings read as the parent's own (named alone or through
-    the field, stored among the parent's, errors without a path); their names must differ from the parent's."""
+    """A nested configuration field whose settings read as the parent's own (their names must differ from its)."""
     return dataclasses.field(default=default, metadata={INLINE: True})
 
 
 def with_overrides(config, overrides: dict):
-    """A copy of the (nested, frozen) dataclass `config` with settings ("field", "a.b.field", an inlined one's
-    by its own name) replaced, each value read as its setting's type; rebuilt inner first with
-    `dataclasses.replace`, so every check runs, an inner one's message prefixed with its path."""
+    """A copy of the (nested, frozen) dataclass `config` with settings ("field", "a.b.field", an inlined one's alone)
+    replaced, values read as their settings' types, rebuilt inner first so every check runs (messages with path)."""
     changes: dict = {}  # field name -> new leaf value, or the changes of a nested dataclass
     for key, value in overrides.items():
         *path, name = key.split(".")
         target, fields = config, []
         for part in path:
             route = _route(target, part, key)
-            target = _follow(target, route)
+            target = functools.reduce(getattr, route, target)
             if not _is_config(target):
                 raise ConfigError(f"unknown setting {key!r}")
             fields += route
         route = _route(target, name, key)
-        current = _follow(target, route)
+        current = functools.reduce(getattr, route, target)
         if _is_config(current):
             raise ConfigError(f"unknown setting {key!r}")
         *outer, leaf = fields + route
@@ -141,12 +139,6 @@ def _route(config, name: str, key: str) -> list[str]:
             except ConfigError:
                 pass
     raise ConfigError(f"unknown setting {key!r}")
-
-
-def _follow(config, route: list[str]):
-    for name in route:
-        config = getattr(config, name)
-    return config
 
 
 def _rebuilt(config, changes: dict):

@@ -90,17 +90,15 @@ def uncommitted(tree: Any) -> Any:
 
 
 def spread_over(mesh: Mesh):
-    """Context (while tracing): rollouts traced inside split their rows over `mesh` (`map_rows`); part of jit's
-    cache key, so a function traced with and without it compiles twice."""
+    """Context (while tracing): rollouts traced inside split their rows over `mesh`; part of jit's cache key."""
     return jax.sharding.use_abstract_mesh(mesh.abstract_mesh)
 
 
 def current_mesh():
     """The mesh `spread_over` made current, or None (also inside a `shard_map` over it already)."""
     mesh = jax.sharding.get_abstract_mesh()
-    if mesh.empty or BATCH_AXIS not in mesh.axis_names or BATCH_AXIS in getattr(mesh, "manual_axes", ()):
-        return None
-    return mesh
+    unusable = mesh.empty or BATCH_AXIS not in mesh.axis_names or BATCH_AXIS in getattr(mesh, "manual_axes", ())
+    return None if unusable else mesh
 
 
 def map_rows(fn: Callable[..., Any], shared: Any, rows: Any) -> Any:

@@ -242,7 +242,7 @@ def test_frontier_selection_in_the_loop_and_its_checkpoint_metadata():
     assert meta["selection"] == "density" and "frontier_fraction" not in meta  # older density checkpoints resume
     one_dim = MapElites(Grid(bins=(8,), low=(0.0,), high=(1.0,)), planar_arm_evaluate, 6, config)
     with pytest.raises(ConfigError, match="frontier.*2 descriptor dimensions"):
-        one_dim.select(one_dim.empty_state(jax.random.PRNGKey(0)).repertoire, jax.random.PRNGKey(0))
+        one_dim.active_emitter.select(one_dim.empty_state(jax.random.PRNGKey(0)).repertoire, jax.random.PRNGKey(0))
 
 
 def test_sbx_crossover_stays_between_bounds_and_keeps_equal_parents():

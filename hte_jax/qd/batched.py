@@ -30,14 +30,13 @@ _STATE_AXES = QDState(repertoire=0, key=0, generation=None, emitter_state=0)
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class BatchedMapElites(OnMesh):
-    """R MAP-Elites runs, one per row of `conditions` (pytree of (R, ...) arrays) and label of `names` (stored in
-    checkpoints); evaluate: (key, genotypes, condition) -> Evaluation; the other fields as in `MapElites`."""
+    """R MAP-Elites runs, one per condition; the fields as in `MapElites`."""
 
     container: Any
     evaluate: ConditionedEvaluateFn
     genotype_dim: int
-    conditions: Any
-    names: tuple[str, ...]
+    conditions: Any  # pytree of (R, ...) arrays, row r run r's
+    names: tuple[str, ...]  # R labels (stored in checkpoints: a resume must use the same runs)
     config: MapElitesConfig = MapElitesConfig()
     extras: Any = None
     emitter: Any = None
@@ -85,17 +84,14 @@ class BatchedMapElites(OnMesh):
 
     @functools.partial(jax.jit, static_argnums=0)
     def init(self, key: jax.Array) -> QDState:
-        def one(run_key, condition):
-            return self._algo(condition).init(run_key)
-
-        state = jax.vmap(one, out_axes=_STATE_AXES)(self.run_keys(key), self.conditions)
+        one = jax.vmap(lambda run_key, condition: self._algo(condition).init(run_key), out_axes=_STATE_AXES)
+        state = one(self.run_keys(key), self.conditions)
         return sharding.replicate(state, self.active_mesh)
 
     def generation_step(self, state: QDState) -> tuple[QDState, jax.Array]:
-        def one(run_state, condition):
-            return self._algo(condition).generation_step(run_state)
-
-        new, accepted = jax.vmap(one, in_axes=(_STATE_AXES, 0), out_axes=(_STATE_AXES, 0))(state, self.conditions)
+        one = jax.vmap(lambda run_state, condition: self._algo(condition).generation_step(run_state),
+                       in_axes=(_STATE_AXES, 0), out_axes=(_STATE_AXES, 0))
+        new, accepted = one(state, self.conditions)
         return new, accepted.sum()
 
     @functools.partial(jax.jit, static_argnums=(0, 2))

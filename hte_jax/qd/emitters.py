@@ -32,16 +32,14 @@ class Emitter(abc.ABC):
     def emit(self, repertoire: Repertoire, emitter_state: Any, key: jax.Array) -> tuple[jax.Array, Any]:
         """(genotypes (B, G), the new emitter state)."""
 
-    def update(
-        self, emitter_state: Any, repertoire: Repertoire, genotypes: jax.Array, evaluation: Evaluation, insertion: Insertion
-    ) -> Any:
+    def update(self, emitter_state: Any, repertoire: Repertoire, genotypes: jax.Array, evaluation: Evaluation,
+               insertion: Insertion) -> Any:
         return emitter_state
 
 
 @dataclasses.dataclass(frozen=True)
 class VariationEmitter(Emitter):
-    """`batch_size` children: `variation.vary(key, draw_parents)` (`qd.variation`), each `draw_parents(key)`
-    drawing `batch_size` elites by `selection.select` (`qd.selection`)."""
+    """`batch_size` children of `variation.vary(key, draw_parents)`, parents drawn by `selection.select`."""
 
     selection: Any
     variation: Any

@@ -1,6 +1,5 @@
-"""MAP-Elites grid: dimension i spans [low_i, high_i] in bins_i equal bins (x = high in the last bin),
-cells numbered row-major; descriptors outside the bounds are rejected. Per cell, the best valid candidate
-of a batch (ties: first in the batch) replaces the elite if strictly fitter (empty cells: -inf)."""
+"""MAP-Elites grid: dimension i spans [low_i, high_i] in bins_i bins (x = high: the last), cells row-major, outside
+rejected. Per cell, a batch's best valid candidate (ties: first) replaces the elite if strictly fitter (empty: -inf)."""
 
 from __future__ import annotations
 
@@ -18,8 +17,7 @@ from hte_jax.qd.repertoire import (Evaluation, Insertion, Repertoire, best_per_t
 
 @dataclasses.dataclass(frozen=True)
 class Grid:
-    """A grid container (static, hashable): `bins` cells per dimension, e.g. (100, 100) or (100, 100, 2, 2, 2, 2,
-    2, 2), over descriptor bounds `low`, `high` per dimension."""
+    """A grid container (static, hashable): `bins` cells per dimension over descriptor bounds `low`, `high`."""
 
     bins: tuple[int, ...]
     low: tuple[float, ...]
@@ -55,15 +53,8 @@ class Grid:
         index = (coords * strides).sum(axis=-1)
         return jnp.where(inside, index, -1)
 
-    def cell_centres(self) -> np.ndarray:
-        """(C, D) centre of every cell, row-major."""
-        axes = [lo + (np.arange(b) + 0.5) * (hi - lo) / b for b, lo, hi in zip(self.bins, self.low, self.high)]
-        mesh = np.meshgrid(*axes, indexing="ij")
-        return np.stack([m.reshape(-1) for m in mesh], axis=-1).astype(np.float32)
-
     def cell_matches(self, descriptors: jax.Array, cells: jax.Array, tolerance: float = 1e-6) -> np.ndarray:
-        """(B,) bool: `cells` is the cell of `descriptors`, allowing a descriptor within `tolerance`
-        of a bin edge to sit on either side (float rounding may differ between programs)."""
+        """(B,) bool: `cells` is the cell of `descriptors`, up to `tolerance` either side of a bin edge (rounding)."""
         descriptors = jnp.asarray(descriptors, jnp.float32)
         cells = np.asarray(cells)
         ok = np.zeros(cells.shape, bool)

@@ -1,6 +1,5 @@
-"""Checkpoints: any pytree of arrays as `.npz` (one entry per leaf, named by its path) plus `__metadata__`, a
-JSON header (format version, leaves' shapes and dtypes, the caller's metadata). Written to a temporary file,
-fsync-ed and renamed, so a kill mid-write keeps the previous checkpoint; loads raise `CheckpointError`."""
+"""Checkpoints: a pytree of arrays as `.npz` (an entry per leaf, by path) plus a JSON header, `__metadata__`; written
+to a temporary file, fsync-ed and renamed, so a kill mid-write keeps the previous one; loads raise `CheckpointError`."""
 
 from __future__ import annotations
 
@@ -85,14 +84,12 @@ def read_checkpoint(path: str | Path) -> tuple[dict[str, np.ndarray], dict]:
 
 
 def read_header(path: str | Path) -> dict:
-    """The header of a checkpoint file (format, version, leaves, metadata) without reading its arrays
-    (CheckpointError as `read_checkpoint`, but a damaged array goes unnoticed)."""
+    """The header of a checkpoint file without reading its arrays (a damaged array goes unnoticed)."""
     return _header(Path(path), _read(Path(path), only=_META).get(_META))
 
 
 def _read(path: Path, only: str | None = None) -> dict[str, np.ndarray]:
-    """The arrays of an .npz file (only the one named `only`, if given); CheckpointError for a missing,
-    truncated or corrupt file, or one that is not an .npz of plain arrays."""
+    """The arrays of an .npz file (only `only`, if given); CheckpointError unless a sound .npz of plain arrays."""
     if not path.is_file():
         raise CheckpointError(f"{path}: no such checkpoint file")
     try:
@@ -185,9 +182,8 @@ def _read_config(path: Path) -> dict:
 
 
 def prepare_run_dir(out: str | Path, config: dict, resume_run: bool, normalise: Callable[[dict], dict] | None = None) -> Path:
-    """Start a run folder holding `config.json`, or check that the run in it has `config` (after `normalise`,
-    which reads a stored config as today's code would); ConfigError (naming the differing top-level keys)
-    for another run, or any run without `resume_run`."""
+    """Start a run folder holding `config.json`, or check that its run has `config` (the stored one `normalise`d);
+    ConfigError naming the differing top-level keys, or for any run without `resume_run`."""
     out = Path(out)
     config_path = out / "config.json"
     wanted = jsonable(config)
@@ -221,8 +217,7 @@ def rebuild_repertoire(path, arrays: dict, prefix: str, capacity: int, genes: in
     low / high: descriptor bounds (None: [0, 1]). CheckpointError for a missing or wrong-shaped array,
     non-finite values, genotypes or descriptors out of bounds, or slots not unique indices below `capacity`."""
     want = {"slots": ((), np.int32), "genotypes": ((genes,), np.float32), "descriptors": ((dims,), np.float32),
-            "fitnesses": ((), np.float32)}
-    want.update({f"extra_{name}": spec for name, spec in extras.items()})
+            "fitnesses": ((), np.float32), **{f"extra_{name}": spec for name, spec in extras.items()}}
     columns, rows = {}, None
     for name, (shape, dtype) in want.items():
         key = f"{prefix}{name}"

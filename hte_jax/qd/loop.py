@@ -1,6 +1,5 @@
-"""MAP-Elites as pure `init` / `ask` / `tell` functions plus a thin host-side runner: a generation (emit, evaluate,
-insert, update the emitter) is one jitted call, blocks of them run under `lax.scan`, and between blocks the host
-logs metrics and writes a checkpoint, so a killed run resumes bit-identically."""
+"""MAP-Elites as pure `init` / `ask` / `tell` functions plus a host-side runner: a generation is one jitted call,
+blocks of them run under `lax.scan`, and each block ends with metrics and a checkpoint (resumes are bit-identical)."""
 
 from __future__ import annotations
 
@@ -33,18 +32,16 @@ EvaluateFn = Callable[[jax.Array, jax.Array], Evaluation]
 
 @dataclasses.dataclass(frozen=True)
 class MapElitesConfig:
-    """Hyper-parameters (hashable; the original's per layer in docs/design.md): batch_size offspring per generation
-    after init_size random ones (a multiple), per-gene polynomial mutation (mutation_rate, eta_m), a share
-    crossover_rate of SBX crossovers (eta_c), the QD score's fitness lower bound qd_offset, parent selection
-    (`SelectionConfig`, inlined). A `MapElites` given its own emitter reads only batch_size, init_size, qd_offset."""
+    """Hyper-parameters (hashable; the original's per layer in docs/design.md); a `MapElites` given its own emitter
+    reads only batch_size, init_size and qd_offset."""
 
-    batch_size: int = 200
-    init_size: int = 200
-    mutation_rate: float = 0.14
+    batch_size: int = 200  # offspring per generation
+    init_size: int = 200  # random individuals first, a multiple of batch_size
+    mutation_rate: float = 0.14  # per gene, polynomial mutation
     eta_m: float = 10.0
-    crossover_rate: float = 0.0
+    crossover_rate: float = 0.0  # share of offspring made by SBX crossover
     eta_c: float = 10.0
-    qd_offset: float = 0.0
+    qd_offset: float = 0.0  # fitness lower bound of the QD score
     parents: SelectionConfig = inline(SelectionConfig())
 
     def __post_init__(self):
@@ -61,13 +58,12 @@ class MapElitesConfig:
 
 @struct.dataclass
 class QDState:
-    """Everything a run needs to continue: the container's repertoire, the next generation's (2,) uint32 PRNG key,
-    generation (int32 scalar, done after the initial batch) and emitter_state (`emitters.EmptyState`: none)."""
+    """Everything a run needs to continue."""
 
     repertoire: Repertoire
-    key: jax.Array
-    generation: jax.Array
-    emitter_state: Any
+    key: jax.Array  # (2,) uint32 PRNG key of the next generation
+    generation: jax.Array  # int32 scalar, generations done after the initial batch
+    emitter_state: Any  # `emitters.EmptyState` for stateless emitters
 
 
 def spec_config(spec: TaskSpec, config: MapElitesConfig) -> MapElitesConfig:
@@ -96,17 +92,15 @@ class OnMesh:
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class MapElites(OnMesh):
-    """A MAP-Elites algorithm: a container (`Grid` or `Archive`), an evaluation of genotype_dim genes in [0, 1],
-    a config; extras: example pytree of the evaluation's per-individual extras (shapes without B); emitter
-    (`qd.emitters`; None: `config`'s); mesh: the devices a batch is spread over (None: all; results the same)."""
+    """A MAP-Elites algorithm: a container (`Grid` or `Archive`), an evaluation of genotype_dim genes in [0, 1]."""
 
     container: Any
     evaluate: EvaluateFn
     genotype_dim: int
     config: MapElitesConfig = MapElitesConfig()
-    extras: Any = None
-    emitter: Emitter | None = None
-    mesh: Mesh | None = None
+    extras: Any = None  # example pytree of the evaluation's per-individual extras (shapes without B)
+    emitter: Emitter | None = None  # None: the one `config` describes
+    mesh: Mesh | None = None  # the devices a batch's rows are spread over (None: all); results do not depend on it
 
     @classmethod
     def from_spec(cls, spec: TaskSpec, config: MapElitesConfig = MapElitesConfig(), emitter: Emitter | None = None,
@@ -151,10 +145,6 @@ class MapElites(OnMesh):
         emitter_state = self.active_emitter.init(repertoire, key_emitter)
         return sharding.replicate(state.replace(repertoire=repertoire, emitter_state=emitter_state), self.active_mesh)
 
-    def select(self, repertoire: Repertoire, key: jax.Array) -> jax.Array:
-        """(batch_size,) parent slots, by the emitter's selection (emitters that select parents)."""
-        return self.active_emitter.select(repertoire, key)
-
     def ask(self, repertoire: Repertoire, emitter_state: Any, key: jax.Array) -> tuple[jax.Array, Any]:
         """(batch_size, G) offspring and the emitter's new state."""
         genotypes, emitter_state = self.active_emitter.emit(repertoire, emitter_state, key)
@@ -187,8 +177,7 @@ class MapElites(OnMesh):
         return repertoire_metrics(state.repertoire, self.config.qd_offset)
 
     def checkpoint_metadata(self) -> dict:
-        """What a resumed checkpoint must match: the container, the config without other selections'
-        fields (`qd.selection.SELECTIONS`), the genotype size and the repr of an explicit emitter."""
+        """What a resumed checkpoint must match (the config without other selections' fields, `SELECTIONS`)."""
         read = SELECTIONS[self.config.parents.selection][1]
         unread = {name for _, fields in SELECTIONS.values() for name in fields} - set(read)
         config = {key: value for key, value in config_dict(self.config).items() if key not in unread}
@@ -202,15 +191,15 @@ class MapElites(OnMesh):
 def run(algo: MapElites, state: QDState, generations: int, *, block_size: int = 10, log_path: str | Path | None = None,
         checkpoint_path: str | Path | None = None, progress: bool = True,
         on_block: Callable[[int, QDState, dict], None] | None = None, description: str | None = None) -> QDState:
-    """Run until `state.generation == generations` in jitted blocks (at multiples of block_size), each followed
-    by a replica check (`sharding.ReplicaMismatchError`), a CSV row (log_path), an atomic checkpoint
-    (checkpoint_path; process 0 only), the progress bar and `on_block(block, state, row)`."""
+    """Run until `state.generation == generations` in jitted blocks (at multiples of block_size), each followed by a
+    replica check, a CSV row, an atomic checkpoint (process 0), the progress bar and `on_block(block, state, row)`."""
     require_int("block_size", block_size)
     log = MetricsLog(log_path) if log_path is not None and jax.process_index() == 0 else None
     done = int(state.generation)
     if log is not None:  # drop rows written after the checkpoint we start from
         log.truncate_after(done // block_size - 1 if done else -2)
-    bar = tqdm(total=-(-generations // block_size), initial=done // block_size, disable=not progress, unit="block", desc=description)
+    bar = tqdm(total=-(-generations // block_size), initial=done // block_size, disable=not progress, unit="block",
+               desc=description)
     start = time.perf_counter()
 
     def record(block, accepted):

@@ -1,5 +1,4 @@
-"""Repertoire metrics and their CSV log. QD score = sum over elites of (fitness - offset), the offset a
-lower bound of the fitness (-pi for the angle error in [-pi, 0]), so the score only grows as cells fill."""
+"""Repertoire metrics and CSV log; QD score = sum of (fitness - offset), offset a fitness lower bound: it only grows."""
 
 from __future__ import annotations
 
@@ -19,12 +18,11 @@ FIELDS = ("block", "generation", "evaluations", "filled", "coverage", "qd_score"
 
 @struct.dataclass
 class RepertoireMetrics:
-    """0-d arrays: filled (elites), coverage (filled / capacity), qd_score (sum of fitness - offset), and
-    mean_fitness, max_fitness over elites (NaN when empty)."""
+    """Scalars (0-d arrays) describing a repertoire; fitness ones over the elites, NaN when there are none."""
 
-    filled: jax.Array
-    coverage: jax.Array
-    qd_score: jax.Array
+    filled: jax.Array  # number of elites
+    coverage: jax.Array  # filled / capacity
+    qd_score: jax.Array  # sum of (fitness - offset)
     mean_fitness: jax.Array
     max_fitness: jax.Array
 

@@ -14,14 +14,13 @@ EMPTY_FITNESS = -jnp.inf
 
 @struct.dataclass
 class Repertoire:
-    """Elites of a container with C slots: genotypes (C, G) and descriptors (C, D) float32, zeros where empty;
-    fitnesses (C,) float32, -inf where empty; filled (C,) bool; extras: pytree of (C, ...) per-elite arrays, or {}."""
+    """Elites of a container with C slots."""
 
-    genotypes: jax.Array
-    descriptors: jax.Array
-    fitnesses: jax.Array
-    filled: jax.Array
-    extras: Any = struct.field(default_factory=dict)
+    genotypes: jax.Array  # (C, G) float32, zeros where empty
+    descriptors: jax.Array  # (C, D) float32, zeros where empty
+    fitnesses: jax.Array  # (C,) float32, -inf where empty
+    filled: jax.Array  # (C,) bool
+    extras: Any = struct.field(default_factory=dict)  # pytree of (C, ...) per-elite arrays, or {}
 
     @property
     def capacity(self) -> int:
@@ -35,23 +34,21 @@ class Repertoire:
 
 @struct.dataclass
 class Evaluation:
-    """What an evaluation returns for B individuals: fitnesses (B,) float32 (higher is better), descriptors
-    (B, D) float32, valid (B,) bool (invalid ones are never inserted), extras: pytree of (B, ...) arrays, or {}."""
+    """What an evaluation returns for B individuals."""
 
-    fitnesses: jax.Array
-    descriptors: jax.Array
-    valid: jax.Array
-    extras: Any = struct.field(default_factory=dict)
+    fitnesses: jax.Array  # (B,) float32, higher is better
+    descriptors: jax.Array  # (B, D) float32
+    valid: jax.Array  # (B,) bool; invalid individuals are never inserted
+    extras: Any = struct.field(default_factory=dict)  # pytree of (B, ...) arrays stored with the elites, or {}
 
 
 @struct.dataclass
 class Insertion:
-    """Outcome of adding B individuals: accepted (B,) bool, now an elite; new_slot (B,) bool, in a slot that was
-    empty; slot (B,) int32, where it went (-1: rejected)."""
+    """Outcome of adding B individuals."""
 
-    accepted: jax.Array
-    new_slot: jax.Array
-    slot: jax.Array
+    accepted: jax.Array  # (B,) bool, now an elite
+    new_slot: jax.Array  # (B,) bool, in a slot that was empty
+    slot: jax.Array  # (B,) int32, where it went, -1 if rejected
 
 
 def empty_repertoire(capacity: int, genotype_dim: int, descriptor_dim: int, extras: Any = None) -> Repertoire:
@@ -64,8 +61,7 @@ def empty_repertoire(capacity: int, genotype_dim: int, descriptor_dim: int, extr
 
 
 def write(repertoire: Repertoire, slot: jax.Array, genotypes, evaluation: Evaluation) -> Repertoire:
-    """Write the rows of a batch into `slot` (B,) int32, skipping rows with slot -1; slots must be unique
-    among the rows written (containers guarantee it), so the scatter is deterministic."""
+    """Write a batch's rows into `slot` (B,) int32 (-1: skipped; unique, so the scatter is deterministic)."""
     target = jnp.where(slot >= 0, slot, repertoire.capacity)  # out of range -> dropped
 
     def put(store, rows):

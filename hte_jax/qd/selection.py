@@ -1,5 +1,4 @@
-"""Parent selection: which elites get offspring. A selection object has `select(key, repertoire, num) ->
-(num,) int32` filled slots (with replacement) and a class method `from_config(SelectionConfig, container)`."""
+"""Parent selection: objects with `select(key, repertoire, num) -> (num,) int32` filled slots, with replacement."""
 
 from __future__ import annotations
 
@@ -26,11 +25,10 @@ SELECTIONS: dict[str, tuple[str, tuple[str, ...]]] = {
 
 @dataclasses.dataclass(frozen=True)
 class SelectionConfig:
-    """The settings of the selections in `SELECTIONS` (inlined in `MapElitesConfig` and `LayerSchedule`): selection
-    "uniform" (the original's), "density" (`density_selection` over a `density_bins`^`density_dims` grid) or
-    "frontier" (`hte_jax.hbr.selection`: a share `frontier_fraction` drawn among the outermost elites of
-    `frontier_angle_bins` sectors x `frontier_level_bins` levels, the rest uniformly)."""
+    """The settings of `SELECTIONS` (inlined in `MapElitesConfig` and `LayerSchedule`)."""
 
+    # "uniform" (the original's), "density" (`density_selection` over a density_bins^density_dims grid) or "frontier"
+    # (`hbr.selection`: a share frontier_fraction among the outermost elites of angle x level bins, the rest uniformly)
     selection: str = "uniform"
     density_bins: int = 16
     density_dims: int = 3
@@ -65,9 +63,8 @@ def uniform_among(key: jax.Array, mask: jax.Array, num: int) -> jax.Array:
 
 def density_selection(key: jax.Array, repertoire: Repertoire, num: int, low: jax.Array, high: jax.Array, bins: int,
                       dims: int) -> jax.Array:
-    """(num,) filled slots drawn with replacement: every occupied cell of a `bins`^`dims` grid over the
-    first `dims` descriptor dimensions (bounds low, high) equally likely, then an elite within it, so
-    sparse regions (the frontier of what a layer can do) get more offspring than under uniform selection."""
+    """(num,) filled slots drawn with replacement, every occupied cell of a `bins`^`dims` grid over the first `dims`
+    descriptor dimensions equally likely: sparse regions (a layer's frontier) get more offspring than uniformly."""
     low, high = jnp.asarray(low, jnp.float32)[:dims], jnp.asarray(high, jnp.float32)[:dims]
     scaled = (repertoire.descriptors[:, :dims] - low) / (high - low)
     index = jnp.clip(jnp.floor(scaled * bins), 0, bins - 1).astype(jnp.int32)

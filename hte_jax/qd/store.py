@@ -1,6 +1,5 @@
-"""Repertoire files of any task spec: the elites (`io.elite_arrays`) in a compressed `.npz` whose header holds
-kind "hte_jax.repertoire", the spec's `metadata()` and the caller's metadata; a file loads only for a spec of
-the same metadata. `rebuild_elites` also checks the HBR and flat files (`hbr.store`, `flat.store`)."""
+"""Repertoire files of any task spec: the elites (`io.elite_arrays`) in a compressed `.npz`, its header the spec's
+`metadata()` (a file loads only for the same) and the caller's; `rebuild_elites` also checks HBR and flat files."""
 
 from __future__ import annotations
 
@@ -23,8 +22,7 @@ _RESERVED = ("kind", "kind_version", "task")
 
 def check_repertoire(spec: TaskSpec, repertoire: Repertoire) -> None:
     """Raise ConfigError unless `repertoire` has the spec's capacity, genotype and descriptor sizes and extras."""
-    want = jax.eval_shape(spec.empty)
-    want_leaves, want_tree = jax.tree_util.tree_flatten_with_path(want)
+    want_leaves, want_tree = jax.tree_util.tree_flatten_with_path(jax.eval_shape(spec.empty))
     got_leaves, got_tree = jax.tree_util.tree_flatten_with_path(repertoire)
     if want_tree != got_tree:
         raise ConfigError(f"task {spec.name!r}: the repertoire's fields {got_tree} are not the spec's {want_tree}")
@@ -36,8 +34,7 @@ def check_repertoire(spec: TaskSpec, repertoire: Repertoire) -> None:
 
 
 def save_repertoire(path: str | Path, spec: TaskSpec, repertoire: Repertoire, metadata: dict | None = None) -> None:
-    """Atomically write the elites of `repertoire` (compressed) with the spec and JSON-able `metadata`
-    (whose keys must not be "kind", "kind_version" or "task")."""
+    """Atomically write the elites of `repertoire` (compressed) with the spec and JSON-able `metadata`."""
     check_repertoire(spec, repertoire)
     clash = sorted(set(metadata or {}) & set(_RESERVED))
     if clash:

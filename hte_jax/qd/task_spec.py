@@ -1,5 +1,4 @@
-"""A QD problem in one place (what an elite is, where it is kept, how it is evaluated), read by the loops
-(`MapElites.from_spec`) and the repertoire files (`qd.store`); e.g. `flat.task.flat_spec`, `hbr.top.top_spec`."""
+"""A QD problem in one place (what an elite is, where it is kept, how it is evaluated), read by loops and files."""
 
 from __future__ import annotations
 
@@ -12,8 +11,7 @@ import numpy as np
 
 from hte_jax.errors import ConfigError, require_int, require_number
 
-# evaluate(key, genotypes (B, G)) -> Evaluation with B rows, jittable (a batched run passes its
-# condition as a third argument, `BatchedMapElites.from_spec`).
+# evaluate(key, genotypes (B, G)) -> Evaluation with B rows, jittable (+ a condition: `BatchedMapElites`).
 EvaluateFn = Callable[..., Any]
 
 
@@ -24,17 +22,14 @@ def container_metadata(container) -> dict:
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class TaskSpec:
-    """One QD problem (static; the evaluation compared by identity). name: label of its repertoire files;
-    genotype_dim: G genes in [0, 1]; container: `Grid` or `Archive` (C slots, D dims); evaluate: `evaluate(key,
-    genotypes (B, G)) -> Evaluation` or None (`with_evaluate`); extras: {name: (shape without rows, dtype)} of
-    `Evaluation.extras`, e.g. {"leg": ((), "int32")}; qd_offset: `MapElitesConfig.qd_offset`, or None: the config's."""
+    """One QD problem (static; the evaluation is compared by identity)."""
 
-    name: str
-    genotype_dim: int
-    container: Any
-    evaluate: EvaluateFn | None = None
-    extras: dict = dataclasses.field(default_factory=dict)
-    qd_offset: float | None = None
+    name: str  # label of its repertoire files
+    genotype_dim: int  # G genes, each in [0, 1]
+    container: Any  # `Grid` or `Archive`
+    evaluate: EvaluateFn | None = None  # evaluate(key, genotypes (B, G)) -> Evaluation; None: `with_evaluate` adds one
+    extras: dict = dataclasses.field(default_factory=dict)  # {name: (shape without rows, dtype)}, e.g. ((), "int32")
+    qd_offset: float | None = None  # the QD score's fitness lower bound; None: the config's
 
     def __post_init__(self):
         if not isinstance(self.name, str) or not self.name:

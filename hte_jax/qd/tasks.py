@@ -1,6 +1,5 @@
-"""Cheap analytic QD tasks for tests and demos. planar_arm (Cully et al. 2015): n joint angles in [-pi, pi]
-(genes in [0, 1]), links of length 1/n; descriptor: the hand's position mapped from [-1, 1]^2 to [0, 1]^2;
-fitness: minus the angles' standard deviation, in [-pi, 0]."""
+"""Cheap analytic QD tasks for tests and demos. planar_arm (Cully et al. 2015): n joint angles, links 1/n long;
+descriptor: the hand's position mapped to [0, 1]^2; fitness: minus the angles' standard deviation, in [-pi, 0]."""
 
 from __future__ import annotations
 

@@ -1,5 +1,4 @@
-"""Variation: sferes' operators on genotypes in [0, 1]. A variation object has `vary(key, draw_parents) ->
-(B, G) children`, calling `draw_parents(key) -> (B, G)` elites (the emitter's selection) as often as it needs."""
+"""Variation (sferes' operators): objects with `vary(key, draw_parents) -> (B, G)` children in [0, 1]."""
 
 from __future__ import annotations
 
@@ -36,9 +35,8 @@ def sbx_crossover(key: jax.Array, parents_a: jax.Array, parents_b: jax.Array, et
 
 @dataclasses.dataclass(frozen=True)
 class SbxPolynomial:
-    """MAP-Elites' variation as configured by `MapElitesConfig`: a share `crossover_rate` of the
-    children are SBX crossovers (`eta_c`) of two parents, then every child gets polynomial
-    mutation (`mutation_rate`, `eta_m`)."""
+    """MAP-Elites' variation (`MapElitesConfig`): a share `crossover_rate` of SBX crossovers (`eta_c`) of two
+parents, then polynomial mutation (`mutation_rate`, `eta_m`) of every child."""
 
     mutation_rate: float
     eta_m: float

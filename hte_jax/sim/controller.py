@@ -20,21 +20,13 @@ SMOOTHING_HALF_WIDTH = 10
 HIP_AMPLITUDE = np.pi / 8
 VERTICAL_AMPLITUDE = np.pi / 4
 SERVO_TIME_CONSTANT = np.pi * 0.01  # commanded velocity = error / this
-# floor(100 x) is taken as floor(100 x + FLOOR_GUARD) so that decimal parameters such as
-# 0.29 give 29 samples whatever float rounding did to 100 * 0.29 (see docs/design.md).
+# floor(100 x + FLOOR_GUARD): 0.29 gives 29 samples whatever rounding did to 100 * 0.29 (docs/design.md).
 FLOOR_GUARD = 1e-4
-
-
-def _smoothing_weights() -> np.ndarray:
-    offsets = np.arange(-SMOOTHING_HALF_WIDTH, SMOOTHING_HALF_WIDTH + 1)
-    weights = np.exp(-(offsets**2) / (2.0 * SMOOTHING_SIGMA**2))
-    return (weights / weights.sum()).astype(np.float32)
-
-
-_WEIGHTS = _smoothing_weights()
+_OFFSETS = np.arange(-SMOOTHING_HALF_WIDTH, SMOOTHING_HALF_WIDTH + 1)
+_GAUSSIAN = np.exp(-(_OFFSETS**2) / (2.0 * SMOOTHING_SIGMA**2))
+_WEIGHTS = (_GAUSSIAN / _GAUSSIAN.sum()).astype(np.float32)
 _SAMPLES = np.arange(SAMPLES_PER_PERIOD)
-# _WINDOW[j, k] = (j + k - 10) mod 100: the samples averaged into output sample j.
-_WINDOW = (_SAMPLES[:, None] + np.arange(-SMOOTHING_HALF_WIDTH, SMOOTHING_HALF_WIDTH + 1)[None, :]) % SAMPLES_PER_PERIOD
+_WINDOW = (_SAMPLES[:, None] + _OFFSETS[None, :]) % SAMPLES_PER_PERIOD  # [j, k] = (j + k - 10) mod 100: averaged into j
 
 
 def _count(x: jax.Array) -> jax.Array:
@@ -70,8 +62,7 @@ def servo_command(target: jax.Array, joint_pos: jax.Array, max_velocity: float) 
 
 
 def commanded_travel(params: jax.Array) -> jax.Array:
-    """How far each leg's joints are asked to move in one period: (..., 36) params -> (..., 6) rad,
-    the sum over the leg's three joints of sum_k |target(k + 1) - target(k)| around the period."""
+    """(..., 36) params -> (..., 6): each leg's commanded joint travel per period, sum_k |target(k+1) - target(k)|."""
     table = jnp.vectorize(target_table, signature="(p)->(t,j)")(params)  # (..., 100, 18)
     steps = jnp.abs(jnp.roll(table, -1, axis=-2) - table).sum(axis=-2)  # (..., 18)
     return steps.reshape(*steps.shape[:-1], NUM_LEGS, NUM_JOINTS // NUM_LEGS).sum(axis=-1)

@@ -48,9 +48,7 @@ def parse_damage(name: str | int) -> np.ndarray:
         raise ConfigError(f"unknown damage index {name}; expected -1 (none) or 0..{len(names) - 1}")
     if name == "none":
         return damage_mask(())
-    if name in PAPER_DAMAGES:
-        return damage_mask(PAPER_DAMAGES[name])
-    if name in APROL_DAMAGES:
+    if name in APROL_DAMAGES:  # the paper's too
         return damage_mask(APROL_DAMAGES[name])
     raise ConfigError(f"unknown damage {name!r}; expected 'none', 'leg<i>' or 'legs<i>+<j>' with 0 <= i < j <= 5 "
                       f"(the paper's: {', '.join(DAMAGE_NAMES)})")

@@ -1,6 +1,5 @@
-"""`mujoco.mjx`, imported without its notices about a missing warp-lang (MJX 3.17 prints them on stdout; they
-are kept in `WARP_IMPORT_ERRORS` for the error of asking for Warp without it), and MJX's Warp backend started
-on request without its banner and per-module lines (other output passes through)."""
+"""`mujoco.mjx` imported without MJX's notices about a missing warp-lang (kept in `WARP_IMPORT_ERRORS` for the
+error of asking for Warp without it), and MJX's Warp backend started on request without its start-up output."""
 
 from __future__ import annotations
 

@@ -103,8 +103,7 @@ class RobotConfig:
 
 @dataclasses.dataclass(frozen=True)
 class SolverConfig:
-    """The `RobotConfig` solver settings that training and evaluation configurations carry (`config.inline`);
-    whether `impl` runs here is checked by `load_robot`, so a configuration stored with "warp" still reads."""
+    """The `RobotConfig` solver settings configurations carry (inlined); `load_robot` checks that `impl` runs here."""
 
     solver_iterations: int = RobotConfig.solver_iterations
     ls_iterations: int = RobotConfig.ls_iterations
@@ -124,16 +123,15 @@ SOLVER_FIELDS = tuple(field.name for field in dataclasses.fields(SolverConfig))
 
 @dataclasses.dataclass(frozen=True)
 class RobotInfo:
-    """Static facts about a compiled model (Python ints): the qpos / qvel addresses of the 18 leg joints (leg-major:
-    leg0 hip, femur, tibia, leg1 ...), the six foot spheres' geom ids, base_link's body id."""
+    """Static facts about a compiled model (Python ints and tuples only)."""
 
     config: RobotConfig
     nq: int
     nv: int
-    joint_qpos: tuple[int, ...]
-    joint_dof: tuple[int, ...]
-    foot_geoms: tuple[int, ...]
-    base_body: int
+    joint_qpos: tuple[int, ...]  # qpos address of the 18 leg joints, leg-major (leg0 hip, femur, tibia, leg1 ...)
+    joint_dof: tuple[int, ...]  # their qvel address
+    foot_geoms: tuple[int, ...]  # geom id of the six foot spheres
+    base_body: int  # body id of base_link
 
 
 @struct.dataclass
@@ -215,8 +213,7 @@ def robot_info(model: mujoco.MjModel, config: RobotConfig) -> RobotInfo:
 
 
 def load_robot(config: RobotConfig = RobotConfig()) -> Robot:
-    """The hexapod for `config` in MJX's `config.impl` (ConfigError if it cannot run here), its arrays
-    uncommitted (`sharding.uncommitted`) so that a function spreading work over a mesh can take them."""
+    """The hexapod for `config` in MJX's `config.impl` (ConfigError if it cannot run here), arrays uncommitted."""
     require_impl(config.impl)
     model = mj_model(config)
     mjx_model = mjx.put_model(model, impl=config.impl)
@@ -226,8 +223,7 @@ def load_robot(config: RobotConfig = RobotConfig()) -> Robot:
 
 
 def without_solver_cap_notices(model: mjx.Model) -> mjx.Model:
-    """A Warp-backend model that does not print a notice whenever a Newton solve or line search stops at its
-    iteration cap (a setting, silent in MJX's JAX implementation); notices of lost contacts stay on."""
+    """A Warp-backend model quiet about Newton solves stopping at their iteration caps (as MJX's JAX one is)."""
     from mujoco.mjx.third_party.mujoco_warp import OverflowType
     options = model.opt._impl
     quiet = int(options.warn_overflow) & ~int(OverflowType.ITERATIONS | OverflowType.LS_ITERATIONS)
@@ -236,9 +232,8 @@ def without_solver_cap_notices(model: mjx.Model) -> mjx.Model:
 
 @functools.lru_cache(maxsize=16)
 def warp_capacity(config: RobotConfig) -> tuple[int, int]:
-    """(contacts, constraint rows) one robot can need at once under MuJoCo Warp (`naconmax` = rows x contacts,
-    `njmax`; Warp's defaults drop contacts beyond a few robots): the JAX implementation's static layout plus
-    the 4 more contacts (and rows) a box-box pair has in Warp."""
+    """(contacts, constraint rows) one robot can need under MuJoCo Warp (whose defaults drop contacts beyond a few
+    robots): the JAX implementation's static layout plus the 4 more contacts (and rows) of a box-box pair in Warp."""
     model = mj_model(config)
     with jax.ensure_compile_time_eval():  # concrete even when first asked while tracing a rollout
         layout = mjx.make_data(model, impl="jax")._impl

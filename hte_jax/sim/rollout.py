@@ -1,6 +1,5 @@
-"""Batched, jitted hexapod rollouts: `vmap` over individuals (each with its own controllers, damage and start
-state), `lax.scan` over control steps. A rollout that goes non-finite, explodes, flips or collapses is flagged
-invalid and frozen at its last valid state, so no NaN leaks out."""
+"""Batched, jitted hexapod rollouts: `vmap` over individuals (own controllers, damage, start), `lax.scan` over control
+steps; a rollout that goes non-finite, explodes, flips or collapses is invalid, frozen at its last valid state."""
 
 from __future__ import annotations
 
@@ -35,31 +34,27 @@ class InvalidReason(enum.IntFlag):
 
 @dataclasses.dataclass(frozen=True)
 class ValidityLimits:
-    """When a rollout is invalid: a tilt above max_tilt (rad), a |qvel| entry above max_speed, a base height out of
-    [min_base_height, max_base_height] (m; belly on the floor: 0.021, gaits: >= 0.079), a body corner below the
-    floor if body_on_floor (off with `RobotConfig.body_floor_contact`)."""
+    """When a rollout is invalid."""
 
-    max_tilt: float = math.pi / 4
-    min_base_height: float = 0.04
-    max_base_height: float = 1.0
-    max_speed: float = 100.0
-    body_on_floor: bool = True
+    max_tilt: float = math.pi / 4  # rad between the body's and the world's z axes
+    min_base_height: float = 0.04  # m (the belly touches the floor at 0.021; gaits stay above 0.079)
+    max_base_height: float = 1.0  # m
+    max_speed: float = 100.0  # largest |qvel| entry
+    body_on_floor: bool = True  # a body corner below the floor is invalid (off with `RobotConfig.body_floor_contact`)
 
 
 @dataclasses.dataclass(frozen=True)
 class RolloutSpec:
-    """Static description of a rollout (hashable; changing it recompiles): num_steps control steps (100 per
-    second), base poses recorded after steps `pose_steps` in [0, num_steps], what else `RolloutResult` holds
-    (record_*; record_qpos_every: k > 0), and the distance (m) below which a foot touches the floor."""
+    """Static description of a rollout (hashable; changing it recompiles); record_*: what `RolloutResult` holds."""
 
-    num_steps: int = 300
-    pose_steps: tuple[int, ...] = ()
+    num_steps: int = 300  # control steps, 100 per second
+    pose_steps: tuple[int, ...] = ()  # steps in [0, num_steps] after which the base pose is recorded (0: initial)
     record_contacts: bool = True
     record_feet: bool = False
     record_joints: bool = False
     record_joint_travel: bool = False
     record_qpos_every: int = 0
-    contact_tolerance: float = 1e-3
+    contact_tolerance: float = 1e-3  # m: a foot closer to the floor touches it
     limits: ValidityLimits = ValidityLimits()
 
     def __post_init__(self):
@@ -74,36 +69,29 @@ class RolloutSpec:
 
 @struct.dataclass
 class SimState:
-    """Physical state of robots (any leading batch shape): qpos (..., 25) base position, quaternion w-x-y-z and 18
-    joint angles (leg-major); qvel (..., 24) base linear (world) and angular (body) velocity, 18 joint rates;
-    qacc_warmstart (..., 24), the solver's warm start (carried: chained rollouts equal one long rollout)."""
+    """Physical state of robots (any leading batch shape)."""
 
-    qpos: jax.Array
-    qvel: jax.Array
-    qacc_warmstart: jax.Array
+    qpos: jax.Array  # (..., 25) base position, base quaternion w-x-y-z, 18 joint angles (leg-major)
+    qvel: jax.Array  # (..., 24) base linear (world) and angular (body) velocity, 18 joint rates
+    qacc_warmstart: jax.Array  # (..., 24) the solver's warm start: chained rollouts equal one long rollout
 
 
 @struct.dataclass
 class RolloutResult:
-    """A batched rollout of B individuals, T = num_steps, P = len(pose_steps): final_state SimState (B, ...) (the
-    last valid one); valid (B,) bool; invalid_step (B,) int32 (T if valid); invalid_reason (B,) int32
-    `InvalidReason` bits (0 if valid); base_pos (B, P, 3), base_quat (B, P, 4) at `pose_steps`; command_abs_sum
-    (B, 18) sum of |commanded joint velocity| * control_dt (rad); if recorded (else None), at each step's start:
-    foot_contacts (B, T, 6) bool, foot_pos (B, T, 6, 3), joint_pos (B, T, 18), qpos (B, ceil(T / k), 25) every
-    k = record_qpos_every steps, and joint_travel (B, 18) the valid steps' summed |joint angle change| (rad)."""
+    """A batched rollout: B individuals, T = num_steps, P = len(pose_steps); per-step arrays at the step's start."""
 
-    final_state: SimState
-    valid: jax.Array
-    invalid_step: jax.Array
-    invalid_reason: jax.Array
-    base_pos: jax.Array
-    base_quat: jax.Array
-    foot_contacts: jax.Array | None
-    foot_pos: jax.Array | None
-    command_abs_sum: jax.Array
-    joint_pos: jax.Array | None = None
-    qpos: jax.Array | None = None
-    joint_travel: jax.Array | None = None
+    final_state: SimState  # (B, ...), the last valid state
+    valid: jax.Array  # (B,) bool
+    invalid_step: jax.Array  # (B,) int32, T if valid
+    invalid_reason: jax.Array  # (B,) int32 `InvalidReason` bits, 0 if valid
+    base_pos: jax.Array  # (B, P, 3) at `pose_steps`
+    base_quat: jax.Array  # (B, P, 4) w-x-y-z at `pose_steps`
+    foot_contacts: jax.Array | None  # (B, T, 6) bool, if recorded
+    foot_pos: jax.Array | None  # (B, T, 6, 3), if recorded
+    command_abs_sum: jax.Array  # (B, 18) sum of |commanded joint velocity| * control_dt (rad)
+    joint_pos: jax.Array | None = None  # (B, T, 18), if recorded
+    qpos: jax.Array | None = None  # (B, ceil(T / k), 25) every k = record_qpos_every steps, if recorded
+    joint_travel: jax.Array | None = None  # (B, 18) summed |joint angle change| over valid steps (rad), if recorded
 
 
 def initial_state(robot: Robot, damage: jax.Array | None = None) -> SimState:
@@ -169,8 +157,7 @@ def check_state(qpos: jax.Array, qvel: jax.Array, limits: ValidityLimits) -> jax
 
 
 def warp_overflow(data: mjx.Data) -> jax.Array:
-    """`InvalidReason.WARP_OVERFLOW` (int32 scalar) if MuJoCo Warp has dropped contacts or constraint rows of
-    this robot (buffers too small), else 0; solver iteration caps do not count."""
+    """`InvalidReason.WARP_OVERFLOW` (int32 scalar) if MuJoCo Warp dropped contacts or constraint rows, else 0."""
     from mujoco.mjx.third_party.mujoco_warp import OverflowType
     lost = (OverflowType.NEFC | OverflowType.NJMAX_NNZ | OverflowType.BROADPHASE | OverflowType.NARROWPHASE
             | OverflowType.CCD | OverflowType.NVMAX)
@@ -280,8 +267,7 @@ def rollout(robot: Robot, params: jax.Array, damage: jax.Array, init: SimState, 
 
 
 def empty_data(robot: Robot, rows: int) -> mjx.Data:
-    """The mjx.Data that `rows` robots simulated together start from (Warp: one contact buffer for all
-    `rows`, `warp_capacity`, and a constraint buffer per robot)."""
+    """The mjx.Data that `rows` robots simulated together start from (Warp: buffers sized by `warp_capacity`)."""
     if robot.config.impl == "jax":
         return mjx.make_data(robot.model, impl="jax")
     contacts, constraint_rows = warp_capacity(robot.config)

@@ -1,6 +1,5 @@
-"""Videos of recorded maze episodes (`online.recording.Replay`), replayed: the maze robot's render model with
-a green goal disc, seen from above (orthographic) or tracked, the base's path drawn as a trail, and a text panel
-(variant, damage, action, skill, step and contact pattern, time) left of the maze or over the frame's top."""
+"""Videos of recorded maze episodes (`online.recording.Replay`), replayed: the maze with a goal disc, from above or
+tracked, the base's path as a trail, and a text panel (variant, damage, action, skill, step and pattern, time)."""
 
 from __future__ import annotations
 
@@ -25,8 +24,7 @@ MARGIN = 0.1  # m of floor shown around the maze
 
 def maze_region(replay: Replay) -> tuple[float, float, float, float]:
     """(x1, y1, x2, y2) the top view shows: the maze's bounds and walls, plus a margin."""
-    maze = replay.maze
-    boxes = np.asarray([*maze.obstacles, maze.bounds], np.float64)
+    boxes = np.asarray([*replay.maze.obstacles, replay.maze.bounds], np.float64)
     return (*(boxes[:, :2].min(axis=0) - MARGIN), *(boxes[:, 2:].max(axis=0) + MARGIN))
 
 

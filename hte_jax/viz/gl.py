@@ -89,9 +89,8 @@ def choose(env: dict | None = None, attempt=try_backend) -> str:
 
 
 def setup() -> str | None:
-    """Choose this process's backend and set MUJOCO_GL to it before mujoco is imported; returns it, or None
-    (MUJOCO_GL=disable, `require()` raises why). A MUJOCO_GL that is not a renderer raises RenderError;
-    once mujoco is imported, nothing changes."""
+    """Set MUJOCO_GL to this process's backend before mujoco is imported and return it (None: MUJOCO_GL=disable,
+`require()` raises why); a MUJOCO_GL that is not a renderer raises; after mujoco's import nothing changes."""
     global _unavailable
     if "mujoco" in sys.modules:
         return os.environ.get("MUJOCO_GL")

@@ -1,6 +1,5 @@
-"""Rendering recorded hexapod states headless with `mujoco.Renderer` (`MUJOCO_GL` chosen first by
-`hte_jax.viz.gl.setup()`): each recorded qpos is set and only its kinematics computed, nothing re-simulated.
-The render model is the simulation model with a checkered floor and the damaged legs red."""
+"""Rendering recorded hexapod states headless (`mujoco.Renderer`, MUJOCO_GL from `hte_jax.viz.gl.setup()`): each
+qpos set and its kinematics computed, nothing re-simulated; a checkered floor, damaged legs red."""
 
 from __future__ import annotations
 
@@ -130,8 +129,7 @@ def tile(videos: list[np.ndarray], columns: int) -> np.ndarray:
 
 
 def write_video(path: str | Path, frames: np.ndarray, fps: float) -> Path:
-    """Write frames (T, H, W, 3) uint8 as MP4 (imageio-ffmpeg) or GIF (Pillow), by suffix; returns the path
-    written (an .mp4 without a usable ffmpeg becomes a .gif)."""
+    """Write frames (T, H, W, 3) uint8 as MP4 or GIF, by suffix (no usable ffmpeg: a .gif); returns the path."""
     path = Path(path)
     if path.suffix not in (".mp4", ".gif"):
         raise ConfigError(f"video file must end in .mp4 or .gif, got {path.name!r}")

@@ -1,6 +1,5 @@
-"""Videos of repertoire skills (`python -m experiments.render skills` and `patterns`): each skill (an HBR
-top-layer skill or a flat controller) simulated for 3 s from standing, intact or damaged, its clip rendered
-and tiled; `patterns` runs one HBR skill once per contact pattern held for all three steps."""
+"""Videos of repertoire skills (`python -m experiments.render skills` / `patterns`): HBR top-layer skills or flat
+controllers run 3 s from standing, intact or damaged, rendered and tiled; `patterns`: one skill per contact pattern."""
 
 from __future__ import annotations
 
@@ -72,8 +71,7 @@ def hbr_states(robot, hbr, genotypes, damage, every: int, patterns=None):
 
 def render_grid(states: np.ndarray, damage: np.ndarray, config: RobotConfig, camera: Camera, width: int, height: int,
                 columns: int, labels: list[str] | None = None, progress=None) -> np.ndarray:
-    """Frames (T, rows * height, columns * width, 3) uint8: each clip of `states` (N, T, 25) rendered
-    with the damaged legs (6,) red, labelled if `labels` (N,) are given, laid out on a grid."""
+    """Frames (T, rows * height, columns * width, 3) uint8: clips `states` (N, T, 25), damaged legs red, tiled."""
     model = render_model(config, damage)
     renderer = open_renderer(model, width, height)
     try:
