@@ -198,8 +198,8 @@ def run(algo: MapElites, state: QDState, generations: int, *, block_size: int = 
     done = int(state.generation)
     if log is not None:  # drop rows written after the checkpoint we start from
         log.truncate_after(done // block_size - 1 if done else -2)
-    bar = tqdm(total=-(-generations // block_size), initial=done // block_size, disable=not progress, unit="block",
-               desc=description)
+    total_blocks = -(-generations // block_size)
+    bar = tqdm(total=total_blocks, initial=done // block_size, disable=not progress, unit="block", desc=description)
     start = time.perf_counter()
 
     def record(block, accepted):

@@ -78,9 +78,9 @@ def _native_output():
         finally:
             sys.stdout.flush()
             sys.stderr.flush()
-            for fd, copy in zip((1, 2), saved):
-                os.dup2(copy, fd)
-                os.close(copy)
+            for fd, saved_fd in zip((1, 2), saved):
+                os.dup2(saved_fd, fd)
+                os.close(saved_fd)
             sink.seek(0)
             lines.extend(sink.read().decode(errors="replace").splitlines())
 

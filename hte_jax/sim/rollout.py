@@ -188,7 +188,7 @@ def _rollout_one(robot: Robot, spec: RolloutSpec, template: mjx.Data, tables: ja
         poses = record_pose(poses, data.qpos, step)
         row = (step % segment_steps) % SAMPLES_PER_PERIOD
         gait = tables[step // segment_steps, row]
-        if config.reflex_tilt > 0.0:  # tilted past it: the neutral pose (until the segment ends or the release)
+        if config.reflex_tilt > 0.0:  # past the reflex tilt: the neutral pose (until the segment ends or release)
             braced = reflex_braced(braced, step % segment_steps == 0, data.qpos, data.qvel, config)
             gait = jnp.where(braced, neutral[row], gait)
         target = apply_damage(gait, damage, damaged_pose(config.damage_model))
