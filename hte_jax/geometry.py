@@ -1,5 +1,4 @@
-"""Planar (SE(2)) pose arithmetic: headings, start-frame displacements, pose composition, angle error, medoids.
-All functions broadcast over leading dimensions; quaternions are (w, x, y, z)."""
+"""Planar (SE(2)) pose arithmetic, broadcast over leading dimensions; quaternions are (w, x, y, z)."""
 
 from __future__ import annotations
 

@@ -1,9 +1,8 @@
 """Spreading a batch axis over devices (docs/design.md, "Which arrays are replicated and which are split"): a 1-D
 `Mesh` over the first N devices splits a population's or an episode batch's rows (`jax.shard_map`, no collective
-inside), everything else replicated. Only a function given devices places arrays, at its entry; the rest makes
-uncommitted ones (`uncommitted`). Rows are drawn before the split and padded with copies of the last (`pad_rows`);
-N = 1 runs the plain jit program. XLA:CPU compiles a vmapped MJX step differently per rows per device, so runs
-agree bit for bit across device counts only within such a class (3, 5, 6, 12 rows; `tests/test_sharding.py`)."""
+inside), everything else replicated; only a function given devices places arrays. Rows are drawn before the split
+and padded with copies of the last (`pad_rows`); N = 1 runs the plain jit program. XLA:CPU compiles a vmapped MJX
+step per rows per device (3, 5, 6, 12 agree), so runs agree bit for bit across device counts only in one class."""
 
 from __future__ import annotations
 
@@ -102,8 +101,7 @@ def current_mesh():
 
 
 def map_rows(fn: Callable[..., Any], shared: Any, rows: Any) -> Any:
-    """`fn(shared, rows)`, `fn` treating the rows (leading axis of every leaf) independently; under
-    `spread_over(mesh)` each device runs its share of the rows (padded) and the result comes back replicated."""
+    """`fn(shared, rows)` on independent rows (every leaf's leading axis), split over the `spread_over` mesh if any."""
     mesh = current_mesh()
     if mesh is None or int(np.prod(mesh.axis_sizes)) == 1:
         return fn(shared, rows)  # one device: the very program a plain jit makes

@@ -92,8 +92,7 @@ class Archive:
         return empty_repertoire(self.capacity, genotype_dim, self.descriptor_dim, extras)
 
     def _neighbours(self, repertoire: Repertoire, queries: jax.Array, exclude: jax.Array):
-        """For each query: the k+1 smallest distances to elites (ascending; missing ones inf) and their
-        slots, ignoring slot exclude (Q,) per query (-1: none)."""
+        """Each query's k+1 nearest elites (distances ascending, inf if none; slots), ignoring slot `exclude` (Q,)."""
         k1 = min(self.k + 1, self.capacity)
         slots = jnp.arange(self.capacity)
 

@@ -1,7 +1,6 @@
-"""Several independent MAP-Elites runs in one jitted call, `vmap`-ped over a per-run condition of the evaluation
-(APROL's damages and start states, a task parameter, a seed); run r has the keys of `single(r)` run alone (vmapped
-physics may differ in the last bits). `QDState` holds (R, ...) repertoires, (R, 2) keys, (R, ...) emitter states
-and one generation, so `loop.run` drives it."""
+"""Several independent MAP-Elites runs in one jitted call, `vmap`-ped over a per-run condition of the evaluation (a
+damage, a task parameter): run r uses the keys of `single(r)` (vmapped physics may differ in the last bits); `QDState`
+holds (R, ...) repertoires, (R, 2) keys, (R, ...) emitter states and one generation, so `loop.run` drives it."""
 
 from __future__ import annotations
 

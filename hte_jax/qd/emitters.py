@@ -1,7 +1,6 @@
-"""Emitters make each generation's offspring (swapping the emitter swaps the search, not the loop): `init(repertoire,
-key) -> state` after the initial batch (on an empty repertoire: the checkpoint template), `emit(repertoire, state,
-key) -> (genotypes (B, G) in [0, 1], state)` and `update(state, repertoire, genotypes, evaluation, insertion) ->
-state`; the state is a pytree (`flax.struct` dataclass) carried, and checkpointed, in `QDState`."""
+"""Emitters make each generation's offspring: `init(repertoire, key) -> state` after the initial batch (on an empty
+repertoire: the checkpoint template), `emit(repertoire, state, key) -> (genotypes (B, G) in [0, 1], state)` and
+`update(state, repertoire, genotypes, evaluation, insertion) -> state`; the state is a pytree kept in `QDState`."""
 
 from __future__ import annotations
 

@@ -1,5 +1,4 @@
-"""Checkpoints: a pytree of arrays as `.npz` (an entry per leaf, by path) plus a JSON header, `__metadata__`; written
-to a temporary file, fsync-ed and renamed, so a kill mid-write keeps the previous one; loads raise `CheckpointError`."""
+"""Checkpoints: a pytree of arrays as `.npz` plus a JSON header, written atomically; loads raise `CheckpointError`."""
 
 from __future__ import annotations
 

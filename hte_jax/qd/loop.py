@@ -1,5 +1,4 @@
-"""MAP-Elites as pure `init` / `ask` / `tell` functions plus a host-side runner: a generation is one jitted call,
-blocks of them run under `lax.scan`, and each block ends with metrics and a checkpoint (resumes are bit-identical)."""
+"""MAP-Elites as pure `init` / `ask` / `tell` functions, run in jitted blocks of generations with atomic checkpoints."""
 
 from __future__ import annotations
 
@@ -58,12 +57,13 @@ class MapElitesConfig:
 
 @struct.dataclass
 class QDState:
-    """Everything a run needs to continue."""
+    """Everything a run needs to continue: the container's repertoire, key (2,) uint32 (the next generation's),
+    generation (int32 scalar, done after the initial batch), emitter_state (`emitters.EmptyState`: stateless)."""
 
     repertoire: Repertoire
-    key: jax.Array  # (2,) uint32 PRNG key of the next generation
-    generation: jax.Array  # int32 scalar, generations done after the initial batch
-    emitter_state: Any  # `emitters.EmptyState` for stateless emitters
+    key: jax.Array
+    generation: jax.Array
+    emitter_state: Any
 
 
 def spec_config(spec: TaskSpec, config: MapElitesConfig) -> MapElitesConfig:

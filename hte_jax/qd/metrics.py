@@ -18,11 +18,12 @@ FIELDS = ("block", "generation", "evaluations", "filled", "coverage", "qd_score"
 
 @struct.dataclass
 class RepertoireMetrics:
-    """Scalars (0-d arrays) describing a repertoire; fitness ones over the elites, NaN when there are none."""
+    """0-d arrays: filled (elites), coverage (filled / capacity), qd_score (sum of fitness - offset), and
+    mean_fitness, max_fitness over elites (NaN when empty)."""
 
-    filled: jax.Array  # number of elites
-    coverage: jax.Array  # filled / capacity
-    qd_score: jax.Array  # sum of (fitness - offset)
+    filled: jax.Array
+    coverage: jax.Array
+    qd_score: jax.Array
     mean_fitness: jax.Array
     max_fitness: jax.Array
 

@@ -1,5 +1,4 @@
-"""The pytree every container (`Grid`, `Archive`: static, with pure `add`) reads and writes: a fixed-size
-block of elites with explicit empty slots, an elite's fields always written together in one masked scatter."""
+"""The pytree every container reads and writes: a fixed-size block of elites with explicit empty slots."""
 
 from __future__ import annotations
 
@@ -14,13 +13,14 @@ EMPTY_FITNESS = -jnp.inf
 
 @struct.dataclass
 class Repertoire:
-    """Elites of a container with C slots."""
+    """Elites of a container with C slots: genotypes (C, G) and descriptors (C, D) float32, zeros where empty;
+    fitnesses (C,) float32, -inf where empty; filled (C,) bool; extras: pytree of (C, ...) per-elite arrays, or {}."""
 
-    genotypes: jax.Array  # (C, G) float32, zeros where empty
-    descriptors: jax.Array  # (C, D) float32, zeros where empty
-    fitnesses: jax.Array  # (C,) float32, -inf where empty
-    filled: jax.Array  # (C,) bool
-    extras: Any = struct.field(default_factory=dict)  # pytree of (C, ...) per-elite arrays, or {}
+    genotypes: jax.Array
+    descriptors: jax.Array
+    fitnesses: jax.Array
+    filled: jax.Array
+    extras: Any = struct.field(default_factory=dict)
 
     @property
     def capacity(self) -> int:
@@ -34,21 +34,23 @@ class Repertoire:
 
 @struct.dataclass
 class Evaluation:
-    """What an evaluation returns for B individuals."""
+    """What an evaluation returns for B individuals: fitnesses (B,) float32 (higher is better), descriptors
+    (B, D) float32, valid (B,) bool (invalid ones are never inserted), extras: pytree of (B, ...) arrays, or {}."""
 
-    fitnesses: jax.Array  # (B,) float32, higher is better
-    descriptors: jax.Array  # (B, D) float32
-    valid: jax.Array  # (B,) bool; invalid individuals are never inserted
-    extras: Any = struct.field(default_factory=dict)  # pytree of (B, ...) arrays stored with the elites, or {}
+    fitnesses: jax.Array
+    descriptors: jax.Array
+    valid: jax.Array
+    extras: Any = struct.field(default_factory=dict)
 
 
 @struct.dataclass
 class Insertion:
-    """Outcome of adding B individuals."""
+    """Outcome of adding B individuals: accepted (B,) bool, now an elite; new_slot (B,) bool, in a slot that was
+    empty; slot (B,) int32, where it went (-1: rejected)."""
 
-    accepted: jax.Array  # (B,) bool, now an elite
-    new_slot: jax.Array  # (B,) bool, in a slot that was empty
-    slot: jax.Array  # (B,) int32, where it went, -1 if rejected
+    accepted: jax.Array
+    new_slot: jax.Array
+    slot: jax.Array
 
 
 def empty_repertoire(capacity: int, genotype_dim: int, descriptor_dim: int, extras: Any = None) -> Repertoire:

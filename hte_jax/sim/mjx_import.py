@@ -1,5 +1,4 @@
-"""`mujoco.mjx` imported without MJX's notices about a missing warp-lang (kept in `WARP_IMPORT_ERRORS` for the
-error of asking for Warp without it), and MJX's Warp backend started on request without its start-up output."""
+"""`mujoco.mjx` without MJX's missing-warp notices (kept: `WARP_IMPORT_ERRORS`), and Warp's backend started quietly."""
 
 from __future__ import annotations
 

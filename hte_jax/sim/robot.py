@@ -1,5 +1,4 @@
-"""The hexapod model: `load_robot(RobotConfig)` compiles `assets/hexapod.xml` (options, walls) into a
-`Robot`, the MJX model pytree plus the static index facts (`RobotInfo`) jitted code needs as Python ints."""
+"""The hexapod model: `load_robot(config)` compiles `assets/hexapod.xml` into a `Robot` (MJX model + `RobotInfo`)."""
 
 from __future__ import annotations
 

@@ -1,5 +1,4 @@
-"""Batched, jitted hexapod rollouts: `vmap` over individuals (own controllers, damage, start), `lax.scan` over control
-steps; a rollout that goes non-finite, explodes, flips or collapses is invalid, frozen at its last valid state."""
+"""Batched, jitted rollouts (`vmap` over individuals, `lax.scan` over steps); invalid ones freeze: no NaN out."""
 
 from __future__ import annotations
 
@@ -69,29 +68,36 @@ class RolloutSpec:
 
 @struct.dataclass
 class SimState:
-    """Physical state of robots (any leading batch shape)."""
+    """Physical state of robots (any leading batch shape): qpos (..., 25) base position, quaternion w-x-y-z, 18
+    joint angles (leg-major); qvel (..., 24) base linear (world) and angular (body) velocity, 18 joint rates;
+    qacc_warmstart (..., 24) the solver's warm start (carried, chained rollouts equal one long rollout)."""
 
-    qpos: jax.Array  # (..., 25) base position, base quaternion w-x-y-z, 18 joint angles (leg-major)
-    qvel: jax.Array  # (..., 24) base linear (world) and angular (body) velocity, 18 joint rates
-    qacc_warmstart: jax.Array  # (..., 24) the solver's warm start: chained rollouts equal one long rollout
+    qpos: jax.Array
+    qvel: jax.Array
+    qacc_warmstart: jax.Array
 
 
 @struct.dataclass
 class RolloutResult:
-    """A batched rollout: B individuals, T = num_steps, P = len(pose_steps); per-step arrays at the step's start."""
+    """A batched rollout of B individuals, T = num_steps, P = len(pose_steps): final_state SimState (B, ...) (the
+    last valid one); valid (B,) bool; invalid_step (B,) int32 (T if valid); invalid_reason (B,) int32
+    `InvalidReason` bits (0 if valid); base_pos (B, P, 3), base_quat (B, P, 4) at `pose_steps`; command_abs_sum
+    (B, 18) sum of |commanded joint velocity| * control_dt (rad); if recorded (else None), at each step's start:
+    foot_contacts (B, T, 6) bool, foot_pos (B, T, 6, 3), joint_pos (B, T, 18), qpos (B, ceil(T / k), 25) every
+    k = record_qpos_every steps, and joint_travel (B, 18) the valid steps' summed |joint angle change| (rad)."""
 
-    final_state: SimState  # (B, ...), the last valid state
-    valid: jax.Array  # (B,) bool
-    invalid_step: jax.Array  # (B,) int32, T if valid
-    invalid_reason: jax.Array  # (B,) int32 `InvalidReason` bits, 0 if valid
-    base_pos: jax.Array  # (B, P, 3) at `pose_steps`
-    base_quat: jax.Array  # (B, P, 4) w-x-y-z at `pose_steps`
-    foot_contacts: jax.Array | None  # (B, T, 6) bool, if recorded
-    foot_pos: jax.Array | None  # (B, T, 6, 3), if recorded
-    command_abs_sum: jax.Array  # (B, 18) sum of |commanded joint velocity| * control_dt (rad)
-    joint_pos: jax.Array | None = None  # (B, T, 18), if recorded
-    qpos: jax.Array | None = None  # (B, ceil(T / k), 25) every k = record_qpos_every steps, if recorded
-    joint_travel: jax.Array | None = None  # (B, 18) summed |joint angle change| over valid steps (rad), if recorded
+    final_state: SimState
+    valid: jax.Array
+    invalid_step: jax.Array
+    invalid_reason: jax.Array
+    base_pos: jax.Array
+    base_quat: jax.Array
+    foot_contacts: jax.Array | None
+    foot_pos: jax.Array | None
+    command_abs_sum: jax.Array
+    joint_pos: jax.Array | None = None
+    qpos: jax.Array | None = None
+    joint_travel: jax.Array | None = None
 
 
 def initial_state(robot: Robot, damage: jax.Array | None = None) -> SimState:

@@ -1,5 +1,4 @@
-"""Videos of recorded maze episodes (`online.recording.Replay`), replayed: the maze with a goal disc, from above or
-tracked, the base's path as a trail, and a text panel (variant, damage, action, skill, step and pattern, time)."""
+"""Videos of recorded maze episodes (`online.recording.Replay`) replayed from above or tracked, with trail and text."""
 
 from __future__ import annotations
 

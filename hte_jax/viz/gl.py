@@ -3,7 +3,6 @@ loads it, and fails if it is missing); this module imports neither. `choose`: th
 glfw or glx) if it starts, else EGL then OSMesa, the first that draws a frame in a short child process (a failed
 GL load can break the process trying it); none: `setup()` sets MUJOCO_GL=disable and `require()` raises a one-line
 `RenderError`. A process that has tried passes `HTE_JAX_GL_CHECKED=<backend>` to the render processes it starts.
-Tests fake a machine without EGL with `__EGL_VENDOR_LIBRARY_FILENAMES=/nonexistent`.
 
     python -m hte_jax.viz.gl     # prints the backend chosen here, or the one-line reason (exit 2)
 """

@@ -1,5 +1,4 @@
-"""Rendering recorded hexapod states headless (`mujoco.Renderer`, MUJOCO_GL from `hte_jax.viz.gl.setup()`): each
-qpos set and its kinematics computed, nothing re-simulated; a checkered floor, damaged legs red."""
+"""Rendering recorded states headless (`mujoco.Renderer`; `viz.gl.setup()` first): kinematics only, no re-simulation."""
 
 from __future__ import annotations
 

@@ -1,5 +1,4 @@
-"""Videos of repertoire skills (`python -m experiments.render skills` / `patterns`): HBR top-layer skills or flat
-controllers run 3 s from standing, intact or damaged, rendered and tiled; `patterns`: one skill per contact pattern."""
+"""Videos of HBR or flat skills run 3 s from standing (`python -m experiments.render skills` / `patterns`)."""
 
 from __future__ import annotations
 
