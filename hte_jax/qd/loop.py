@@ -74,7 +74,7 @@ def spec_config(spec: TaskSpec, config: MapElitesConfig) -> MapElitesConfig:
 
 
 def scan_generations(step: Callable, state: QDState, generations: int, mesh: Mesh) -> tuple[QDState, jax.Array]:
-    """`generations` calls of `step` (state -> (state, accepted)) under lax.scan: (state, total accepted)."""
+    """`generations` calls of `step` (state -> (state, accepted)) under lax.scan: (state, total accepted) on `mesh`."""
     state, accepted = jax.lax.scan(lambda s, _: step(s), state, None, length=generations)
     return sharding.replicate((state, accepted.sum()), mesh)
 
