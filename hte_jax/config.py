@@ -1,13 +1,9 @@
-"""The one rule for overriding, storing and reading the settings of (nested) configuration
-dataclasses (`HBRConfig`, `FlatConfig`, `EvalConfig`, ...).
-
-A configuration nests another in a field: `bottom: LayerSchedule` (its settings are "bottom.<name>"
-everywhere) or, declared with `inline`, `planner: PlannerConfig = inline(PlannerConfig())` (its
-settings read as the parent's own: "iterations", stored flat, while "planner.iterations" works too).
-"""
+"""Overriding, storing and reading nested configuration dataclasses: a nested configuration's settings are
+"bottom.<name>", or, for a field declared with `inline(...)`, the parent's own ("iterations", stored flat)."""
 
 import copy
 import dataclasses
+import functools
 import typing
 
 from hte_jax.errors import ConfigError
@@ -27,34 +23,25 @@ def convert_setting(key: str, current, value):
 
 
 def inline(default):
-    """A field holding a nested configuration (default `default`) whose settings read as its parent's
-    own: an override names one by its own name (or through the field, "planner.iterations"),
-    `config_dict` stores them among the parent's, and their error messages carry no path. Their names
-    must differ from the parent's other settings."""
+    """A nested configuration field whose settings read as the parent's own (their names must differ from its)."""
     return dataclasses.field(default=default, metadata={INLINE: True})
 
 
 def with_overrides(config, overrides: dict):
-    """A copy of the (possibly nested, frozen) dataclass `config` with settings replaced.
-
-    A key names a leaf setting: "field", or "a.b.field" through nested dataclass fields; a setting of
-    an inlined configuration (`inline`) also by its own name at its parent's level. Each value
-    is read as its setting's current type (`convert_setting`); the copy is rebuilt with
-    `dataclasses.replace`, inner dataclasses first, so every `__post_init__` check runs, and an inner
-    check's message is prefixed with its path ("middle.selection must be ..."; inlined fields add none).
-    """
+    """A copy of the (nested, frozen) dataclass `config` with settings ("field", "a.b.field", an inlined one's alone)
+    replaced, values read as their settings' types, rebuilt inner first so every check runs (messages with path)."""
     changes: dict = {}  # field name -> new leaf value, or the changes of a nested dataclass
     for key, value in overrides.items():
         *path, name = key.split(".")
         target, fields = config, []
         for part in path:
             route = _route(target, part, key)
-            target = _follow(target, route)
+            target = functools.reduce(getattr, route, target)
             if not _is_config(target):
                 raise ConfigError(f"unknown setting {key!r}")
             fields += route
         route = _route(target, name, key)
-        current = _follow(target, route)
+        current = functools.reduce(getattr, route, target)
         if _is_config(current):
             raise ConfigError(f"unknown setting {key!r}")
         *outer, leaf = fields + route
@@ -66,8 +53,7 @@ def with_overrides(config, overrides: dict):
 
 
 def config_dict(config) -> dict:
-    """`config` as plain data, the layout configurations are stored in: `dataclasses.asdict`'s,
-    except that an inlined configuration's settings sit among its parent's."""
+    """`config` as stored: `dataclasses.asdict`'s layout, an inlined configuration's settings among its parent's."""
     out = {}
     for field in dataclasses.fields(config):
         value = getattr(config, field.name)
@@ -79,10 +65,8 @@ def config_dict(config) -> dict:
 
 
 def config_from_dict(cls, data: dict, base=None):
-    """The configuration of dataclass `cls` that `data` describes, in `config_dict`'s layout or in
-    `dataclasses.asdict`'s (an inlined configuration under its field name), or a mix. Settings that
-    `data` lacks keep the values of `base` (default: the fields' defaults); an unknown key is a
-    TypeError, as for the constructor; a nested configuration's check names its path."""
+    """The configuration of dataclass `cls` that `data` describes (`config_dict`'s or `dataclasses.asdict`'s
+    layout, or a mix), missing settings from `base` (default: the defaults); an unknown key is a TypeError."""
     data, values = dict(data), {}
     types = typing.get_type_hints(cls)
     for field in dataclasses.fields(cls):
@@ -109,9 +93,7 @@ def config_from_dict(cls, data: dict, base=None):
 
 
 def settings(cls) -> dict[str, dataclasses.Field]:
-    """Every leaf setting of configuration dataclass `cls`, by the key `with_overrides` takes
-    ("a.b.field" through nested configurations, an inlined one's by their own names), in field order:
-    what a command line offers."""
+    """Every leaf setting of configuration dataclass `cls` by its `with_overrides` key, in field order."""
     out = {}
     types = typing.get_type_hints(cls)
     for field in dataclasses.fields(cls):
@@ -146,8 +128,7 @@ def _stored_keys(cls) -> list[str]:
 
 
 def _route(config, name: str, key: str) -> list[str]:
-    """The fields from `config` to its settable field or setting `name` (through inlined
-    configurations); `key` is the whole setting's name."""
+    """The fields from `config` to its setting `name` (through inlined configurations); `key`: the full name."""
     fields = [field for field in dataclasses.fields(config) if field.init]
     if name in {field.name for field in fields}:
         return [name]
@@ -158,12 +139,6 @@ def _route(config, name: str, key: str) -> list[str]:
             except ConfigError:
                 pass
     raise ConfigError(f"unknown setting {key!r}")
-
-
-def _follow(config, route: list[str]):
-    for name in route:
-        config = getattr(config, name)
-    return config
 
 
 def _rebuilt(config, changes: dict):

@@ -1,5 +1,4 @@
-"""The exception raised on bad user input and the checks that raise it (one-line messages that
-name the setting)."""
+"""The exception raised on bad user input and the checks that raise it (one-line messages naming the setting)."""
 
 import math
 
@@ -9,7 +8,6 @@ class ConfigError(ValueError):
 
 
 def require_int(name: str, value, minimum: int = 1) -> None:
-    """`value` must be an integer >= minimum."""
     if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
         raise ConfigError(f"{name} must be an integer >= {minimum}, got {value!r}")
 
@@ -24,7 +22,6 @@ def require_number(name: str, value, low: float = -math.inf, high: float = math.
 
 
 def require_choice(name: str, value, choices) -> None:
-    """`value` must be one of `choices`."""
     if value not in choices:
         raise ConfigError(f"{name} must be one of {tuple(choices)}, got {value!r}")
 

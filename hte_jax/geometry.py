@@ -1,8 +1,4 @@
-"""Planar (SE(2)) pose arithmetic shared by the layers, the flat repertoires and the online loop:
-headings, start-frame displacements, pose composition, angle error (and the medoid of a point set).
-
-All functions broadcast over leading dimensions. Quaternions are (w, x, y, z).
-"""
+"""Planar (SE(2)) pose arithmetic, broadcast over leading dimensions; quaternions are (w, x, y, z)."""
 
 from __future__ import annotations
 
@@ -27,10 +23,7 @@ def planar_pose(pos: jax.Array, quat: jax.Array) -> jax.Array:
 
 
 def relative_pose(start: jax.Array, end: jax.Array) -> jax.Array:
-    """Planar pose `end` (..., 3) expressed in the frame of `start` (..., 3).
-
-    Returns (dx, dy, dyaw): the displacement rotated by -start.yaw, and the wrapped heading change.
-    """
+    """Planar pose `end` (..., 3) in the frame of `start` (..., 3): (dx, dy, dyaw), dyaw wrapped."""
     c, s = jnp.cos(start[..., 2]), jnp.sin(start[..., 2])
     dx, dy = end[..., 0] - start[..., 0], end[..., 1] - start[..., 1]
     return jnp.stack([c * dx + s * dy, -s * dx + c * dy, wrap_angle(end[..., 2] - start[..., 2])], axis=-1)
@@ -44,30 +37,15 @@ def compose_pose(base: jax.Array, local: jax.Array) -> jax.Array:
     return jnp.stack([x, y, wrap_angle(base[..., 2] + local[..., 2])], axis=-1)
 
 
-def arc_heading(dx: jax.Array, dy: jax.Array) -> jax.Array:
-    """Heading at the end of the circular arc that leaves the origin along +x and ends at (dx, dy).
-
-    The arc's tangent turns by twice the chord's angle: 2 atan2(dy, dx), wrapped (straight
-    backwards walking, dx < 0 and dy = 0, ends with heading 0).
-    """
-    return wrap_angle(2 * jnp.arctan2(dy, dx))
-
-
 def angle_error(displacement: jax.Array) -> jax.Array:
-    """Fitness of a planar displacement (..., 3) = (dx, dy, dyaw) in the start frame.
-
-    Minus the absolute difference between the arrival heading and the heading of the ideal
-    circular trajectory to the same point (Cully et al. 2015): 0 is perfect, -pi the worst.
-    """
-    ideal = arc_heading(displacement[..., 0], displacement[..., 1])
+    """Fitness of a planar displacement (..., 3) = (dx, dy, dyaw) in the start frame (Cully et al. 2015): minus
+    |dyaw - the final heading of the circular arc from the origin along +x to (dx, dy)|, in [-pi, 0]."""
+    ideal = wrap_angle(2 * jnp.arctan2(displacement[..., 1], displacement[..., 0]))  # twice the chord's angle
     return -jnp.abs(wrap_angle(displacement[..., 2] - ideal))
 
 
 def medoid_index(points: jax.Array) -> jax.Array:
-    """(..., N, D) -> (...,) index of the point with the smallest summed distance to the others.
-
-    Ties go to the lowest index.
-    """
+    """(..., N, D) -> (...,) index of the point with the smallest summed distance to the others (ties: lowest)."""
     diff = points[..., :, None, :] - points[..., None, :, :]
     total = jnp.sqrt((diff * diff).sum(-1)).sum(-1)
     return jnp.argmin(total, axis=-1)

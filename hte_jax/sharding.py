@@ -1,40 +1,8 @@
-"""Spreading a batch axis over devices: one `Mesh` over the first N devices, the batch axis of a
-population or an episode batch split over it, everything else (repertoires, GP data, planner
-inputs, the robot) replicated.
-
-Two places do the splitting, both with `jax.shard_map`, so that each device runs the per-row
-program on its own rows with no collective inside (a `vmap`-ped while loop, such as the MJX
-Newton solver's or the planner's, would otherwise wait on every device at each iteration):
-- every MJX rollout (`sim.rollout.rollout`) splits its rows over the mesh that `spread_over`
-  makes current while a program is traced (`MapElites` sets it around its evaluations, the step
-  model around its blocks), and its results come back replicated;
-- an episode batch (`online.episode.run_episodes`) runs its plan and act steps per device.
-
-Who places arrays (docs/design.md, "Which arrays are replicated and which are split"): only a
-function given devices, and it places every array it computes with, at its entry:
-- the MAP-Elites loops (`place`: the state replicated; each generation's rows split inside the
-  rollouts), the step model (`hbr.composition.measure_steps`: robot, controllers and start
-  replicated, each block's rows split), episode batches (`online.episode.run_episodes`: skills,
-  robot, distance field replicated, episodes split); their results come back replicated (or on
-  the host);
-- everything else (loaders, analyses, plots) places nothing: it makes uncommitted arrays, which
-  jax runs on the default device and moves to wherever they are needed, and runs where its inputs
-  are. jax refuses to mix an array committed to ONE device with a mesh's; `mjx.put_model` makes
-  such arrays, which `uncommitted` undoes (`sim.robot.load_robot`).
-
-Rows are independent, so a row's result does not depend on the device count N: draws are made
-per individual before the split (the population's genotypes and draws, the episodes' own keys)
-and a batch that does not divide by N is padded with copies of its last row (`pad_rows`), whose
-results are dropped (episodes: marked ended, `online.episode.pad_episodes`). With N = 1 the same
-functions run unwrapped: the program is the one a plain `jit` makes, bit for bit.
-
-On a CPU, XLA compiles a vmapped MJX step differently with the number of rows it is compiled for,
-so a row's last bits, and through the chaotic dynamics later results, depend on the rows per
-device even on ONE device (measured: 3, 5, 6 and 12 rows agree bit for bit; 1, 2, 4, 8 and 24 each
-differ, by up to 1.5e-3 after a 3 s rollout). Runs whose rows per device fall in one such class
-(a batch of 12 on 1, 2 or 4 devices) are bit-identical across device counts; others agree to that
-rounding (`tests/test_sharding.py`).
-"""
+"""Spreading a batch axis over devices (docs/design.md, "Which arrays are replicated and which are split"): a 1-D
+`Mesh` over the first N devices splits a population's or an episode batch's rows (`jax.shard_map`, no collective
+inside), everything else replicated; only a function given devices places arrays. Rows are drawn before the split
+and padded with copies of the last (`pad_rows`); N = 1 runs the plain jit program. XLA:CPU compiles a vmapped MJX
+step per rows per device (3, 5, 6, 12 agree), so runs agree bit for bit across device counts only in one class."""
 
 from __future__ import annotations
 
@@ -56,14 +24,9 @@ class ReplicaMismatchError(RuntimeError):
     """A replicated array differs between devices (a non-deterministic kernel, a broken device)."""
 
 
-def visible_devices() -> int:
-    """Number of devices jax sees (over all processes of a multi-host run)."""
-    return jax.device_count()
-
-
 def check_device_count(count: int | None) -> int:
     """`count` devices, checked against the visible ones (None: all of them)."""
-    visible = visible_devices()
+    visible = jax.device_count()  # over all processes of a multi-host run
     if count is None:
         return visible
     if isinstance(count, bool) or not isinstance(count, (int, np.integer)) or not 1 <= count <= visible:
@@ -83,8 +46,7 @@ def mesh_size(mesh: Mesh) -> int:
 
 def padded_size(batch: int, mesh: Mesh) -> int:
     """The smallest multiple of the mesh's device count that holds `batch` rows."""
-    count = mesh_size(mesh)
-    return -(-batch // count) * count
+    return -(-batch // mesh_size(mesh)) * mesh_size(mesh)
 
 
 def pad_rows(tree: Any, size: int) -> Any:
@@ -92,9 +54,7 @@ def pad_rows(tree: Any, size: int) -> Any:
 
     def pad(x):
         extra = size - x.shape[0]
-        if extra == 0:
-            return x
-        return jnp.concatenate([x, jnp.repeat(x[-1:], extra, axis=0)], axis=0)
+        return x if extra == 0 else jnp.concatenate([x, jnp.repeat(x[-1:], extra, axis=0)], axis=0)
 
     return jax.tree.map(pad, tree)
 
@@ -105,7 +65,6 @@ def batch_sharding(mesh: Mesh, ndim: int = 1) -> NamedSharding:
 
 
 def replicated(mesh: Mesh) -> NamedSharding:
-    """Every device holds the whole array."""
     return NamedSharding(mesh, PartitionSpec())
 
 
@@ -125,30 +84,24 @@ def put_batch(tree: Any, mesh: Mesh) -> Any:
 
 
 def uncommitted(tree: Any) -> Any:
-    """Every array of `tree` as an uncommitted copy on the default device (through the host): for
-    arrays that a library committed to one device (`mjx.put_model`), which no mesh could take."""
+    """Every array of `tree` as an uncommitted copy on the default device (through the host)."""
     return jax.device_put(jax.device_get(tree))
 
 
 def spread_over(mesh: Mesh):
-    """Context (while tracing a jitted program): rollouts traced inside split their rows over `mesh`
-    (`map_rows`). It is part of jit's cache key, so a function traced with and without it compiles twice."""
+    """Context (while tracing): rollouts traced inside split their rows over `mesh`; part of jit's cache key."""
     return jax.sharding.use_abstract_mesh(mesh.abstract_mesh)
 
 
 def current_mesh():
     """The mesh `spread_over` made current, or None (also inside a `shard_map` over it already)."""
     mesh = jax.sharding.get_abstract_mesh()
-    if mesh.empty or BATCH_AXIS not in mesh.axis_names or BATCH_AXIS in getattr(mesh, "manual_axes", ()):
-        return None
-    return mesh
+    unusable = mesh.empty or BATCH_AXIS not in mesh.axis_names or BATCH_AXIS in getattr(mesh, "manual_axes", ())
+    return None if unusable else mesh
 
 
 def map_rows(fn: Callable[..., Any], shared: Any, rows: Any) -> Any:
-    """`fn(shared, rows)` where every leaf of `rows` has the batch as leading axis and `fn` treats
-    rows independently; under `spread_over(mesh)` each device runs `fn` on its share of the rows
-    (padded to a multiple of the device count, the padding dropped) and the result comes back
-    whole on every device. Without a current mesh: `fn(shared, rows)`."""
+    """`fn(shared, rows)` on independent rows (every leaf's leading axis), split over the `spread_over` mesh if any."""
     mesh = current_mesh()
     if mesh is None or int(np.prod(mesh.axis_sizes)) == 1:
         return fn(shared, rows)  # one device: the very program a plain jit makes
@@ -168,26 +121,21 @@ def replica_digests(tree: Any) -> dict[str, list[str]]:
         if not isinstance(leaf, jax.Array):
             continue
         shards = sorted(leaf.addressable_shards, key=lambda s: s.device.id)
-        digests[jax.tree_util.keystr(path)] = [
-            hashlib.sha256(np.ascontiguousarray(np.asarray(s.data)).tobytes()).hexdigest() for s in shards
-        ]
+        data = [np.ascontiguousarray(np.asarray(s.data)).tobytes() for s in shards]
+        digests[jax.tree_util.keystr(path)] = [hashlib.sha256(b).hexdigest() for b in data]
     return digests
 
 
 def check_replicas(tree: Any, what: str = "state") -> None:
-    """Raise ReplicaMismatchError unless every device holds the same bytes of every replicated
-    array of `tree` (across processes: each process checks its own devices, and process 0's
-    digests are compared with every other process's)."""
+    """Raise ReplicaMismatchError unless every device of every process holds the same bytes of `tree`."""
     digests = replica_digests(tree)
     for name, values in digests.items():
         if len(set(values)) > 1:
-            raise ReplicaMismatchError(
-                f"{what}{name} differs between devices ({len(set(values))} distinct copies on "
-                f"{len(values)} devices): a non-deterministic kernel or a faulty device; stopping"
-            )
+            raise ReplicaMismatchError(f"{what}{name} differs between devices ({len(set(values))} distinct copies on "
+                                       f"{len(values)} devices): a non-deterministic kernel or a faulty device; "
+                                       "stopping")
     if jax.process_count() > 1:
         from jax.experimental import multihost_utils
-
         local = np.array([int(v[0][:15], 16) for v in digests.values()], np.int64)
         everywhere = np.asarray(multihost_utils.process_allgather(local))
         if not (everywhere == everywhere[0]).all():

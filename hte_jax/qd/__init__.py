@@ -1,5 +1,4 @@
-"""Quality-Diversity engine: fixed-size containers, emitters (selection, variation), the MAP-Elites loop,
-task specs, metrics, io and repertoire files, plots."""
+"""Quality-Diversity engine: containers, emitters, the MAP-Elites loop, task specs, metrics, files, plots."""
 
 from hte_jax.qd.archive import Archive
 from hte_jax.qd.batched import BatchedMapElites
@@ -15,30 +14,8 @@ from hte_jax.qd.task_spec import TaskSpec
 from hte_jax.qd.variation import SbxPolynomial
 
 __all__ = [
-    "Archive",
-    "BatchedMapElites",
-    "CheckpointError",
-    "DensitySelection",
-    "Emitter",
-    "EmptyState",
-    "Evaluation",
-    "Grid",
-    "Insertion",
-    "MapElites",
-    "MapElitesConfig",
-    "QDState",
-    "Repertoire",
-    "RepertoireMetrics",
-    "SbxPolynomial",
-    "SelectionConfig",
-    "TaskSpec",
-    "UniformSelection",
-    "VariationEmitter",
-    "load_checkpoint",
-    "load_repertoire",
-    "repertoire_metrics",
-    "resume",
-    "run",
-    "save_checkpoint",
-    "save_repertoire",
+    "Archive", "BatchedMapElites", "CheckpointError", "DensitySelection", "Emitter", "EmptyState", "Evaluation",
+    "Grid", "Insertion", "MapElites", "MapElitesConfig", "QDState", "Repertoire", "RepertoireMetrics",
+    "SbxPolynomial", "SelectionConfig", "TaskSpec", "UniformSelection", "VariationEmitter", "load_checkpoint",
+    "load_repertoire", "repertoire_metrics", "resume", "run", "save_checkpoint", "save_repertoire",
 ]

@@ -1,27 +1,18 @@
 """Unstructured archive of fixed capacity (the original's sferes `Archive`, `docs/original_code.md` §5).
 
-Rules for one candidate c against the archive, with l the distance threshold ("l value"),
-k = 15 and eps = 0.1 (Euclidean distances in descriptor space):
+A candidate c, with l the distance threshold, k = 15 and eps = 0.1 (Euclidean in descriptor space):
+1. invalid, non-finite or outside the bounds: rejected;
+2. empty archive, or c's nearest neighbour farther than l: added;
+3. a single elite in the archive (too close to c): rejected;
+4. c's second-nearest neighbour closer than (1 - eps) l: rejected;
+5. else c replaces its nearest neighbour n if it exclusively eps-dominates n on (fitness f, novelty v),
+   v the mean distance to the k nearest elites other than n (for c) or itself (for n):
+   f_c >= (1 - sign(f_n) eps) f_n  and  v_c >= (1 - sign(v_n) eps) v_n  and  (f_c - f_n) |v_n| > -(v_c - v_n) |f_n|.
 
-1. invalid, non-finite or outside the descriptor bounds: rejected;
-2. the archive is empty, or c's nearest neighbour is farther than l: c is added;
-3. the archive holds a single elite (too close to c): rejected;
-4. c's second-nearest neighbour is closer than (1 - eps) l: rejected;
-5. otherwise c replaces its nearest neighbour n if c exclusively eps-dominates n on
-   (fitness f, novelty v), where v is the mean distance to the k nearest elites other
-   than n (for c) or other than itself (for n):
-   f_c >= (1 - sign(f_n) eps) f_n  and  v_c >= (1 - sign(v_n) eps) v_n  and
-   (f_c - f_n) |v_n| > -(v_c - v_n) |f_n|.
-
-Batched semantics (well defined, parallel): every candidate of a batch is judged against the
-archive as it was before the batch. Then (a) several candidates replacing the same elite: the
-one with the highest fitness wins, ties to the first in the batch; (b) of the candidates still
-accepted (additions and replacements), one is dropped if another one within l of it ranks
-higher (higher fitness, ties to the first in the batch); (c) new elites take free slots in
-batch order and, once the archive is full, further additions are dropped. As in the sequential
-original, elites therefore always stay at least (1 - eps) l apart. Elites are never removed, so
-filled slots are always a prefix of the storage. Nearest-neighbour ties go to the lowest slot.
-"""
+A batch is judged against the archive before it; then (a) of several replacements of one elite the
+fittest wins (ties: first in the batch); (b) an accepted candidate within l of a higher-ranked accepted
+one is dropped; (c) new elites fill free slots in batch order until the archive is full. Elites thus stay
+(1 - eps) l apart and are never removed (filled slots are a prefix). Nearest-neighbour ties: lowest slot."""
 
 from __future__ import annotations
 
@@ -31,17 +22,8 @@ import jax
 import jax.numpy as jnp
 
 from hte_jax.errors import ConfigError, require_bounds, require_int, require_number
-from hte_jax.qd.repertoire import (
-    Evaluation,
-    Insertion,
-    Repertoire,
-    best_per_target,
-    empty_repertoire,
-    insertable,
-    write,
-)
-
-_BIG = jnp.inf
+from hte_jax.qd.repertoire import (Evaluation, Insertion, Repertoire, best_per_target, empty_repertoire, insertable,
+                                   write)
 
 
 def squared_distance(queries: jax.Array, points: jax.Array) -> jax.Array:
@@ -59,18 +41,13 @@ def pairwise_distance(queries: jax.Array, points: jax.Array) -> jax.Array:
 
 
 def map_rows(fn, arrays: tuple, fills: tuple, chunk: int):
-    """fn over row-blocks of `arrays` (same leading size N) with lax.map, bounding memory.
-
-    The last block is padded with `fills` (one per array); results are cut back to N rows.
-    """
+    """fn over blocks of `chunk` rows of `arrays` with lax.map (bounding memory), the last padded with `fills`."""
     num = arrays[0].shape[0]
     chunk = max(1, min(chunk, num))
     blocks = -(-num // chunk)
     pad = blocks * chunk - num
-    padded = tuple(
-        jnp.pad(a, [(0, pad)] + [(0, 0)] * (a.ndim - 1), constant_values=f).reshape(blocks, chunk, *a.shape[1:])
-        for a, f in zip(arrays, fills)
-    )
+    padded = tuple(jnp.pad(a, [(0, pad)] + [(0, 0)] * (a.ndim - 1), constant_values=f) for a, f in zip(arrays, fills))
+    padded = tuple(a.reshape(blocks, chunk, *a.shape[1:]) for a in padded)
     out = jax.lax.map(fn, padded)
     return jax.tree.map(lambda x: x.reshape(blocks * chunk, *x.shape[2:])[:num], out)
 
@@ -87,21 +64,15 @@ def _ordered_mean(values: jax.Array) -> jax.Array:
 
 @dataclasses.dataclass(frozen=True)
 class Archive:
-    """An unstructured archive container (static, hashable).
+    """An unstructured archive container (static, hashable); l, k, eps: those of the rules above."""
 
-    capacity: number of slots (fixed; additions beyond it are dropped).
-    low, high: descriptor bounds; candidates outside are rejected.
-    l: distance threshold; k: neighbours for novelty; eps: dominance tolerance.
-    chunk_size: candidates per block in the distance computations (memory ~ chunk x capacity).
-    """
-
-    capacity: int
-    low: tuple[float, ...]
+    capacity: int  # slots
+    low: tuple[float, ...]  # descriptor bounds
     high: tuple[float, ...]
     l: float
     k: int = 15
     eps: float = 0.1
-    chunk_size: int = 512
+    chunk_size: int = 512  # candidates per block of distance computations (memory ~ chunk x capacity)
 
     def __post_init__(self):
         require_int("archive capacity", self.capacity)
@@ -121,17 +92,14 @@ class Archive:
         return empty_repertoire(self.capacity, genotype_dim, self.descriptor_dim, extras)
 
     def _neighbours(self, repertoire: Repertoire, queries: jax.Array, exclude: jax.Array):
-        """For each query: the k+1 smallest distances to elites (ascending) and their slots.
-
-        exclude: (Q,) slot to ignore per query (-1 for none). Missing neighbours are inf.
-        """
+        """Each query's k+1 nearest elites (distances ascending, inf if none; slots), ignoring slot `exclude` (Q,)."""
         k1 = min(self.k + 1, self.capacity)
         slots = jnp.arange(self.capacity)
 
         def block(args):
             q, ex = args
             dist = pairwise_distance(q, repertoire.descriptors)
-            dist = jnp.where(repertoire.filled[None, :] & (slots[None, :] != ex[:, None]), dist, _BIG)
+            dist = jnp.where(repertoire.filled[None, :] & (slots[None, :] != ex[:, None]), dist, jnp.inf)
             # Ties: lower slot first. The barrier keeps XLA:CPU from lowering this top_k to a
             # full sort when a later top_k depends on it (measured: 2.7 s instead of 0.06 s).
             neg, idx = jax.lax.optimization_barrier(jax.lax.top_k(-dist, k1))
@@ -154,7 +122,7 @@ class Archive:
         # 1. Against the archive before the batch.
         dist, idx = self._neighbours(repertoire, desc, jnp.full((batch,), -1, jnp.int32))
         nn, d1 = idx[:, 0], dist[:, 0]
-        d2 = dist[:, 1] if dist.shape[1] > 1 else jnp.full((batch,), _BIG)
+        d2 = dist[:, 1] if dist.shape[1] > 1 else jnp.full((batch,), jnp.inf)
         is_new = ok & ((size == 0) | (d1 > l))
         contested = ok & ~is_new & (size >= 2) & ~(d2 < (1.0 - self.eps) * l)
         nov_c = _ordered_mean(dist[:, 1 : self.k + 1])
@@ -162,16 +130,11 @@ class Archive:
         nov_n = _ordered_mean(nn_dist[:, : self.k])
         fit_n = repertoire.fitnesses[nn]
         eps = jnp.float32(self.eps)
-        dominates = (
-            (fit >= (1.0 - jnp.sign(fit_n) * eps) * fit_n)
-            & (nov_c >= (1.0 - jnp.sign(nov_n) * eps) * nov_n)
-            & ((fit - fit_n) * jnp.abs(nov_n) > -(nov_c - nov_n) * jnp.abs(fit_n))
-        )
+        dominates = ((fit >= (1.0 - jnp.sign(fit_n) * eps) * fit_n) & (nov_c >= (1.0 - jnp.sign(nov_n) * eps) * nov_n)
+                     & ((fit - fit_n) * jnp.abs(nov_n) > -(nov_c - nov_n) * jnp.abs(fit_n)))
         replaces = contested & dominates
-
         # 2a. Replacements of the same elite: highest fitness, then first in the batch.
         replace_ok = best_per_target(fit, nn, replaces, self.capacity)
-
         # 2b. Accepted candidates within l of a higher-ranked accepted candidate are dropped.
         kept = is_new | replace_ok
 
@@ -184,11 +147,9 @@ class Archive:
         beaten = map_rows(outranked, (desc, fit, order), (0.0, 0.0, batch), self.chunk_size)
         add_ok = is_new & ~beaten
         replace_ok = replace_ok & ~beaten
-
         # 2c. Free slots in batch order (filled slots are a prefix); drop past capacity.
         new_slot = size + jnp.cumsum(add_ok.astype(jnp.int32)) - 1
         add_ok = add_ok & (new_slot < self.capacity)
-
         slot = jnp.where(add_ok, new_slot, jnp.where(replace_ok, nn, -1)).astype(jnp.int32)
         new = write(repertoire, slot, genotypes, evaluation)
         return new, Insertion(accepted=add_ok | replace_ok, new_slot=add_ok, slot=slot)

@@ -1,13 +1,6 @@
-"""Several independent MAP-Elites runs in one jitted call, `vmap`-ped over a per-run condition.
-
-The runs share the container, genotype size and hyper-parameters and differ only by a
-condition passed to the evaluation: a damage mask and the damaged robot's start state for
-APROL's 21 repertoires, a task parameter, a seed... Run r behaves like `single(r)` run alone
-(the same PRNG keys; the vmapped physics may differ from an unbatched one in the last bits).
-`QDState` holds (R, ...) repertoires, (R, 2) keys and (R, ...) emitter states with one shared
-scalar generation, so the host-side `loop.run` (progress, CSV, atomic checkpoints, resume)
-drives it unchanged.
-"""
+"""Several independent MAP-Elites runs in one jitted call, `vmap`-ped over a per-run condition of the evaluation (a
+damage, a task parameter): run r uses the keys of `single(r)` (vmapped physics may differ in the last bits); `QDState`
+holds (R, ...) repertoires, (R, 2) keys, (R, ...) emitter states and one generation, so `loop.run` drives it."""
 
 from __future__ import annotations
 
@@ -18,12 +11,11 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
-
 from jax.sharding import Mesh
 
 from hte_jax import sharding
 from hte_jax.errors import ConfigError
-from hte_jax.qd.loop import MapElites, MapElitesConfig, QDState
+from hte_jax.qd.loop import MapElites, MapElitesConfig, OnMesh, QDState, scan_generations, spec_config
 from hte_jax.qd.metrics import RepertoireMetrics, repertoire_metrics
 from hte_jax.qd.repertoire import Evaluation
 from hte_jax.qd.task_spec import TaskSpec
@@ -36,21 +28,14 @@ _STATE_AXES = QDState(repertoire=0, key=0, generation=None, emitter_state=0)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
-class BatchedMapElites:
-    """R MAP-Elites runs, one per condition.
-
-    container, genotype_dim, config, extras, emitter: as in `MapElites`, shared by all runs.
-    evaluate: (key, genotypes, condition) -> Evaluation.
-    conditions: pytree of (R, ...) arrays, row r is run r's condition.
-    names: R labels of the runs (stored in checkpoints; a resume must use the same runs).
-    mesh: as in `MapElites`: every run's batch is spread over it (None: all visible devices).
-    """
+class BatchedMapElites(OnMesh):
+    """R MAP-Elites runs, one per condition; the fields as in `MapElites`."""
 
     container: Any
     evaluate: ConditionedEvaluateFn
     genotype_dim: int
-    conditions: Any
-    names: tuple[str, ...]
+    conditions: Any  # pytree of (R, ...) arrays, row r run r's
+    names: tuple[str, ...]  # R labels (stored in checkpoints: a resume must use the same runs)
     config: MapElitesConfig = MapElitesConfig()
     extras: Any = None
     emitter: Any = None
@@ -62,42 +47,21 @@ class BatchedMapElites:
             raise ConfigError(f"conditions must all have {len(self.names)} rows (one per name), got {sorted(sizes)}")
 
     @classmethod
-    def from_spec(
-        cls, spec: TaskSpec, conditions: Any, names: tuple[str, ...], config: MapElitesConfig = MapElitesConfig(),
-        emitter: Any = None, mesh: Mesh | None = None,
-    ) -> BatchedMapElites:
-        """R runs of a task spec whose evaluation takes the run's condition, `evaluate(key, genotypes,
-        condition)`; `config` gets the spec's qd_offset (when the spec has one), as in `MapElites.from_spec`."""
-        if spec.evaluate is None:
-            raise ConfigError(f"task {spec.name!r} has no evaluation; give it one with spec.with_evaluate(...)")
-        if spec.qd_offset is not None:
-            config = dataclasses.replace(config, qd_offset=spec.qd_offset)
+    def from_spec(cls, spec: TaskSpec, conditions: Any, names: tuple[str, ...],
+                  config: MapElitesConfig = MapElitesConfig(), emitter: Any = None, mesh: Mesh | None = None,
+                  ) -> BatchedMapElites:
+        """R runs of a spec whose evaluation takes the run's condition, `config` as in `MapElites.from_spec`."""
+        config = spec_config(spec, config)
         return cls(spec.container, spec.evaluate, spec.genotype_dim, conditions, tuple(names), config,
                    spec.extras_example(), emitter, mesh)
-
-    @functools.cached_property
-    def active_mesh(self) -> Mesh:
-        """`mesh`, or one over all visible devices."""
-        return sharding.batch_mesh() if self.mesh is None else self.mesh
-
-    def place(self, state: QDState) -> QDState:
-        """`state` replicated on the mesh's devices."""
-        return sharding.put_replicated(state, self.active_mesh)
 
     @property
     def num_runs(self) -> int:
         return len(self.names)
 
     def _algo(self, condition) -> MapElites:
-        return MapElites(
-            container=self.container,
-            evaluate=lambda key, genotypes: self.evaluate(key, genotypes, condition),
-            genotype_dim=self.genotype_dim,
-            config=self.config,
-            extras=self.extras,
-            emitter=self.emitter,
-            mesh=self.active_mesh,
-        )
+        return MapElites(self.container, lambda key, genotypes: self.evaluate(key, genotypes, condition),
+                         self.genotype_dim, self.config, self.extras, self.emitter, self.active_mesh)
 
     def single(self, run: int) -> MapElites:
         """Run `run` on its own (same keys as inside the batch: `run_keys(key)[run]`)."""
@@ -114,40 +78,30 @@ class BatchedMapElites:
     def empty_state(self, key: jax.Array) -> QDState:
         one = self.single(0).empty_state(key)
         repertoire, emitter_state = jax.tree.map(
-            lambda x: jnp.broadcast_to(x, (self.num_runs, *x.shape)), (one.repertoire, one.emitter_state)
-        )
+            lambda x: jnp.broadcast_to(x, (self.num_runs, *x.shape)), (one.repertoire, one.emitter_state))
         return QDState(repertoire=repertoire, key=self.run_keys(key), generation=jnp.int32(0), emitter_state=emitter_state)
 
     @functools.partial(jax.jit, static_argnums=0)
     def init(self, key: jax.Array) -> QDState:
-        def one(run_key, condition):
-            return self._algo(condition).init(run_key)
-
-        state = jax.vmap(one, out_axes=_STATE_AXES)(self.run_keys(key), self.conditions)
+        one = jax.vmap(lambda run_key, condition: self._algo(condition).init(run_key), out_axes=_STATE_AXES)
+        state = one(self.run_keys(key), self.conditions)
         return sharding.replicate(state, self.active_mesh)
 
     def generation_step(self, state: QDState) -> tuple[QDState, jax.Array]:
-        def one(run_state, condition):
-            return self._algo(condition).generation_step(run_state)
-
-        new, accepted = jax.vmap(one, in_axes=(_STATE_AXES, 0), out_axes=(_STATE_AXES, 0))(state, self.conditions)
+        one = jax.vmap(lambda run_state, condition: self._algo(condition).generation_step(run_state),
+                       in_axes=(_STATE_AXES, 0), out_axes=(_STATE_AXES, 0))
+        new, accepted = one(state, self.conditions)
         return new, accepted.sum()
 
     @functools.partial(jax.jit, static_argnums=(0, 2))
     def run_block(self, state: QDState, generations: int) -> tuple[QDState, jax.Array]:
-        state, accepted = jax.lax.scan(lambda s, _: self.generation_step(s), state, None, length=generations)
-        return sharding.replicate((state, accepted.sum()), self.active_mesh)
+        return scan_generations(self.generation_step, state, generations, self.active_mesh)
 
     @functools.partial(jax.jit, static_argnums=0)
     def metrics(self, state: QDState) -> RepertoireMetrics:
         """Metrics of all runs' elites pooled (coverage is the mean coverage)."""
         pooled = jax.tree.map(lambda x: x.reshape(-1, *x.shape[2:]), state.repertoire)
         return repertoire_metrics(pooled, self.config.qd_offset)
-
-    @functools.partial(jax.jit, static_argnums=0)
-    def run_metrics(self, state: QDState) -> RepertoireMetrics:
-        """(R,) metrics, one per run."""
-        return jax.vmap(lambda rep: repertoire_metrics(rep, self.config.qd_offset))(state.repertoire)
 
     def checkpoint_metadata(self) -> dict:
         return {**self.single(0).checkpoint_metadata(), "runs": list(self.names)}

@@ -1,16 +1,6 @@
-"""Emitters: what makes each generation's offspring. `MapElites` asks its emitter for a batch,
-evaluates it, inserts it and shows the emitter the outcome; swapping the emitter swaps the search
-without touching the loop.
-
-An emitter has
-- `init(repertoire, key) -> emitter_state`, after the initial random batch is inserted (also
-  called on an empty repertoire to get the template checkpoints are loaded into);
-- `emit(repertoire, emitter_state, key) -> (genotypes (B, G) in [0, 1], emitter_state)`,
-  B = `MapElitesConfig.batch_size`;
-- `update(emitter_state, repertoire, genotypes, evaluation, insertion) -> emitter_state`, after
-  the batch is inserted.
-The state is a pytree (a `flax.struct` dataclass) carried in `QDState`, so checkpoints hold it.
-"""
+"""Emitters make each generation's offspring: `init(repertoire, key) -> state` after the initial batch (on an empty
+repertoire: the checkpoint template), `emit(repertoire, state, key) -> (genotypes (B, G) in [0, 1], state)` and
+`update(state, repertoire, genotypes, evaluation, insertion) -> state`; the state is a pytree kept in `QDState`."""
 
 from __future__ import annotations
 
@@ -41,17 +31,14 @@ class Emitter(abc.ABC):
     def emit(self, repertoire: Repertoire, emitter_state: Any, key: jax.Array) -> tuple[jax.Array, Any]:
         """(genotypes (B, G), the new emitter state)."""
 
-    def update(
-        self, emitter_state: Any, repertoire: Repertoire, genotypes: jax.Array, evaluation: Evaluation, insertion: Insertion
-    ) -> Any:
+    def update(self, emitter_state: Any, repertoire: Repertoire, genotypes: jax.Array, evaluation: Evaluation,
+               insertion: Insertion) -> Any:
         return emitter_state
 
 
 @dataclasses.dataclass(frozen=True)
 class VariationEmitter(Emitter):
-    """`batch_size` children of parents: `variation.vary(key, draw_parents)`, where every call of
-    `draw_parents(key)` draws `batch_size` elites by `selection.select` (see `qd.selection` and
-    `qd.variation` for what the two objects provide)."""
+    """`batch_size` children of `variation.vary(key, draw_parents)`, parents drawn by `selection.select`."""
 
     selection: Any
     variation: Any

@@ -1,14 +1,5 @@
-"""MAP-Elites grid with arithmetic cell indexing, any number of dimensions and bins.
-
-Dimension i spans [low_i, high_i] cut into bins_i equal bins; a descriptor's cell is
-floor((x - low) / (high - low) * bins), with x = high falling in the last bin. Cells are
-numbered row-major (the last dimension varies fastest). A descriptor outside the bounds
-is rejected, like the original's "dead" individuals.
-
-Insertion of a batch: per cell, the best valid candidate of the batch (ties: the first in
-the batch) replaces the cell's elite if its fitness is strictly higher (an empty cell has
-fitness -inf).
-"""
+"""MAP-Elites grid: dimension i spans [low_i, high_i] in bins_i bins (x = high: the last), cells row-major, outside
+rejected. Per cell, a batch's best valid candidate (ties: first) replaces the elite if strictly fitter (empty: -inf)."""
 
 from __future__ import annotations
 
@@ -20,24 +11,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from hte_jax.errors import ConfigError, require_bounds, require_int
-from hte_jax.qd.repertoire import (
-    Evaluation,
-    Insertion,
-    Repertoire,
-    best_per_target,
-    empty_repertoire,
-    insertable,
-    write,
-)
+from hte_jax.qd.repertoire import (Evaluation, Insertion, Repertoire, best_per_target, empty_repertoire, insertable,
+                                   write)
 
 
 @dataclasses.dataclass(frozen=True)
 class Grid:
-    """A grid container (static, hashable).
-
-    bins: cells per dimension, e.g. (100, 100) or (100, 100, 2, 2, 2, 2, 2, 2).
-    low, high: descriptor bounds per dimension.
-    """
+    """A grid container (static, hashable): `bins` cells per dimension over descriptor bounds `low`, `high`."""
 
     bins: tuple[int, ...]
     low: tuple[float, ...]
@@ -59,7 +39,6 @@ class Grid:
         return len(self.bins)
 
     def empty(self, genotype_dim: int, extras=None) -> Repertoire:
-        """An empty repertoire with one slot per cell."""
         return empty_repertoire(self.capacity, genotype_dim, self.descriptor_dim, extras)
 
     def cell_index(self, descriptors: jax.Array) -> jax.Array:
@@ -74,17 +53,8 @@ class Grid:
         index = (coords * strides).sum(axis=-1)
         return jnp.where(inside, index, -1)
 
-    def cell_centres(self) -> np.ndarray:
-        """(C, D) centre of every cell, row-major."""
-        axes = [
-            lo + (np.arange(b) + 0.5) * (hi - lo) / b for b, lo, hi in zip(self.bins, self.low, self.high)
-        ]
-        mesh = np.meshgrid(*axes, indexing="ij")
-        return np.stack([m.reshape(-1) for m in mesh], axis=-1).astype(np.float32)
-
     def cell_matches(self, descriptors: jax.Array, cells: jax.Array, tolerance: float = 1e-6) -> np.ndarray:
-        """(B,) bool: `cells` is the cell of `descriptors`, allowing a descriptor within `tolerance`
-        of a bin edge to sit on either side (float rounding may differ between programs)."""
+        """(B,) bool: `cells` is the cell of `descriptors`, up to `tolerance` either side of a bin edge (rounding)."""
         descriptors = jnp.asarray(descriptors, jnp.float32)
         cells = np.asarray(cells)
         ok = np.zeros(cells.shape, bool)

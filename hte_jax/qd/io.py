@@ -1,12 +1,4 @@
-"""Checkpoints: any pytree of arrays as `.npz`, with JSON metadata, written atomically.
-
-Layout: one npz entry per leaf, named by its pytree path, plus `__metadata__` (a JSON string
-with the format version, every leaf's shape and dtype, and the caller's metadata such as the
-container and config). Writes go to a temporary file in the same folder, are fsync-ed, then
-renamed over the target, so a kill mid-write leaves the previous checkpoint intact (and a
-temporary file, which the next write of that checkpoint removes).
-Loading checks everything against a template and raises `CheckpointError` naming the problem.
-"""
+"""Checkpoints: a pytree of arrays as `.npz` plus a JSON header, written atomically; loads raise `CheckpointError`."""
 
 from __future__ import annotations
 
@@ -41,28 +33,14 @@ def _leaf_name(path) -> str:
     return "/".join(str(getattr(k, "name", getattr(k, "key", getattr(k, "idx", k)))) for k in path)
 
 
-def _flatten(tree) -> dict[str, np.ndarray]:
-    leaves, _ = jax.tree_util.tree_flatten_with_path(tree)
-    return {_leaf_name(path): np.asarray(leaf) for path, leaf in leaves}
-
-
 def save_checkpoint(path: str | Path, tree: Any, metadata: dict | None = None, *, compress: bool = False) -> None:
     """Atomically write `tree` (a pytree of arrays) and JSON-able `metadata` to `path` (zip-deflated if compress).
-
-    For tests and `benchmarks/resume_kill.py` only: with the environment variable
-    HTE_JAX_CHECKPOINT_PAUSE set to a number of seconds, every write sleeps that long after the
-    temporary file is written and fsync-ed and before it is renamed over `path`, so that a kill
-    can land between the two.
-    """
+    $HTE_JAX_CHECKPOINT_PAUSE (seconds; tests and `benchmarks/resume_kill.py`) sleeps before the rename."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    arrays = _flatten(tree)
-    header = {
-        "format": FORMAT,
-        "version": FORMAT_VERSION,
-        "leaves": {name: {"shape": list(a.shape), "dtype": str(a.dtype)} for name, a in arrays.items()},
-        "metadata": metadata or {},
-    }
+    arrays = {_leaf_name(leaf_path): np.asarray(leaf) for leaf_path, leaf in jax.tree_util.tree_leaves_with_path(tree)}
+    leaves = {name: {"shape": list(a.shape), "dtype": str(a.dtype)} for name, a in arrays.items()}
+    header = {"format": FORMAT, "version": FORMAT_VERSION, "leaves": leaves, "metadata": metadata or {}}
     tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
     try:
         with open(tmp, "wb") as handle:
@@ -85,8 +63,7 @@ def save_checkpoint(path: str | Path, tree: Any, metadata: dict | None = None, *
 
 
 def _remove_leftovers(path: Path) -> None:
-    """Remove the temporary files of `path` that writers killed mid-write left behind (those of
-    processes no longer running here): they are never read, only in the way."""
+    """Remove the temporary files of `path` left by writers killed mid-write (processes no longer running)."""
     for leftover in path.parent.glob(f".{path.name}.tmp-*"):
         pid = leftover.name.rpartition("-")[2]
         if not pid.isdigit() or int(pid) == os.getpid():
@@ -106,15 +83,12 @@ def read_checkpoint(path: str | Path) -> tuple[dict[str, np.ndarray], dict]:
 
 
 def read_header(path: str | Path) -> dict:
-    """The header of a checkpoint file (format, version, leaves, metadata) without reading its
-    arrays: a quick check that a file is a checkpoint (CheckpointError as `read_checkpoint`, except
-    that a damaged array is only found when it is read)."""
+    """The header of a checkpoint file without reading its arrays (a damaged array goes unnoticed)."""
     return _header(Path(path), _read(Path(path), only=_META).get(_META))
 
 
 def _read(path: Path, only: str | None = None) -> dict[str, np.ndarray]:
-    """The arrays of an .npz file (only the one named `only`, if given); CheckpointError for a
-    missing file, or one that is not an .npz of plain arrays or is truncated or corrupt."""
+    """The arrays of an .npz file (only `only`, if given); CheckpointError unless a sound .npz of plain arrays."""
     if not path.is_file():
         raise CheckpointError(f"{path}: no such checkpoint file")
     try:
@@ -147,26 +121,19 @@ def _header(path: Path, stored: np.ndarray | None) -> dict:
     if header.get("format") != FORMAT:
         raise CheckpointError(f"{path}: not an hte-jax checkpoint (format {header.get('format')!r})")
     if header.get("version") != FORMAT_VERSION:
-        raise CheckpointError(
-            f"{path}: checkpoint format version {header.get('version')!r} is not supported "
-            f"(this hte-jax reads version {FORMAT_VERSION})"
-        )
+        raise CheckpointError(f"{path}: checkpoint format version {header.get('version')!r} is not supported "
+                              f"(this hte-jax reads version {FORMAT_VERSION})")
     return header
 
 
 def load_checkpoint(path: str | Path, template: Any, expected_metadata: dict | None = None) -> Any:
-    """Load a checkpoint into the structure of `template`, checking names, shapes and dtypes.
-
-    expected_metadata: if given, every key in it must equal the stored metadata's value.
-    """
+    """Load a checkpoint into `template`'s structure, checking leaves and every key of `expected_metadata`."""
     arrays, header = read_checkpoint(path)
     stored = header.get("metadata", {})
     for key, value in (expected_metadata or {}).items():
         if jsonable(value) != stored.get(key):
-            raise CheckpointError(
-                f"{path}: checkpoint was written with {key} = {stored.get(key)!r}, "
-                f"this run has {key} = {jsonable(value)!r}"
-            )
+            raise CheckpointError(f"{path}: checkpoint was written with {key} = {stored.get(key)!r}, "
+                                  f"this run has {key} = {jsonable(value)!r}")
     leaves, treedef = jax.tree_util.tree_flatten_with_path(template)
     restored = []
     for leaf_path, leaf in leaves:
@@ -214,13 +181,8 @@ def _read_config(path: Path) -> dict:
 
 
 def prepare_run_dir(out: str | Path, config: dict, resume_run: bool, normalise: Callable[[dict], dict] | None = None) -> Path:
-    """Start a run folder holding `config.json`, or check that the run already in it has `config`.
-
-    normalise: reads a stored config as today's code would (say, filling in the defaults of
-    settings added since the run started), before comparing.
-    Raises ConfigError (naming the differing top-level keys) when the folder holds another run,
-    or holds a run and `resume_run` is False.
-    """
+    """Start a run folder holding `config.json`, or check that its run has `config` (the stored one `normalise`d);
+    ConfigError naming the differing top-level keys, or for any run without `resume_run`."""
     out = Path(out)
     config_path = out / "config.json"
     wanted = jsonable(config)
@@ -241,35 +203,21 @@ def prepare_run_dir(out: str | Path, config: dict, resume_run: bool, normalise: 
 
 def elite_arrays(repertoire: Repertoire, prefix: str = "") -> dict[str, np.ndarray]:
     """The filled rows of a Repertoire as flat arrays `<prefix>slots/genotypes/descriptors/fitnesses/extra_*`."""
-    filled = np.asarray(repertoire.filled)
-    rows = np.flatnonzero(filled)
-    out = {
-        "slots": rows.astype(np.int32),
-        "genotypes": np.asarray(repertoire.genotypes)[rows],
-        "descriptors": np.asarray(repertoire.descriptors)[rows],
-        "fitnesses": np.asarray(repertoire.fitnesses)[rows],
-    }
-    for name, value in repertoire.extras.items():
-        out[f"extra_{name}"] = np.asarray(value)[rows]
+    rows = np.flatnonzero(np.asarray(repertoire.filled))
+    out = {"slots": rows.astype(np.int32), "genotypes": np.asarray(repertoire.genotypes)[rows],
+           "descriptors": np.asarray(repertoire.descriptors)[rows], "fitnesses": np.asarray(repertoire.fitnesses)[rows],
+           **{f"extra_{name}": np.asarray(value)[rows] for name, value in repertoire.extras.items()}}
     return {f"{prefix}{name}": value for name, value in out.items()}
 
 
-def rebuild_repertoire(
-    path, arrays: dict, prefix: str, capacity: int, genes: int, dims: int, extras: dict,
-    low: tuple[float, ...] | None = None, high: tuple[float, ...] | None = None,
-) -> Repertoire:
-    """Inverse of `elite_arrays`: a fixed-size Repertoire, every array checked.
-
-    extras: {name: (shape without rows, numpy dtype)}. low / high: the descriptors' bounds per
-    dimension (None: [0, 1]). Raises CheckpointError naming the missing or wrong-shaped array,
-    non-finite values, genotypes outside [0, 1], descriptors outside their bounds, or slots that
-    are not unique indices below `capacity`.
-    """
+def rebuild_repertoire(path, arrays: dict, prefix: str, capacity: int, genes: int, dims: int, extras: dict,
+                       low: tuple[float, ...] | None = None, high: tuple[float, ...] | None = None) -> Repertoire:
+    """Inverse of `elite_arrays`: a fixed-size Repertoire. extras: {name: (shape without rows, numpy dtype)};
+    low / high: descriptor bounds (None: [0, 1]). CheckpointError for a missing or wrong-shaped array,
+    non-finite values, genotypes or descriptors out of bounds, or slots not unique indices below `capacity`."""
     want = {"slots": ((), np.int32), "genotypes": ((genes,), np.float32), "descriptors": ((dims,), np.float32),
-            "fitnesses": ((), np.float32)}
-    want.update({f"extra_{name}": spec for name, spec in extras.items()})
-    columns = {}
-    rows = None
+            "fitnesses": ((), np.float32), **{f"extra_{name}": spec for name, spec in extras.items()}}
+    columns, rows = {}, None
     for name, (shape, dtype) in want.items():
         key = f"{prefix}{name}"
         if key not in arrays:
@@ -278,9 +226,8 @@ def rebuild_repertoire(
         if rows is None:
             rows = value.shape[0] if value.ndim else -1
         if value.dtype != dtype or value.shape != (rows, *shape):
-            raise CheckpointError(
-                f"{path}: {key} has shape {value.shape} and dtype {value.dtype}, expected {(rows, *shape)} {np.dtype(dtype)}"
-            )
+            raise CheckpointError(f"{path}: {key} has shape {value.shape} and dtype {value.dtype}, "
+                                  f"expected {(rows, *shape)} {np.dtype(dtype)}")
         if value.dtype.kind == "f" and not np.isfinite(value).all():
             raise CheckpointError(f"{path}: {key} holds NaN or inf values")
         columns[name] = value
@@ -301,12 +248,6 @@ def rebuild_repertoire(
         store[slots] = values
         return jnp.asarray(store)
 
-    filled = np.zeros(capacity, bool)
-    filled[slots] = True
-    return Repertoire(
-        genotypes=scatter(columns["genotypes"], 0),
-        descriptors=scatter(columns["descriptors"], 0),
-        fitnesses=scatter(columns["fitnesses"], EMPTY_FITNESS),
-        filled=jnp.asarray(filled),
-        extras={name: scatter(columns[f"extra_{name}"], 0) for name in extras},
-    )
+    return Repertoire(genotypes=scatter(columns["genotypes"], 0), descriptors=scatter(columns["descriptors"], 0),
+                      fitnesses=scatter(columns["fitnesses"], EMPTY_FITNESS), filled=scatter(np.ones(rows, bool), 0),
+                      extras={name: scatter(columns[f"extra_{name}"], 0) for name in extras})

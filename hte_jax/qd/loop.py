@@ -1,11 +1,4 @@
-"""MAP-Elites as pure `init` / `ask` / `tell` functions plus a thin host-side runner.
-
-A generation is one jitted call: the emitter (`qd.emitters`; by default parents selected among
-the elites, then varied) makes a batch, the user's `evaluate` evaluates the whole batch in one
-call, the container inserts it and the emitter sees the outcome. Blocks of generations
-run under `lax.scan`; between blocks the host shows progress, logs metrics to CSV and writes
-a checkpoint, so a killed run resumes where it stopped and gives bit-identical results.
-"""
+"""MAP-Elites as pure `init` / `ask` / `tell` functions, run in jitted blocks of generations with atomic checkpoints."""
 
 from __future__ import annotations
 
@@ -38,25 +31,16 @@ EvaluateFn = Callable[[jax.Array, jax.Array], Evaluation]
 
 @dataclasses.dataclass(frozen=True)
 class MapElitesConfig:
-    """Hyper-parameters (hashable; the original's values per layer are in docs/design.md).
+    """Hyper-parameters (hashable; the original's per layer in docs/design.md); a `MapElites` given its own emitter
+    reads only batch_size, init_size and qd_offset."""
 
-    batch_size: offspring per generation. init_size: random individuals evaluated first
-    (a multiple of batch_size). mutation_rate / eta_m: per-gene polynomial mutation.
-    crossover_rate / eta_c: fraction of offspring made by SBX crossover before mutation.
-    qd_offset: fitness lower bound used by the QD score.
-    parents: parent selection (`qd.selection.SelectionConfig`, inlined: settings selection,
-      density_bins, density_dims, frontier_fraction, frontier_angle_bins, frontier_level_bins).
-    These settings make the default emitter (`emitters.config_emitter`); a `MapElites` given its
-    own emitter reads only batch_size, init_size and qd_offset.
-    """
-
-    batch_size: int = 200
-    init_size: int = 200
-    mutation_rate: float = 0.14
+    batch_size: int = 200  # offspring per generation
+    init_size: int = 200  # random individuals first, a multiple of batch_size
+    mutation_rate: float = 0.14  # per gene, polynomial mutation
     eta_m: float = 10.0
-    crossover_rate: float = 0.0
+    crossover_rate: float = 0.0  # share of offspring made by SBX crossover
     eta_c: float = 10.0
-    qd_offset: float = 0.0
+    qd_offset: float = 0.0  # fitness lower bound of the QD score
     parents: SelectionConfig = inline(SelectionConfig())
 
     def __post_init__(self):
@@ -73,13 +57,8 @@ class MapElitesConfig:
 
 @struct.dataclass
 class QDState:
-    """Everything a run needs to continue.
-
-    repertoire: the container's Repertoire.
-    key: (2,) uint32 PRNG key for the next generation.
-    generation: int32 scalar, generations done after the initial batch.
-    emitter_state: the emitter's state (`emitters.EmptyState`, no arrays, for stateless ones).
-    """
+    """Everything a run needs to continue: the container's repertoire, key (2,) uint32 (the next generation's),
+    generation (int32 scalar, done after the initial batch), emitter_state (`emitters.EmptyState`: stateless)."""
 
     repertoire: Repertoire
     key: jax.Array
@@ -87,44 +66,48 @@ class QDState:
     emitter_state: Any
 
 
-@dataclasses.dataclass(frozen=True, eq=False)
-class MapElites:
-    """A MAP-Elites algorithm: a container (`Grid` or `Archive`), an evaluation, a config.
+def spec_config(spec: TaskSpec, config: MapElitesConfig) -> MapElitesConfig:
+    """`config` with the spec's qd_offset (if it has one); ConfigError if the spec has no evaluation."""
+    if spec.evaluate is None:
+        raise ConfigError(f"task {spec.name!r} has no evaluation; give it one with spec.with_evaluate(...)")
+    return config if spec.qd_offset is None else dataclasses.replace(config, qd_offset=spec.qd_offset)
 
-    genotype_dim: genes per individual, each in [0, 1].
-    extras: example pytree of per-individual extras the evaluation returns (shapes without B).
-    emitter: makes the offspring (`qd.emitters`); None: the one `config` describes.
-    mesh: the devices every batch is evaluated on, its rows spread over them and everything else
-      replicated (`sharding.batch_mesh`); None: all visible devices. Results do not depend on it.
-    """
+
+def scan_generations(step: Callable, state: QDState, generations: int, mesh: Mesh) -> tuple[QDState, jax.Array]:
+    """`generations` calls of `step` (state -> (state, accepted)) under lax.scan: (state, total accepted) on `mesh`."""
+    state, accepted = jax.lax.scan(lambda s, _: step(s), state, None, length=generations)
+    return sharding.replicate((state, accepted.sum()), mesh)
+
+
+class OnMesh:
+    """`active_mesh`, the `mesh` field or (None) all visible devices, and `place`, a state replicated on it."""
+
+    @functools.cached_property
+    def active_mesh(self) -> Mesh:
+        return sharding.batch_mesh() if self.mesh is None else self.mesh
+
+    def place(self, state: QDState) -> QDState:
+        return sharding.put_replicated(state, self.active_mesh)
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class MapElites(OnMesh):
+    """A MAP-Elites algorithm: a container (`Grid` or `Archive`), an evaluation of genotype_dim genes in [0, 1]."""
 
     container: Any
     evaluate: EvaluateFn
     genotype_dim: int
     config: MapElitesConfig = MapElitesConfig()
-    extras: Any = None
-    emitter: Emitter | None = None
-    mesh: Mesh | None = None
+    extras: Any = None  # example pytree of the evaluation's per-individual extras (shapes without B)
+    emitter: Emitter | None = None  # None: the one `config` describes
+    mesh: Mesh | None = None  # the devices a batch's rows are spread over (None: all); results do not depend on it
 
     @classmethod
     def from_spec(cls, spec: TaskSpec, config: MapElitesConfig = MapElitesConfig(), emitter: Emitter | None = None,
                   mesh: Mesh | None = None) -> MapElites:
-        """The MAP-Elites of a task spec: its container, evaluation, genotype size and extras, and
-        `config` with the spec's qd_offset (when the spec has one)."""
-        if spec.evaluate is None:
-            raise ConfigError(f"task {spec.name!r} has no evaluation; give it one with spec.with_evaluate(...)")
-        if spec.qd_offset is not None:
-            config = dataclasses.replace(config, qd_offset=spec.qd_offset)
+        """The MAP-Elites of a task spec, `config` with the spec's qd_offset (`spec_config`)."""
+        config = spec_config(spec, config)
         return cls(spec.container, spec.evaluate, spec.genotype_dim, config, spec.extras_example(), emitter, mesh)
-
-    @functools.cached_property
-    def active_mesh(self) -> Mesh:
-        """`mesh`, or one over all visible devices."""
-        return sharding.batch_mesh() if self.mesh is None else self.mesh
-
-    def place(self, state: QDState) -> QDState:
-        """`state` (from `init`, a checkpoint, another run) replicated on the mesh's devices."""
-        return sharding.put_replicated(state, self.active_mesh)
 
     def evaluate_batch(self, key: jax.Array, genotypes: jax.Array) -> Evaluation:
         """`evaluate`, its rollouts' rows spread over the mesh (`sharding.spread_over`)."""
@@ -133,7 +116,6 @@ class MapElites:
 
     @functools.cached_property
     def active_emitter(self) -> Emitter:
-        """`emitter`, or the one `config` describes."""
         return config_emitter(self.config, self.container) if self.emitter is None else self.emitter
 
     def evaluations(self, state: QDState) -> int:
@@ -143,12 +125,7 @@ class MapElites:
     def empty_state(self, key: jax.Array) -> QDState:
         """A state with an empty repertoire (also the template checkpoints are loaded into)."""
         repertoire = self.container.empty(self.genotype_dim, self.extras)
-        return QDState(
-            repertoire=repertoire,
-            key=key,
-            generation=jnp.int32(0),
-            emitter_state=self.active_emitter.init(repertoire, key),
-        )
+        return QDState(repertoire, key, jnp.int32(0), self.active_emitter.init(repertoire, key))
 
     @functools.partial(jax.jit, static_argnums=0)
     def init(self, key: jax.Array) -> QDState:
@@ -168,18 +145,12 @@ class MapElites:
         emitter_state = self.active_emitter.init(repertoire, key_emitter)
         return sharding.replicate(state.replace(repertoire=repertoire, emitter_state=emitter_state), self.active_mesh)
 
-    def select(self, repertoire: Repertoire, key: jax.Array) -> jax.Array:
-        """(batch_size,) parent slots, by the emitter's selection (emitters that select parents)."""
-        return self.active_emitter.select(repertoire, key)
-
     def ask(self, repertoire: Repertoire, emitter_state: Any, key: jax.Array) -> tuple[jax.Array, Any]:
         """(batch_size, G) offspring and the emitter's new state."""
         genotypes, emitter_state = self.active_emitter.emit(repertoire, emitter_state, key)
         if genotypes.shape != (self.config.batch_size, self.genotype_dim):
-            raise ConfigError(
-                f"the emitter made genotypes of shape {genotypes.shape}, "
-                f"expected (batch_size, genotype_dim) = {(self.config.batch_size, self.genotype_dim)}"
-            )
+            raise ConfigError(f"the emitter made genotypes of shape {genotypes.shape}, expected (batch_size, "
+                              f"genotype_dim) = {(self.config.batch_size, self.genotype_dim)}")
         return genotypes, emitter_state
 
     def tell(self, repertoire: Repertoire, emitter_state: Any, genotypes: jax.Array, evaluation: Evaluation):
@@ -199,50 +170,29 @@ class MapElites:
 
     @functools.partial(jax.jit, static_argnums=(0, 2))
     def run_block(self, state: QDState, generations: int) -> tuple[QDState, jax.Array]:
-        """`generations` generations under lax.scan; returns the state and the accepted count."""
-        state, accepted = jax.lax.scan(lambda s, _: self.generation_step(s), state, None, length=generations)
-        return sharding.replicate((state, accepted.sum()), self.active_mesh)
+        return scan_generations(self.generation_step, state, generations, self.active_mesh)
 
     @functools.partial(jax.jit, static_argnums=0)
     def metrics(self, state: QDState) -> RepertoireMetrics:
         return repertoire_metrics(state.repertoire, self.config.qd_offset)
 
     def checkpoint_metadata(self) -> dict:
-        """What must match for a checkpoint to be resumed by this algorithm: the container, the
-        config without the fields of selections other than its own (`qd.selection.SELECTIONS`),
-        the genotype size and, for an emitter given explicitly, its repr."""
+        """What a resumed checkpoint must match (the config without other selections' fields, `SELECTIONS`)."""
         read = SELECTIONS[self.config.parents.selection][1]
         unread = {name for _, fields in SELECTIONS.values() for name in fields} - set(read)
         config = {key: value for key, value in config_dict(self.config).items() if key not in unread}
-        metadata = {
-            "container": container_metadata(self.container),
-            "config": config,
-            "genotype_dim": self.genotype_dim,
-        }
+        metadata = {"container": container_metadata(self.container), "config": config,
+                    "genotype_dim": self.genotype_dim}
         if self.emitter is not None:
             metadata["emitter"] = repr(self.emitter)
         return metadata
 
 
-def run(
-    algo: MapElites,
-    state: QDState,
-    generations: int,
-    *,
-    block_size: int = 10,
-    log_path: str | Path | None = None,
-    checkpoint_path: str | Path | None = None,
-    progress: bool = True,
-    on_block: Callable[[int, QDState, dict], None] | None = None,
-    description: str | None = None,
-) -> QDState:
-    """Run until `state.generation == generations`, one jitted block of generations at a time.
-
-    After every block: a replica-consistency check (every device holds the same state, else
-    `sharding.ReplicaMismatchError`), one CSV row (if log_path), an atomic checkpoint (if
-    checkpoint_path, written by process 0 only), the progress bar, and `on_block(block, state, row)`. Starting from a resumed state runs
-    only the remaining generations; block boundaries stay at multiples of block_size.
-    """
+def run(algo: MapElites, state: QDState, generations: int, *, block_size: int = 10, log_path: str | Path | None = None,
+        checkpoint_path: str | Path | None = None, progress: bool = True,
+        on_block: Callable[[int, QDState, dict], None] | None = None, description: str | None = None) -> QDState:
+    """Run until `state.generation == generations` in jitted blocks (at multiples of block_size), each followed by a
+    replica check, a CSV row, an atomic checkpoint (process 0), the progress bar and `on_block(block, state, row)`."""
     require_int("block_size", block_size)
     log = MetricsLog(log_path) if log_path is not None and jax.process_index() == 0 else None
     done = int(state.generation)
@@ -254,18 +204,9 @@ def run(
 
     def record(block, accepted):
         metrics = jax.device_get(algo.metrics(state))
-        row = {
-            "block": block,
-            "generation": int(state.generation),
-            "evaluations": algo.evaluations(state),
-            "filled": metrics.filled,
-            "coverage": metrics.coverage,
-            "qd_score": metrics.qd_score,
-            "mean_fitness": metrics.mean_fitness,
-            "max_fitness": metrics.max_fitness,
-            "accepted": metrics.filled if accepted is None else accepted,
-            "wall_time_s": time.perf_counter() - start,
-        }
+        row = {"block": block, "generation": int(state.generation), "evaluations": algo.evaluations(state),
+               **dataclasses.asdict(metrics), "accepted": metrics.filled if accepted is None else accepted,
+               "wall_time_s": time.perf_counter() - start}
         if log is not None:
             log.append(row)
         return metrics, row

@@ -1,9 +1,4 @@
-"""Repertoire metrics and their CSV log.
-
-QD score = sum over filled slots of (fitness - offset). The offset is a lower bound of the
-task's fitness (e.g. -pi for the hexapod's angle-error fitness, which lies in [-pi, 0]), so
-every elite adds a non-negative amount and the score can only grow when cells fill.
-"""
+"""Repertoire metrics and CSV log; QD score = sum of (fitness - offset), offset a fitness lower bound: it only grows."""
 
 from __future__ import annotations
 
@@ -17,27 +12,14 @@ from flax import struct
 
 from hte_jax.qd.repertoire import Repertoire
 
-FIELDS = (
-    "block",
-    "generation",
-    "evaluations",
-    "filled",
-    "coverage",
-    "qd_score",
-    "mean_fitness",
-    "max_fitness",
-    "accepted",
-    "wall_time_s",
-)
+FIELDS = ("block", "generation", "evaluations", "filled", "coverage", "qd_score", "mean_fitness", "max_fitness",
+          "accepted", "wall_time_s")
 
 
 @struct.dataclass
 class RepertoireMetrics:
-    """Scalars describing a repertoire (all 0-d arrays).
-
-    filled: number of elites; coverage: filled / capacity; qd_score: sum(fitness - offset);
-    mean_fitness, max_fitness: over elites (NaN when empty).
-    """
+    """0-d arrays: filled (elites), coverage (filled / capacity), qd_score (sum of fitness - offset), and
+    mean_fitness, max_fitness over elites (NaN when empty)."""
 
     filled: jax.Array
     coverage: jax.Array
@@ -49,15 +31,11 @@ class RepertoireMetrics:
 def repertoire_metrics(repertoire: Repertoire, offset: float) -> RepertoireMetrics:
     filled = repertoire.filled
     count = filled.sum(dtype=jnp.int32)
-    fitness = jnp.where(filled, repertoire.fitnesses, 0.0)
-    total = fitness.sum()
-    return RepertoireMetrics(
-        filled=count,
-        coverage=count / repertoire.capacity,
-        qd_score=total - offset * count,
-        mean_fitness=jnp.where(count > 0, total / jnp.maximum(count, 1), jnp.nan),
-        max_fitness=jnp.where(count > 0, jnp.where(filled, repertoire.fitnesses, -jnp.inf).max(), jnp.nan),
-    )
+    total = jnp.where(filled, repertoire.fitnesses, 0.0).sum()
+    best = jnp.where(filled, repertoire.fitnesses, -jnp.inf).max()
+    return RepertoireMetrics(filled=count, coverage=count / repertoire.capacity, qd_score=total - offset * count,
+                             mean_fitness=jnp.where(count > 0, total / jnp.maximum(count, 1), jnp.nan),
+                             max_fitness=jnp.where(count > 0, best, jnp.nan))
 
 
 class MetricsLog:
@@ -69,10 +47,8 @@ class MetricsLog:
 
     def truncate_after(self, block: int) -> None:
         """Drop rows of blocks > `block` (written after the checkpoint a run resumes from)."""
-        if not self.path.exists():
-            return
-        rows = [r for r in self.read() if int(r["block"]) <= block]
-        self._write(rows, mode="w")
+        if self.path.exists():
+            self._write([r for r in self.read() if int(r["block"]) <= block], mode="w")
 
     def append(self, row: dict) -> None:
         self._write([row], mode="a")
@@ -97,13 +73,9 @@ def _plain(value):
 
 
 def projected_statistics(descriptors, fitnesses, filled, bins: int) -> dict:
-    """The paper's Table 2 columns for one repertoire, on the host.
-
-    descriptors (C, D) whose first two dimensions are x, y in [0, 1]; fitnesses (C,); filled (C,).
-    Returns: "size" (elites), "effective_size" (cells of the bins x bins x-y grid holding at least
-    one elite), "mean_fitness" (mean over those cells of the best elite in each, i.e. the 2-D
-    repertoire a planner sees), "mean_fitness_all" (mean over all elites).
-    """
+    """The paper's Table 2 columns of a repertoire (host): descriptors (C, D), the first two x, y in [0, 1];
+    fitnesses (C,); filled (C,). "size": elites; "effective_size": occupied cells of a bins x bins x-y grid;
+    "mean_fitness": mean of those cells' best (what a planner sees); "mean_fitness_all": mean of all elites."""
     filled = np.asarray(filled, bool)
     xy = np.asarray(descriptors, np.float64)[filled, :2]
     fitness = np.asarray(fitnesses, np.float64)[filled]
@@ -112,9 +84,6 @@ def projected_statistics(descriptors, fitnesses, filled, bins: int) -> dict:
     best = np.full(bins * bins, -np.inf)
     np.maximum.at(best, flat, fitness)
     best = best[np.isfinite(best)]
-    return {
-        "size": int(filled.sum()),
-        "effective_size": int(best.size),
-        "mean_fitness": float(best.mean()) if best.size else float("nan"),
-        "mean_fitness_all": float(fitness.mean()) if fitness.size else float("nan"),
-    }
+    return {"size": int(filled.sum()), "effective_size": int(best.size),
+            "mean_fitness": float(best.mean()) if best.size else float("nan"),
+            "mean_fitness_all": float(fitness.mean()) if fitness.size else float("nan")}

@@ -1,9 +1,4 @@
-"""The data every container stores: a fixed-size block of elites, with explicit empty slots.
-
-Containers (`Grid`, `Archive`) are static, hashable descriptions with pure `add` functions;
-the `Repertoire` below is the pytree they read and write. Genotype, descriptor, fitness and
-extras of an elite are always written together, in one masked scatter.
-"""
+"""The pytree every container reads and writes: a fixed-size block of elites with explicit empty slots."""
 
 from __future__ import annotations
 
@@ -18,14 +13,8 @@ EMPTY_FITNESS = -jnp.inf
 
 @struct.dataclass
 class Repertoire:
-    """Elites of a container with C slots, genotypes of size G, descriptors of size D.
-
-    genotypes: (C, G) float32, zeros where empty.
-    descriptors: (C, D) float32, zeros where empty.
-    fitnesses: (C,) float32, -inf where empty.
-    filled: (C,) bool, which slots hold an elite.
-    extras: pytree of (C, ...) arrays stored with each elite (e.g. per-elite metadata), or {}.
-    """
+    """Elites of a container with C slots: genotypes (C, G) and descriptors (C, D) float32, zeros where empty;
+    fitnesses (C,) float32, -inf where empty; filled (C,) bool; extras: pytree of (C, ...) per-elite arrays, or {}."""
 
     genotypes: jax.Array
     descriptors: jax.Array
@@ -45,13 +34,8 @@ class Repertoire:
 
 @struct.dataclass
 class Evaluation:
-    """What an evaluation returns for B individuals.
-
-    fitnesses: (B,) float32 (higher is better).
-    descriptors: (B, D) float32.
-    valid: (B,) bool; invalid individuals are never inserted.
-    extras: pytree of (B, ...) arrays stored with inserted elites, or {}.
-    """
+    """What an evaluation returns for B individuals: fitnesses (B,) float32 (higher is better), descriptors
+    (B, D) float32, valid (B,) bool (invalid ones are never inserted), extras: pytree of (B, ...) arrays, or {}."""
 
     fitnesses: jax.Array
     descriptors: jax.Array
@@ -61,12 +45,8 @@ class Evaluation:
 
 @struct.dataclass
 class Insertion:
-    """Outcome of adding a batch of B individuals.
-
-    accepted: (B,) bool, the individual is now an elite.
-    new_slot: (B,) bool, it took a slot that was empty (grid: new cell; archive: new entry).
-    slot: (B,) int32, where it went, -1 if rejected.
-    """
+    """Outcome of adding B individuals: accepted (B,) bool, now an elite; new_slot (B,) bool, in a slot that was
+    empty; slot (B,) int32, where it went (-1: rejected)."""
 
     accepted: jax.Array
     new_slot: jax.Array
@@ -76,40 +56,29 @@ class Insertion:
 def empty_repertoire(capacity: int, genotype_dim: int, descriptor_dim: int, extras: Any = None) -> Repertoire:
     """An empty repertoire; `extras` is a pytree of per-elite example arrays (shapes without C)."""
     extras = {} if extras is None else extras
-    return Repertoire(
-        genotypes=jnp.zeros((capacity, genotype_dim), jnp.float32),
-        descriptors=jnp.zeros((capacity, descriptor_dim), jnp.float32),
-        fitnesses=jnp.full((capacity,), EMPTY_FITNESS, jnp.float32),
-        filled=jnp.zeros((capacity,), bool),
-        extras=jax.tree.map(lambda x: jnp.zeros((capacity, *jnp.shape(x)), jnp.asarray(x).dtype), extras),
-    )
+    return Repertoire(genotypes=jnp.zeros((capacity, genotype_dim), jnp.float32),
+                      descriptors=jnp.zeros((capacity, descriptor_dim), jnp.float32),
+                      fitnesses=jnp.full((capacity,), EMPTY_FITNESS, jnp.float32), filled=jnp.zeros((capacity,), bool),
+                      extras=jax.tree.map(lambda x: jnp.zeros((capacity, *jnp.shape(x)), jnp.asarray(x).dtype), extras))
 
 
 def write(repertoire: Repertoire, slot: jax.Array, genotypes, evaluation: Evaluation) -> Repertoire:
-    """Write the rows of a batch into `slot` (B,) int32; rows with slot -1 are skipped.
-
-    Slots must be unique among the rows written (containers guarantee it), so the scatter
-    is deterministic.
-    """
+    """Write a batch's rows into `slot` (B,) int32 (-1: skipped; unique, so the scatter is deterministic)."""
     target = jnp.where(slot >= 0, slot, repertoire.capacity)  # out of range -> dropped
 
     def put(store, rows):
         return store.at[target].set(rows.astype(store.dtype), mode="drop")
 
     return repertoire.replace(
-        genotypes=put(repertoire.genotypes, genotypes),
-        descriptors=put(repertoire.descriptors, evaluation.descriptors),
+        genotypes=put(repertoire.genotypes, genotypes), descriptors=put(repertoire.descriptors, evaluation.descriptors),
         fitnesses=put(repertoire.fitnesses, evaluation.fitnesses),
         filled=put(repertoire.filled, jnp.ones_like(slot, bool)),
-        extras=jax.tree.map(put, repertoire.extras, evaluation.extras),
-    )
+        extras=jax.tree.map(put, repertoire.extras, evaluation.extras))
 
 
 def best_per_target(fitness: jax.Array, target: jax.Array, candidate: jax.Array, num_targets: int) -> jax.Array:
-    """(B,) bool: the candidate with the highest fitness for its target, ties to the first in the batch.
-
-    fitness (B,); target (B,) int in [0, num_targets); candidate (B,) bool marks who competes.
-    """
+    """(B,) bool: the candidate with the highest fitness (B,) for its target (B,) int in [0, num_targets), ties
+    to the first in the batch; candidate (B,) bool marks who competes."""
     batch = fitness.shape[0]
     order = jnp.arange(batch, dtype=jnp.int32)
     segment = jnp.where(candidate, target, num_targets)  # non-candidates share a dummy segment
@@ -121,8 +90,4 @@ def best_per_target(fitness: jax.Array, target: jax.Array, candidate: jax.Array,
 
 def insertable(evaluation: Evaluation) -> jax.Array:
     """(B,) bool: valid, finite fitness and finite descriptors."""
-    return (
-        evaluation.valid
-        & jnp.isfinite(evaluation.fitnesses)
-        & jnp.isfinite(evaluation.descriptors).all(axis=-1)
-    )
+    return evaluation.valid & jnp.isfinite(evaluation.fitnesses) & jnp.isfinite(evaluation.descriptors).all(axis=-1)

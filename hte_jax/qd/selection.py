@@ -1,9 +1,4 @@
-"""Parent selection: which elites get offspring. Functions, the objects emitters hold, the
-registry of the selections `SelectionConfig.selection` can name, and their settings (`SelectionConfig`).
-
-A selection object has `select(key, repertoire, num) -> (num,) int32 slots` of filled slots
-(drawn with replacement) and a `from_config(config, container)` class method (config: a `SelectionConfig`).
-"""
+"""Parent selection: objects with `select(key, repertoire, num) -> (num,) int32` filled slots, with replacement."""
 
 from __future__ import annotations
 
@@ -18,34 +13,22 @@ from hte_jax.qd.repertoire import Repertoire
 
 MAX_DENSITY_CELLS = 1 << 22
 
-# name -> ("module:Class" of the selection object, the SelectionConfig fields it reads). The
-# fields are recorded in checkpoints: uniform records none (not even `selection`), as before
-# selection was a setting, so old checkpoints resume; a new entry should list "selection".
-# A class is imported when first used: "frontier" is the hexapod's and lives in `hte_jax.hbr`.
+# name -> ("module:Class", imported when first used, the SelectionConfig fields it reads, which checkpoints
+# record). Uniform records none (not even `selection`) so that checkpoints older than the setting resume.
 SELECTIONS: dict[str, tuple[str, tuple[str, ...]]] = {
     "uniform": ("hte_jax.qd.selection:UniformSelection", ()),
     "density": ("hte_jax.qd.selection:DensitySelection", ("selection", "density_bins", "density_dims")),
-    "frontier": (
-        "hte_jax.hbr.selection:FrontierSelection",
-        ("selection", "frontier_fraction", "frontier_angle_bins", "frontier_level_bins"),
-    ),
+    "frontier": ("hte_jax.hbr.selection:FrontierSelection",
+                 ("selection", "frontier_fraction", "frontier_angle_bins", "frontier_level_bins")),
 }
 
 
 @dataclasses.dataclass(frozen=True)
 class SelectionConfig:
-    """How parents are selected: the settings of the selections in `SELECTIONS` (inlined in
-    `MapElitesConfig` and `hbr.training.LayerSchedule`: stored and overridden by these names).
+    """The settings of `SELECTIONS` (inlined in `MapElitesConfig` and `LayerSchedule`)."""
 
-    selection: "uniform" (every elite equally likely, the original's) or "density" (every occupied
-      cell of a coarse `density_bins`^`density_dims` grid over the first `density_dims`
-      descriptor dimensions, all of them if the container has fewer, equally likely;
-      `density_selection`) or "frontier" (a share `frontier_fraction` of every batch drawn among
-      the elites farthest from the centre of the plane of the first two descriptors, one per cell
-      of `frontier_angle_bins` sectors x `frontier_level_bins` levels of the third descriptor, the
-      rest uniformly; `hte_jax.hbr.selection`).
-    """
-
+    # "uniform" (the original's), "density" (`density_selection` over a density_bins^density_dims grid) or "frontier"
+    # (`hbr.selection`: a share frontier_fraction among the outermost elites of angle x level bins, the rest uniformly)
     selection: str = "uniform"
     density_bins: int = 16
     density_dims: int = 3
@@ -58,9 +41,8 @@ class SelectionConfig:
         require_int("density_bins", self.density_bins)
         require_int("density_dims", self.density_dims)
         if self.density_bins**self.density_dims > MAX_DENSITY_CELLS:
-            raise ConfigError(
-                f"density_bins^density_dims = {self.density_bins}^{self.density_dims} exceeds {MAX_DENSITY_CELLS} cells"
-            )
+            raise ConfigError(f"density_bins^density_dims = {self.density_bins}^{self.density_dims} exceeds "
+                              f"{MAX_DENSITY_CELLS} cells")
         require_number("frontier_fraction", self.frontier_fraction, 0.0, 1.0)
         require_int("frontier_angle_bins", self.frontier_angle_bins)
         require_int("frontier_level_bins", self.frontier_level_bins)
@@ -72,34 +54,17 @@ def selection_from_config(config: SelectionConfig, container):
     return getattr(importlib.import_module(module), name).from_config(config, container)
 
 
-def uniform_selection(key: jax.Array, repertoire: Repertoire, num: int) -> jax.Array:
-    """(num,) slots drawn uniformly, with replacement, among the filled ones.
-
-    Draws a rank r in [0, filled count) and returns the slot of the r-th filled slot
-    (O(capacity + num log capacity), whatever the capacity). An empty repertoire has nothing
-    to select: the caller must fill it first (MAP-Elites' initial random batch does).
-    """
-    return uniform_among(key, repertoire.filled, num)
-
-
 def uniform_among(key: jax.Array, mask: jax.Array, num: int) -> jax.Array:
-    """(num,) slots drawn uniformly, with replacement, among those where `mask` (C,) is True."""
+    """(num,) slots drawn uniformly, with replacement, among those where `mask` (C,) is True (by rank)."""
     cumulative = jnp.cumsum(mask, dtype=jnp.int32)
     rank = jax.random.randint(key, (num,), 0, jnp.maximum(cumulative[-1], 1))
     return jnp.searchsorted(cumulative, rank + 1, side="left").astype(jnp.int32)
 
 
-def density_selection(
-    key: jax.Array, repertoire: Repertoire, num: int, low: jax.Array, high: jax.Array, bins: int, dims: int
-) -> jax.Array:
-    """(num,) filled slots drawn with replacement, each with probability proportional to 1 / (the
-    number of elites in its coarse cell): every occupied cell of a `bins`^`dims` grid over the
-    first `dims` descriptor dimensions (bounds low, high) is equally likely, then an elite within it.
-
-    Elites in sparsely filled regions, such as the frontier of what the layer can do, are picked
-    more often than under uniform selection, where densely filled regions (many elites with the
-    same primary descriptor and other secondary ones) take most offspring.
-    """
+def density_selection(key: jax.Array, repertoire: Repertoire, num: int, low: jax.Array, high: jax.Array, bins: int,
+                      dims: int) -> jax.Array:
+    """(num,) filled slots drawn with replacement, every occupied cell of a `bins`^`dims` grid over the first `dims`
+    descriptor dimensions equally likely: sparse regions (a layer's frontier) get more offspring than uniformly."""
     low, high = jnp.asarray(low, jnp.float32)[:dims], jnp.asarray(high, jnp.float32)[:dims]
     scaled = (repertoire.descriptors[:, :dims] - low) / (high - low)
     index = jnp.clip(jnp.floor(scaled * bins), 0, bins - 1).astype(jnp.int32)
@@ -115,20 +80,19 @@ def density_selection(
 
 @dataclasses.dataclass(frozen=True)
 class UniformSelection:
-    """Every elite equally likely (the original's); `uniform_selection`."""
+    """Every elite equally likely (the original's; there must be some)."""
 
     @classmethod
     def from_config(cls, config, container) -> UniformSelection:
         return cls()
 
     def select(self, key: jax.Array, repertoire: Repertoire, num: int) -> jax.Array:
-        return uniform_selection(key, repertoire, num)
+        return uniform_among(key, repertoire.filled, num)
 
 
 @dataclasses.dataclass(frozen=True)
 class DensitySelection:
-    """Every occupied cell of a coarse `bins`^`dims` grid over the first `dims` descriptor
-    dimensions (bounds low, high) equally likely; `density_selection`."""
+    """`density_selection`: every occupied cell of a `bins`^`dims` grid over [low, high] equally likely."""
 
     low: tuple[float, ...]
     high: tuple[float, ...]

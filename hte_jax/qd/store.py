@@ -1,12 +1,5 @@
-"""Repertoire files of any task spec: one Repertoire's elites in a compressed `.npz`, checked on load.
-
-Layout: the elites as `io.elite_arrays` writes them (slots, genotypes, descriptors, fitnesses,
-extra_<name>) and a header with kind "hte_jax.repertoire", the spec's `metadata()` (name,
-genotype size, container, extras) and the caller's metadata. `load_repertoire(path, spec)` reads
-a file back only for a spec with the same metadata and raises `CheckpointError` naming any
-problem. `rebuild_elites`, the spec-driven check of one repertoire's arrays, also reads the HBR
-and flat files (`hbr.store`, `flat.store`), whose layouts predate this one.
-"""
+"""Repertoire files of any task spec: the elites (`io.elite_arrays`) in a compressed `.npz`, its header the spec's
+`metadata()` (a file loads only for the same) and the caller's; `rebuild_elites` also checks HBR and flat files."""
 
 from __future__ import annotations
 
@@ -29,23 +22,19 @@ _RESERVED = ("kind", "kind_version", "task")
 
 def check_repertoire(spec: TaskSpec, repertoire: Repertoire) -> None:
     """Raise ConfigError unless `repertoire` has the spec's capacity, genotype and descriptor sizes and extras."""
-    want = jax.eval_shape(spec.empty)
-    want_leaves, want_tree = jax.tree_util.tree_flatten_with_path(want)
+    want_leaves, want_tree = jax.tree_util.tree_flatten_with_path(jax.eval_shape(spec.empty))
     got_leaves, got_tree = jax.tree_util.tree_flatten_with_path(repertoire)
     if want_tree != got_tree:
         raise ConfigError(f"task {spec.name!r}: the repertoire's fields {got_tree} are not the spec's {want_tree}")
     for (path, expected), (_, leaf) in zip(want_leaves, got_leaves):
         if tuple(np.shape(leaf)) != expected.shape or np.asarray(leaf).dtype != expected.dtype:
             name = jax.tree_util.keystr(path)
-            raise ConfigError(
-                f"task {spec.name!r}: repertoire{name} is {np.shape(leaf)} {np.asarray(leaf).dtype}, "
-                f"the spec's is {expected.shape} {expected.dtype}"
-            )
+            raise ConfigError(f"task {spec.name!r}: repertoire{name} is {np.shape(leaf)} {np.asarray(leaf).dtype}, "
+                              f"the spec's is {expected.shape} {expected.dtype}")
 
 
 def save_repertoire(path: str | Path, spec: TaskSpec, repertoire: Repertoire, metadata: dict | None = None) -> None:
-    """Atomically write the elites of `repertoire` (compressed) with the spec and JSON-able `metadata`
-    (whose keys must not be "kind", "kind_version" or "task")."""
+    """Atomically write the elites of `repertoire` (compressed) with the spec and JSON-able `metadata`."""
     check_repertoire(spec, repertoire)
     clash = sorted(set(metadata or {}) & set(_RESERVED))
     if clash:

@@ -1,10 +1,4 @@
-"""A QD problem in one place: what an elite is, where it is kept and how it is evaluated.
-
-A `TaskSpec` is read by the loop (`MapElites.from_spec`, `BatchedMapElites.from_spec`) and by the
-repertoire files (`qd.store`), so a task's genotype size, container and per-elite extras are
-written once. The flat repertoires (`flat.task.flat_spec`) and the HBR layers
-(`hbr.bottom.bottom_spec`, `hbr.middle.middle_spec`, `hbr.top.top_spec`) are such specs.
-"""
+"""A QD problem in one place (what an elite is, where it is kept, how it is evaluated), read by loops and files."""
 
 from __future__ import annotations
 
@@ -17,8 +11,7 @@ import numpy as np
 
 from hte_jax.errors import ConfigError, require_int, require_number
 
-# evaluate(key, genotypes (B, G)) -> Evaluation with B rows, jittable (a batched run passes its
-# condition as a third argument, `BatchedMapElites.from_spec`).
+# evaluate(key, genotypes (B, G)) -> Evaluation with B rows, jittable (+ a condition: `BatchedMapElites`).
 EvaluateFn = Callable[..., Any]
 
 
@@ -29,26 +22,14 @@ def container_metadata(container) -> dict:
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class TaskSpec:
-    """One QD problem (static; the evaluation is compared by identity).
+    """One QD problem (static; the evaluation is compared by identity)."""
 
-    name: label stored in repertoire files (a file is loaded only by a spec of the same name).
-    genotype_dim: G, genes per individual, each in [0, 1].
-    container: `Grid` or `Archive` (its capacity C, descriptor_dim D, low and high).
-    evaluate: `evaluate(key, genotypes (B, G)) -> Evaluation`, or None for a spec that only
-      describes stored repertoires (`with_evaluate` adds one).
-    extras: {name: (shape, dtype)} of the per-elite arrays the evaluation returns in
-      `Evaluation.extras`, shapes without the row axis, e.g. {"leg": ((), "int32")}; read as
-      (tuple of ints, numpy dtype).
-    qd_offset: the fitness lower bound of the QD score (`MapElitesConfig.qd_offset`), or None to
-      keep the config's.
-    """
-
-    name: str
-    genotype_dim: int
-    container: Any
-    evaluate: EvaluateFn | None = None
-    extras: dict = dataclasses.field(default_factory=dict)
-    qd_offset: float | None = None
+    name: str  # label of its repertoire files
+    genotype_dim: int  # G genes, each in [0, 1]
+    container: Any  # `Grid` or `Archive`
+    evaluate: EvaluateFn | None = None  # evaluate(key, genotypes (B, G)) -> Evaluation; None: `with_evaluate` adds one
+    extras: dict = dataclasses.field(default_factory=dict)  # {name: (shape without rows, dtype)}, e.g. ((), "int32")
+    qd_offset: float | None = None  # the QD score's fitness lower bound; None: the config's
 
     def __post_init__(self):
         if not isinstance(self.name, str) or not self.name:
@@ -85,7 +66,6 @@ class TaskSpec:
         return {name: jnp.zeros(shape, dtype) for name, (shape, dtype) in self.extras.items()}
 
     def empty(self):
-        """An empty Repertoire of the container, with the spec's extras."""
         return self.container.empty(self.genotype_dim, self.extras_example())
 
     def with_evaluate(self, evaluate: EvaluateFn) -> TaskSpec:
@@ -93,11 +73,6 @@ class TaskSpec:
         return dataclasses.replace(self, evaluate=evaluate)
 
     def metadata(self) -> dict:
-        """The spec as JSON-able data (what repertoire files store and compare): name, genotype_dim,
-        container, extras."""
-        return {
-            "name": self.name,
-            "genotype_dim": self.genotype_dim,
-            "container": container_metadata(self.container),
-            "extras": {name: [list(shape), dtype.name] for name, (shape, dtype) in sorted(self.extras.items())},
-        }
+        """The spec as JSON-able data, what repertoire files store and compare."""
+        return {"name": self.name, "genotype_dim": self.genotype_dim, "container": container_metadata(self.container),
+                "extras": {name: [list(shape), dtype.name] for name, (shape, dtype) in sorted(self.extras.items())}}

@@ -1,10 +1,5 @@
-"""Cheap analytic QD tasks for testing and demonstrating the engine in seconds.
-
-planar_arm: the classic QD arm (Cully et al. 2015; Vassiliades et al. 2018). Genotype: n joint
-angles in [0, 1] mapped to [-pi, pi]; links of length 1/n. Descriptor: end-effector position
-mapped from [-1, 1]^2 to [0, 1]^2. Fitness: minus the standard deviation of the angles (a
-smooth arm is better), in [-pi, 0].
-"""
+"""Cheap analytic QD tasks for tests and demos. planar_arm (Cully et al. 2015): n joint angles, links 1/n long;
+descriptor: the hand's position mapped to [0, 1]^2; fitness: minus the angles' standard deviation, in [-pi, 0]."""
 
 from __future__ import annotations
 
@@ -22,11 +17,8 @@ def planar_arm(genotypes: jax.Array) -> Evaluation:
     x = length * jnp.cos(cumulative).sum(axis=-1)
     y = length * jnp.sin(cumulative).sum(axis=-1)
     descriptors = (jnp.stack([x, y], axis=-1) + 1.0) / 2.0
-    return Evaluation(
-        fitnesses=-jnp.std(angles, axis=-1),
-        descriptors=jnp.clip(descriptors, 0.0, 1.0),
-        valid=jnp.ones(genotypes.shape[0], bool),
-    )
+    return Evaluation(fitnesses=-jnp.std(angles, axis=-1), descriptors=jnp.clip(descriptors, 0.0, 1.0),
+                      valid=jnp.ones(genotypes.shape[0], bool))
 
 
 def planar_arm_evaluate(key: jax.Array, genotypes: jax.Array) -> Evaluation:

@@ -1,10 +1,4 @@
-"""Variation: offspring genotypes in [0, 1] from parents (sferes' operators and the object
-emitters hold).
-
-A variation object has `vary(key, draw_parents) -> (B, G) children`, where `draw_parents(key)`
-returns (B, G) genotypes of elites picked by the emitter's selection; it draws as many parent
-batches as it needs, with keys of its own making.
-"""
+"""Variation (sferes' operators): objects with `vary(key, draw_parents) -> (B, G)` children in [0, 1]."""
 
 from __future__ import annotations
 
@@ -16,11 +10,8 @@ import jax.numpy as jnp
 
 
 def polynomial_mutation(key: jax.Array, genotypes: jax.Array, rate: float, eta: float) -> jax.Array:
-    """sferes' polynomial mutation, gene-wise with probability `rate`, then clipped to [0, 1].
-
-    delta = (2r)^(1/(eta+1)) - 1 if r < 0.5 else 1 - (2(1-r))^(1/(eta+1)), r ~ U(0, 1),
-    added to the gene (the genes' range is 1, so delta needs no scaling).
-    """
+    """sferes' polynomial mutation, gene-wise with probability `rate`, clipped to [0, 1]: the gene gets
+    delta = (2r)^(1/(eta+1)) - 1 if r < 0.5 else 1 - (2(1-r))^(1/(eta+1)), r ~ U(0, 1) (range 1: no scaling)."""
     key_apply, key_r = jax.random.split(key)
     apply = jax.random.uniform(key_apply, genotypes.shape) < rate
     r = jax.random.uniform(key_r, genotypes.shape)
@@ -30,10 +21,7 @@ def polynomial_mutation(key: jax.Array, genotypes: jax.Array, rate: float, eta: 
 
 
 def sbx_crossover(key: jax.Array, parents_a: jax.Array, parents_b: jax.Array, eta: float) -> jax.Array:
-    """Simulated binary crossover (Deb & Agrawal), one child per pair, each gene with p = 0.5.
-
-    Args: parents (N, G) in [0, 1]. Returns: (N, G) children clipped to [0, 1].
-    """
+    """Simulated binary crossover (Deb & Agrawal), each gene with p = 0.5: (N, G) children in [0, 1]."""
     key_gene, key_u, key_side = jax.random.split(key, 3)
     u = jax.random.uniform(key_u, parents_a.shape)
     beta = jnp.where(u <= 0.5, (2.0 * u) ** (1.0 / (eta + 1.0)), (1.0 / (2.0 * (1.0 - u))) ** (1.0 / (eta + 1.0)))
@@ -47,9 +35,8 @@ def sbx_crossover(key: jax.Array, parents_a: jax.Array, parents_b: jax.Array, et
 
 @dataclasses.dataclass(frozen=True)
 class SbxPolynomial:
-    """MAP-Elites' variation as configured by `MapElitesConfig`: a share `crossover_rate` of the
-    children are SBX crossovers (`eta_c`) of two parents, then every child gets polynomial
-    mutation (`mutation_rate`, `eta_m`)."""
+    """MAP-Elites' variation (`MapElitesConfig`): a share `crossover_rate` of SBX crossovers (`eta_c`) of two
+parents, then polynomial mutation (`mutation_rate`, `eta_m`) of every child."""
 
     mutation_rate: float
     eta_m: float

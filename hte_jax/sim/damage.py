@@ -1,18 +1,7 @@
-"""Leg damages: a per-rollout (6,) bool mask, batched like any other input.
-
-A damaged leg's three servos hold a fixed pose whatever the controller asks. Two damage
-models (`RobotConfig.damage_model`) choose the pose:
-
-- "raised" (default, the paper's words: "a leg that is blocked in the air", section 5):
-  `DAMAGED_POSE`, femur and tibia both pointing straight up, so the foot sits 0.19 m above
-  the hip and 0.045 m outside it, and cannot reach the floor unless the body tilts by about
-  80 degrees (training rollouts are invalid past 45).
-- "locked": the standing pose (all three joints at 0), the foot on the floor. This is most
-  likely what the original code simulated (`docs/original_code.md` §10: DART's initial position was
-  never applied before the joints were locked).
-
-The paper's seven conditions are each single leg 0..5 and the two middle legs 1+4.
-"""
+"""Leg damages: a per-rollout (6,) bool mask; a damaged leg's servos hold a pose (`RobotConfig.damage_model`):
+"raised" (the paper's "blocked in the air": femur and tibia straight up, the foot 0.19 m above the hip, off the
+floor unless the body tilts ~80 degrees) or "locked" (standing, joints at 0: likely what the original simulated,
+`docs/original_code.md` §10). The paper's seven conditions: each single leg and the middle legs 1+4."""
 
 from __future__ import annotations
 
@@ -31,21 +20,11 @@ DAMAGED_POSE = (0.0, -np.pi / 2, np.pi / 2)
 DAMAGED_POSES: dict[str, tuple[float, float, float]] = {"raised": DAMAGED_POSE, "locked": (0.0, 0.0, 0.0)}
 assert tuple(DAMAGED_POSES) == DAMAGE_MODELS
 
-PAPER_DAMAGES: dict[str, tuple[int, ...]] = {
-    "leg0": (0,),
-    "leg1": (1,),
-    "leg2": (2,),
-    "leg3": (3,),
-    "leg4": (4,),
-    "leg5": (5,),
-    "legs1+4": (1, 4),
-}
+PAPER_DAMAGES: dict[str, tuple[int, ...]] = {**{f"leg{i}": (i,) for i in range(NUM_LEGS)}, "legs1+4": (1, 4)}
 DAMAGE_NAMES = ("none", *PAPER_DAMAGES)
 # APROL's prior conditions (paper section 5): the 6 single-leg and the 15 two-leg damages.
-APROL_DAMAGES: dict[str, tuple[int, ...]] = {
-    **{f"leg{i}": (i,) for i in range(NUM_LEGS)},
-    **{f"legs{i}+{j}": (i, j) for i in range(NUM_LEGS) for j in range(i + 1, NUM_LEGS)},
-}
+APROL_DAMAGES: dict[str, tuple[int, ...]] = {f"leg{i}": (i,) for i in range(NUM_LEGS)} | {
+    f"legs{i}+{j}": (i, j) for i in range(NUM_LEGS) for j in range(i + 1, NUM_LEGS)}
 
 
 def damage_mask(legs: Iterable[int]) -> np.ndarray:
@@ -59,10 +38,7 @@ def damage_mask(legs: Iterable[int]) -> np.ndarray:
 
 
 def parse_damage(name: str | int) -> np.ndarray:
-    """Mask for a damage name ('none', 'leg0'..'leg5', 'legs<i>+<j>') or the original's -l index.
-
-    The original code's indices are 0..5 for single legs, 6 for legs 1+4, -1 for none.
-    """
+    """Mask for a damage name ('none', 'leg<i>', 'legs<i>+<j>') or the original's -l index (6: legs 1+4, -1: none)."""
     if isinstance(name, (int, np.integer)):
         names = list(PAPER_DAMAGES)
         if name == -1:
@@ -72,14 +48,10 @@ def parse_damage(name: str | int) -> np.ndarray:
         raise ConfigError(f"unknown damage index {name}; expected -1 (none) or 0..{len(names) - 1}")
     if name == "none":
         return damage_mask(())
-    if name in PAPER_DAMAGES:
-        return damage_mask(PAPER_DAMAGES[name])
-    if name in APROL_DAMAGES:
+    if name in APROL_DAMAGES:  # the paper's too
         return damage_mask(APROL_DAMAGES[name])
-    raise ConfigError(
-        f"unknown damage {name!r}; expected 'none', 'leg<i>' or 'legs<i>+<j>' with 0 <= i < j <= 5 "
-        f"(the paper's: {', '.join(DAMAGE_NAMES)})"
-    )
+    raise ConfigError(f"unknown damage {name!r}; expected 'none', 'leg<i>' or 'legs<i>+<j>' with 0 <= i < j <= 5 "
+                      f"(the paper's: {', '.join(DAMAGE_NAMES)})")
 
 
 def paper_damage_masks() -> np.ndarray:
@@ -105,9 +77,6 @@ def damaged_pose(model: str) -> tuple[float, float, float]:
 
 
 def apply_damage(targets: jax.Array, damage: jax.Array, pose: tuple[float, float, float] = DAMAGED_POSE) -> jax.Array:
-    """Override the joint targets of damaged legs with `pose` (one leg's three joints).
-
-    Args: targets (18,) radians; damage (6,) bool. Returns: (18,) radians.
-    """
+    """targets (18,) rad with the legs damaged by `damage` (6,) bool set to `pose` (one leg's three joints)."""
     pose = jnp.tile(jnp.asarray(pose, targets.dtype), NUM_LEGS)
     return jnp.where(damaged_joint_mask(damage), pose, targets)

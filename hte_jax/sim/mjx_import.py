@@ -1,16 +1,4 @@
-"""`mujoco.mjx`, imported without its warp notices; MJX's Warp backend started quietly on request.
-
-MJX 3.17 prints "Failed to import warp: ..." and "Failed to import mujoco_warp: ..." on stdout
-whenever the optional warp-lang package is absent. The JAX implementation (the default) does not
-need it, so the notice is noise a user cannot act on: those two lines are kept here
-(`WARP_IMPORT_ERRORS`) for the error that asking for the Warp backend without it gives, and not
-printed; anything else the import prints is passed on unchanged.
-
-The Warp backend (`require_impl("warp")`, the `warp` extra) announces itself when it starts (a
-banner, a line per compiled kernel module, on a machine without an NVIDIA driver a CUDA warning):
-Warp's log level is raised to warnings and that start's output is dropped, except lines that are
-not these notices.
-"""
+"""`mujoco.mjx` without MJX's missing-warp notices (kept: `WARP_IMPORT_ERRORS`), and Warp's backend started quietly."""
 
 from __future__ import annotations
 
@@ -26,8 +14,7 @@ WARP_NOTICES = ("Failed to import warp:", "Failed to import mujoco_warp:")
 # The physics implementations MJX offers that the project runs (`RobotConfig.impl`).
 IMPLS = ("jax", "warp")
 WARP_EXTRA = 'pip install -e ".[warp]"'
-# What Warp prints when it starts, none of which a user can act on (device list, kernel cache, the
-# missing CUDA driver of a CPU-only machine).
+# What Warp prints when it starts (device list, kernel cache, a CPU-only machine's missing CUDA driver).
 _WARP_START = ("Warp ", "   ", "Warp CUDA warning: Could not find or load the NVIDIA CUDA driver")
 
 with contextlib.redirect_stdout(io.StringIO()) as _captured:
@@ -44,13 +31,11 @@ _warp_started = False
 def warp_installed() -> bool:
     """Whether MJX can run its Warp backend here (warp-lang and MJX's MuJoCo Warp both imported)."""
     from mujoco.mjx import warp as mjx_warp
-
     return bool(mjx_warp.WARP_INSTALLED) and mjx_warp.mujoco_warp is not None
 
 
 def require_impl(impl: str, devices: int = 1) -> None:
-    """ConfigError unless MJX's implementation `impl` ("jax" or "warp") can run here on `devices`
-    devices; the first request for "warp" starts Warp quietly."""
+    """ConfigError unless MJX's `impl` ("jax" or "warp") can run here on `devices` devices; starts Warp quietly."""
     require_choice("impl", impl, IMPLS)
     if impl != "warp":
         return
@@ -68,7 +53,6 @@ def _start_warp() -> None:
     if _warp_started:
         return
     import warp
-
     warp.config.log_level = warp.LOG_WARNING  # no banner, no line per kernel module loaded
     with _native_output() as lines:
         warp.init()
@@ -80,8 +64,7 @@ def _start_warp() -> None:
 
 @contextlib.contextmanager
 def _native_output():
-    """Collects, as a list of lines, what is written to file descriptors 1 and 2 inside (native code's
-    printf included)."""
+    """Collects the lines written to file descriptors 1 and 2 inside (native printf included)."""
     lines: list[str] = []
     sys.stdout.flush()
     sys.stderr.flush()
@@ -94,10 +77,9 @@ def _native_output():
         finally:
             sys.stdout.flush()
             sys.stderr.flush()
-            os.dup2(saved[0], 1)
-            os.dup2(saved[1], 2)
-            os.close(saved[0])
-            os.close(saved[1])
+            for fd, saved_fd in zip((1, 2), saved):
+                os.dup2(saved_fd, fd)
+                os.close(saved_fd)
             sink.seek(0)
             lines.extend(sink.read().decode(errors="replace").splitlines())
 

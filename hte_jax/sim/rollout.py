@@ -1,12 +1,4 @@
-"""Batched, jitted hexapod rollouts: `vmap` over individuals, `lax.scan` over control steps.
-
-One call simulates a whole population. Each individual has its own controller
-parameters (one or several 36-parameter controllers run back to back), its own
-damage mask and its own initial state, so damages and reset-free starts batch
-with no recompilation. Rollouts that go non-finite, explode, flip or collapse
-are flagged invalid per individual and frozen at their last valid state, so a
-blow-up never leaks NaNs into the outputs.
-"""
+"""Batched, jitted rollouts (`vmap` over individuals, `lax.scan` over steps); invalid ones freeze: no NaN out."""
 
 from __future__ import annotations
 
@@ -19,12 +11,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from flax import struct
-from hte_jax.sim.mjx_import import mjx
 
 from hte_jax import sharding
 from hte_jax.errors import ConfigError
 from hte_jax.sim.controller import NUM_PARAMS, SAMPLES_PER_PERIOD, servo_command, target_table
 from hte_jax.sim.damage import apply_damage, damaged_joint_mask, damaged_pose
+from hte_jax.sim.mjx_import import mjx
 from hte_jax.sim.robot import FOOT_RADIUS, NUM_JOINTS, NUM_LEGS, Robot, mj_model, warp_capacity
 
 
@@ -41,48 +33,27 @@ class InvalidReason(enum.IntFlag):
 
 @dataclasses.dataclass(frozen=True)
 class ValidityLimits:
-    """When a rollout is declared invalid.
+    """When a rollout is invalid."""
 
-    max_tilt: largest angle (rad) between the body's z axis and the world's z axis.
-    min_base_height / max_base_height: allowed base-origin height in metres (the belly
-      touches the floor at 0.021 m; no gait of the controller lowers the base below 0.079 m).
-    max_speed: largest allowed |qvel| entry (m/s or rad/s).
-    body_on_floor: a body corner below the floor is invalid (turn off when the body collides
-      with the floor, `RobotConfig.body_floor_contact`).
-    """
-
-    max_tilt: float = math.pi / 4
-    min_base_height: float = 0.04
-    max_base_height: float = 1.0
-    max_speed: float = 100.0
-    body_on_floor: bool = True
+    max_tilt: float = math.pi / 4  # rad between the body's and the world's z axes
+    min_base_height: float = 0.04  # m (the belly touches the floor at 0.021; gaits stay above 0.079)
+    max_base_height: float = 1.0  # m
+    max_speed: float = 100.0  # largest |qvel| entry
+    body_on_floor: bool = True  # a body corner below the floor is invalid (off with `RobotConfig.body_floor_contact`)
 
 
 @dataclasses.dataclass(frozen=True)
 class RolloutSpec:
-    """Static description of a rollout (hashable; changing it recompiles).
+    """Static description of a rollout (hashable; changing it recompiles); record_*: what `RolloutResult` holds."""
 
-    num_steps: control steps (100 per simulated second at the default control_dt).
-    pose_steps: control-step indices in [0, num_steps] at which the base pose is recorded;
-      index k is the state after k steps (0 = initial, num_steps = final).
-    record_contacts: return per-step foot contacts (B, T, 6).
-    record_feet: return per-step foot-sphere centres (B, T, 6, 3) (memory: 72 B per step).
-    record_joints: return per-step joint angles (B, T, 18) (memory: 72 B per step).
-    record_joint_travel: return each joint's travel sum |q(t+1) - q(t)| over the rollout (B, 18).
-    record_qpos_every: k > 0 returns the full qpos at the start of every k-th step (B, ceil(T / k), 25),
-      for replay and rendering; 0 (default) records nothing and costs nothing.
-    contact_tolerance: a foot is in contact when its sphere is closer than this to the floor (m).
-    limits: validity limits.
-    """
-
-    num_steps: int = 300
-    pose_steps: tuple[int, ...] = ()
+    num_steps: int = 300  # control steps, 100 per second
+    pose_steps: tuple[int, ...] = ()  # steps in [0, num_steps] after which the base pose is recorded (0: initial)
     record_contacts: bool = True
     record_feet: bool = False
     record_joints: bool = False
     record_joint_travel: bool = False
     record_qpos_every: int = 0
-    contact_tolerance: float = 1e-3
+    contact_tolerance: float = 1e-3  # m: a foot closer to the floor touches it
     limits: ValidityLimits = ValidityLimits()
 
     def __post_init__(self):
@@ -97,13 +68,9 @@ class RolloutSpec:
 
 @struct.dataclass
 class SimState:
-    """Physical state of one or more robots (any leading batch shape).
-
-    qpos: (..., 25) base position (3), base quaternion w-x-y-z (4), 18 joint angles (leg-major).
-    qvel: (..., 24) base linear velocity (3, world), angular velocity (3, body), 18 joint rates.
-    qacc_warmstart: (..., 24) constraint-solver warm start; carrying it makes chained
-      rollouts identical to one long rollout.
-    """
+    """Physical state of robots (any leading batch shape): qpos (..., 25) base position, quaternion w-x-y-z, 18
+    joint angles (leg-major); qvel (..., 24) base linear (world) and angular (body) velocity, 18 joint rates;
+    qacc_warmstart (..., 24) the solver's warm start (carried, chained rollouts equal one long rollout)."""
 
     qpos: jax.Array
     qvel: jax.Array
@@ -112,21 +79,12 @@ class SimState:
 
 @struct.dataclass
 class RolloutResult:
-    """What a batched rollout returns, B individuals, T = num_steps, P = len(pose_steps).
-
-    final_state: SimState (B, ...) after the rollout (frozen at the last valid state if invalid).
-    valid: (B,) bool, False if the rollout was ever invalid.
-    invalid_step: (B,) int32 control step at which it became invalid (T if valid).
-    invalid_reason: (B,) int32 `InvalidReason` bits seen at that step (0 if valid).
-    base_pos: (B, P, 3) base position at `pose_steps`.
-    base_quat: (B, P, 4) base orientation (w, x, y, z) at `pose_steps`.
-    foot_contacts: (B, T, 6) bool, foot touching the floor during step t, or None.
-    foot_pos: (B, T, 6, 3) foot-sphere centres at the start of step t, or None.
-    command_abs_sum: (B, 18) sum over steps of |commanded joint velocity| * control_dt (rad).
-    joint_pos: (B, T, 18) joint angles at the start of step t, or None.
-    joint_travel: (B, 18) sum over the valid steps of |joint angle change| (rad), or None.
-    qpos: (B, ceil(T / k), 25) full qpos at the start of steps 0, k, 2k, ... (k = record_qpos_every), or None.
-    """
+    """A batched rollout of B individuals, T = num_steps, P = len(pose_steps): final_state SimState (B, ...) (the
+    last valid one); valid (B,) bool; invalid_step (B,) int32 (T if valid); invalid_reason (B,) int32
+    `InvalidReason` bits (0 if valid); base_pos (B, P, 3), base_quat (B, P, 4) at `pose_steps`; command_abs_sum
+    (B, 18) sum of |commanded joint velocity| * control_dt (rad); if recorded (else None), at each step's start:
+    foot_contacts (B, T, 6) bool, foot_pos (B, T, 6, 3), joint_pos (B, T, 18), qpos (B, ceil(T / k), 25) every
+    k = record_qpos_every steps, and joint_travel (B, 18) the valid steps' summed |joint angle change| (rad)."""
 
     final_state: SimState
     valid: jax.Array
@@ -143,10 +101,7 @@ class RolloutResult:
 
 
 def initial_state(robot: Robot, damage: jax.Array | None = None) -> SimState:
-    """The model's reference pose (base 0.15 m up, joints at 0), damaged legs in their pose.
-
-    Args: damage (6,) bool or None. Returns: unbatched SimState.
-    """
+    """Unbatched SimState of the reference pose (base 0.15 m up, joints at 0), `damage` (6,) bool legs in their pose."""
     model = mj_model(robot.config)
     qpos = jnp.asarray(model.qpos0, jnp.float32)
     if damage is not None:
@@ -155,10 +110,6 @@ def initial_state(robot: Robot, damage: jax.Array | None = None) -> SimState:
         qpos = qpos.at[joints].set(jnp.where(damaged_joint_mask(jnp.asarray(damage)), pose, qpos[joints]))
     zeros = jnp.zeros(model.nv, jnp.float32)
     return SimState(qpos=qpos, qvel=zeros, qacc_warmstart=zeros)
-
-
-def _broadcast(tree, batch: int):
-    return jax.tree.map(lambda x: jnp.broadcast_to(x, (batch, *x.shape)), tree)
 
 
 # Bottom corners of the body box in the body frame (half sizes 0.114 x 0.0905 x 0.021).
@@ -173,25 +124,21 @@ def _world_z_of(qpos: jax.Array, points: np.ndarray) -> jax.Array:
 
 
 def up_z(qpos):
-    """World z of the body's z axis (cosine of its tilt) for a base pose qpos[:7] (unit quaternion; a
-    jax or NumPy array)."""
+    """World z of the body's z axis (cosine of its tilt) for a base pose qpos[:7] (jax or NumPy)."""
     return 1.0 - 2.0 * (qpos[4] ** 2 + qpos[5] ** 2)
 
 
 def up_z_drop_rate(qpos, qvel):
-    """How fast `up_z` falls (1/s; positive while the body tilts further) for a base pose qpos[:7]
-    and velocity qvel[:6] (the free joint's angular velocity qvel[3:6] is in the body frame): the
-    world z of omega x z_body. d(tilt)/dt = this / sin(tilt). A jax or NumPy array."""
+    """How fast `up_z` falls (1/s; > 0 while tilting further): the world z of omega x z_body, omega = qvel[3:6]
+    in the body frame; d(tilt)/dt = this / sin(tilt). Jax or NumPy."""
     w, x, y, z = qpos[3], qpos[4], qpos[5], qpos[6]
     r20, r21 = 2.0 * (x * z - w * y), 2.0 * (y * z + w * x)  # world z of the body's x and y axes
     return r21 * qvel[3] - r20 * qvel[4]
 
 
 def reflex_braced(braced, fresh, qpos, qvel, config):
-    """The tilt reflex's state after one control step's check (`RobotConfig.reflex_tilt`,
-    `reflex_release`, `reflex_rate`): `braced` (bool) whether the neutral pose was held, `fresh`
-    whether a new controller segment starts now (the reflex lets go), qpos / qvel the state now.
-    Operators only, so jax arrays and NumPy scalars (np.bool_, not Python bool) both work."""
+    """Whether the tilt reflex (`RobotConfig.reflex_*`) holds the neutral pose after this step's check: `braced`
+    whether it held it, `fresh` whether a controller segment starts now (it lets go). Jax or NumPy (np.bool_)."""
     cos_tilt = up_z(qpos)
     braced = braced & ~fresh
     if config.reflex_release > 0.0:  # back below the release angle: the gait resumes
@@ -210,33 +157,24 @@ def check_state(qpos: jax.Array, qvel: jax.Array, limits: ValidityLimits) -> jax
     flipped = up_z(qpos) < math.cos(limits.max_tilt)
     height = (qpos[2] < limits.min_base_height) | (qpos[2] > limits.max_base_height)
     on_floor = (_world_z_of(qpos, _BODY_BOTTOM).min() < 0.0) & limits.body_on_floor
-    return (
-        jnp.where(finite, 0, InvalidReason.NON_FINITE)
-        | jnp.where(exploded, InvalidReason.EXPLODED, 0)
-        | jnp.where(flipped, InvalidReason.FLIPPED, 0)
-        | jnp.where(height, InvalidReason.HEIGHT, 0)
-        | jnp.where(on_floor, InvalidReason.BODY_ON_FLOOR, 0)
-    ).astype(jnp.int32)
+    return (jnp.where(finite, 0, InvalidReason.NON_FINITE) | jnp.where(exploded, InvalidReason.EXPLODED, 0)
+            | jnp.where(flipped, InvalidReason.FLIPPED, 0) | jnp.where(height, InvalidReason.HEIGHT, 0)
+            | jnp.where(on_floor, InvalidReason.BODY_ON_FLOOR, 0)).astype(jnp.int32)
 
 
 def warp_overflow(data: mjx.Data) -> jax.Array:
-    """`InvalidReason.WARP_OVERFLOW` (int32 scalar) if MuJoCo Warp has dropped contacts or constraint
-    rows of this robot since its data was made (buffers too small: physics no longer trustworthy),
-    else 0. Solver iteration caps (settings, not losses) do not count."""
+    """`InvalidReason.WARP_OVERFLOW` (int32 scalar) if MuJoCo Warp dropped contacts or constraint rows, else 0."""
     from mujoco.mjx.third_party.mujoco_warp import OverflowType
-
     lost = (OverflowType.NEFC | OverflowType.NJMAX_NNZ | OverflowType.BROADPHASE | OverflowType.NARROWPHASE
             | OverflowType.CCD | OverflowType.NVMAX)
     return jnp.where((data._impl.overflow & int(lost)) != 0, InvalidReason.WARP_OVERFLOW, 0).astype(jnp.int32)
 
 
-def _rollout_one(
-    robot: Robot, spec: RolloutSpec, template: mjx.Data, tables: jax.Array, damage: jax.Array, init: SimState
-):
+def _rollout_one(robot: Robot, spec: RolloutSpec, template: mjx.Data, tables: jax.Array, damage: jax.Array,
+                 init: SimState):
     """One individual: tables (S, 100, 18) joint targets, damage (6,), init unbatched."""
     info, config = robot.info, robot.config
-    num_segments = tables.shape[0]
-    segment_steps = spec.num_steps // num_segments
+    segment_steps = spec.num_steps // tables.shape[0]
     joint_qpos = np.asarray(info.joint_qpos)
     feet = np.asarray(info.foot_geoms)
     pose_slot = np.full(spec.num_steps + 1, -1, np.int32)  # step -> slot in pose buffer
@@ -249,7 +187,6 @@ def _rollout_one(
         hit = jnp.arange(num_poses) == pose_slot[step]
         return jnp.where(hit[:, None], qpos[None, :7], buffer)
 
-    reflex = config.reflex_tilt > 0.0
     neutral = target_table(jnp.zeros(NUM_PARAMS, jnp.float32))  # (100, 18) the all-zero controller
 
     def control_step(carry, step):
@@ -257,7 +194,7 @@ def _rollout_one(
         poses = record_pose(poses, data.qpos, step)
         row = (step % segment_steps) % SAMPLES_PER_PERIOD
         gait = tables[step // segment_steps, row]
-        if reflex:  # tilted past the reflex angle: the neutral pose (until the segment ends or the release)
+        if config.reflex_tilt > 0.0:  # past the reflex tilt: the neutral pose (until the segment ends or release)
             braced = reflex_braced(braced, step % segment_steps == 0, data.qpos, data.qvel, config)
             gait = jnp.where(braced, neutral[row], gait)
         target = apply_damage(gait, damage, damaged_pose(config.damage_model))
@@ -271,11 +208,9 @@ def _rollout_one(
         new_reason = jnp.where(reason == 0, found, reason)
         ok = new_reason == 0
         # Freeze an invalid individual at its last valid state (no NaN leaks out).
-        stepped = stepped.replace(
-            qpos=jnp.where(ok, stepped.qpos, data.qpos),
-            qvel=jnp.where(ok, stepped.qvel, data.qvel),
-            qacc_warmstart=jnp.where(ok, stepped.qacc_warmstart, data.qacc_warmstart),
-        )
+        stepped = stepped.replace(qpos=jnp.where(ok, stepped.qpos, data.qpos),
+                                  qvel=jnp.where(ok, stepped.qvel, data.qvel),
+                                  qacc_warmstart=jnp.where(ok, stepped.qacc_warmstart, data.qacc_warmstart))
         invalid_step = jnp.where((reason == 0) & ~ok, step, invalid_step)
         command_sum = command_sum + jnp.where(ok, jnp.abs(command), 0.0) * config.control_dt
         if spec.record_joint_travel:
@@ -295,51 +230,25 @@ def _rollout_one(
 
     data = template.replace(qpos=init.qpos, qvel=init.qvel, qacc_warmstart=init.qacc_warmstart)
     data = mjx.kinematics(robot.model, data)  # geom_xpos of the initial state
-    carry = (
-        data,
-        check_state(init.qpos, init.qvel, spec.limits),
-        jnp.int32(spec.num_steps),
-        jnp.zeros((num_poses, 7), jnp.float32),
-        jnp.zeros(NUM_JOINTS, jnp.float32),
-        jnp.zeros(NUM_JOINTS, jnp.float32),
-        jnp.bool_(False),
-    )
-    (data, reason, invalid_step, poses, command_sum, travel, _), outputs = jax.lax.scan(
-        control_step, carry, jnp.arange(spec.num_steps)
-    )
+    zeros = jnp.zeros(NUM_JOINTS, jnp.float32)
+    carry = (data, check_state(init.qpos, init.qvel, spec.limits), jnp.int32(spec.num_steps),
+             jnp.zeros((num_poses, 7), jnp.float32), zeros, zeros, jnp.bool_(False))
+    scanned = jax.lax.scan(control_step, carry, jnp.arange(spec.num_steps))
+    (data, reason, invalid_step, poses, command_sum, travel, _), outputs = scanned
     poses = record_pose(poses, data.qpos, spec.num_steps)
     invalid_step = jnp.where((reason != 0) & (invalid_step == spec.num_steps), 0, invalid_step)
     return RolloutResult(
-        final_state=SimState(qpos=data.qpos, qvel=data.qvel, qacc_warmstart=data.qacc_warmstart),
-        valid=reason == 0,
-        invalid_step=invalid_step,
-        invalid_reason=reason,
-        base_pos=poses[:, :3],
-        base_quat=poses[:, 3:],
-        foot_contacts=outputs.get("contacts"),
-        foot_pos=outputs.get("feet"),
-        command_abs_sum=command_sum,
-        joint_pos=outputs.get("joints"),
-        qpos=outputs["qpos"][:: spec.record_qpos_every] if spec.record_qpos_every else None,
-        joint_travel=travel if spec.record_joint_travel else None,
-    )
+        final_state=SimState(qpos=data.qpos, qvel=data.qvel, qacc_warmstart=data.qacc_warmstart), valid=reason == 0,
+        invalid_step=invalid_step, invalid_reason=reason, base_pos=poses[:, :3], base_quat=poses[:, 3:],
+        foot_contacts=outputs.get("contacts"), foot_pos=outputs.get("feet"), command_abs_sum=command_sum,
+        joint_pos=outputs.get("joints"), joint_travel=travel if spec.record_joint_travel else None,
+        qpos=outputs["qpos"][:: spec.record_qpos_every] if spec.record_qpos_every else None)
 
 
 @functools.partial(jax.jit, static_argnames=("spec",))
-def rollout(
-    robot: Robot, params: jax.Array, damage: jax.Array, init: SimState, spec: RolloutSpec
-) -> RolloutResult:
-    """Simulate a population of hexapods, one jitted call.
-
-    Args:
-      robot: from `load_robot`.
-      params: (B, 36) controllers, or (B, S, 36) controllers run back to back, each for
-        num_steps / S control steps with its clock reset to 0 (S must divide num_steps).
-      damage: (B, 6) or (6,) bool masks of legs blocked in the air.
-      init: SimState batched (B, ...) or unbatched (broadcast to all individuals).
-      spec: static `RolloutSpec`.
-    Returns: RolloutResult with leading dim B.
-    """
+def rollout(robot: Robot, params: jax.Array, damage: jax.Array, init: SimState, spec: RolloutSpec) -> RolloutResult:
+    """B hexapods simulated in one jitted call: params (B, 36) controllers, or (B, S, 36) run back to back for
+    num_steps / S steps each (clock reset); damage (B, 6) or (6,) bool; init SimState batched (B, ...) or not."""
     if params.ndim == 2:
         params = params[:, None, :]
     if params.ndim != 3 or params.shape[-1] != NUM_PARAMS:
@@ -353,7 +262,7 @@ def rollout(
     if damage.ndim == 1:
         damage = jnp.broadcast_to(damage, (batch, NUM_LEGS))
     if init.qpos.ndim == 1:
-        init = _broadcast(init, batch)
+        init = jax.tree.map(lambda x: jnp.broadcast_to(x, (batch, *x.shape)), init)
     tables = jax.vmap(jax.vmap(target_table))(params.astype(jnp.float32))  # (B, S, 100, 18)
     template = empty_data(robot, batch)
 
@@ -364,9 +273,7 @@ def rollout(
 
 
 def empty_data(robot: Robot, rows: int) -> mjx.Data:
-    """The mjx.Data that `rows` robots simulated together start from, in the robot's MJX
-    implementation. The Warp backend keeps one contact buffer for the whole batch (sized for `rows`
-    robots, `warp_capacity`) and a constraint buffer per robot."""
+    """The mjx.Data that `rows` robots simulated together start from (Warp: buffers sized by `warp_capacity`)."""
     if robot.config.impl == "jax":
         return mjx.make_data(robot.model, impl="jax")
     contacts, constraint_rows = warp_capacity(robot.config)
@@ -374,10 +281,7 @@ def empty_data(robot: Robot, rows: int) -> mjx.Data:
 
 
 def standing_state(robot: Robot, damage: jax.Array | None = None, settle_steps: int = 100) -> SimState:
-    """A settled standing pose: zero controller for `settle_steps`, then re-centred at x = y = 0.
-
-    Args: damage (6,) bool, (B, 6) bool or None. Returns: SimState, batched like `damage`.
-    """
+    """A settled standing pose (zero controller, then x = y = 0), batched like `damage` (6,) or (B, 6) bool."""
     damage = jnp.zeros(NUM_LEGS, bool) if damage is None else jnp.asarray(damage, bool)
     batched = damage.ndim == 2
     damage = damage.reshape(-1, NUM_LEGS)

@@ -11,18 +11,13 @@ CAMERAS = ("track", "top")
 
 @dataclasses.dataclass(frozen=True)
 class Camera:
-    """Where the camera looks from.
+    """Where the camera looks from."""
 
-    mode: "track" follows the robot's base from behind-left at `distance` (m), `elevation` and
-    `azimuth` (degrees); "top" looks straight down on the point `centre` (x, y) from `distance`,
-    image right = world +x, image up = world +y.
-    """
-
-    mode: str = "track"
-    distance: float = 1.2
-    elevation: float = -25.0
-    azimuth: float = 135.0
-    centre: tuple[float, float] = (0.0, 0.0)
+    mode: str = "track"  # "track" follows the base; "top" looks down on `centre` (image right = world +x, up = +y)
+    distance: float = 1.2  # m
+    elevation: float = -25.0  # degrees (track)
+    azimuth: float = 135.0  # degrees (track)
+    centre: tuple[float, float] = (0.0, 0.0)  # (x, y) (top)
 
     def __post_init__(self):
         require_choice("camera", self.mode, CAMERAS)

@@ -1,12 +1,4 @@
-"""Videos of recorded maze episodes (`hte_jax.online.recording.Replay`), replayed, not re-simulated.
-
-The render model is the maze robot's (the maze's walls as boxes, damaged legs red) with a green
-disc on the goal. The default camera looks straight down on the whole maze (orthographic, image
-right = +x, up = +y); "track" follows the robot. Every frame draws the base's path so far as a
-trail, and a text panel (left of the maze, or two lines over the frame's top when too narrow or
-tracking) names the variant and damage, the action number, the executed skill, the step and its
-contact pattern (HBR variants), and the simulated time.
-"""
+"""Videos of recorded maze episodes (`online.recording.Replay`) replayed from above or tracked, with trail and text."""
 
 from __future__ import annotations
 
@@ -31,15 +23,12 @@ MARGIN = 0.1  # m of floor shown around the maze
 
 def maze_region(replay: Replay) -> tuple[float, float, float, float]:
     """(x1, y1, x2, y2) the top view shows: the maze's bounds and walls, plus a margin."""
-    maze = replay.maze
-    boxes = np.asarray([*maze.obstacles, maze.bounds], np.float64)
-    return (boxes[:, 0].min() - MARGIN, boxes[:, 1].min() - MARGIN, boxes[:, 2].max() + MARGIN,
-            boxes[:, 3].max() + MARGIN)
+    boxes = np.asarray([*replay.maze.obstacles, replay.maze.bounds], np.float64)
+    return (*(boxes[:, :2].min(axis=0) - MARGIN), *(boxes[:, 2:].max(axis=0) + MARGIN))
 
 
 def episode_model(replay: Replay, view_extent: float | None = None) -> mujoco.MjModel:
-    """The maze robot's render model with the goal disc; `view_extent` (m): an orthographic free
-    camera showing that height of the world (the top view), None: perspective."""
+    """The maze robot's render model with the goal disc; orthographic showing `view_extent` (m) high, or None."""
     maze = replay.maze
     config = maze_config(maze, RobotConfig(damage_model=replay.info["damage_model"]))
     spec = render_spec(config, replay.damage, checks=2.0)
@@ -86,8 +75,7 @@ def _two_lines(lines: list[str]) -> str:
 
 
 def _trail(replay: Replay, states: np.ndarray):
-    """decorate(t, scene) drawing the base's path up to frame t: the pose after every second, then
-    the base now."""
+    """decorate(t, scene) drawing the base's path up to frame t (its pose after every second, then now)."""
     per_second = replay.states_per_action // SECONDS_PER_ACTION
     seconds = replay.trajectory[:, :2].astype(np.float64)
     base = replay.qpos[:, :2].astype(np.float64)
@@ -112,8 +100,7 @@ def _trail(replay: Replay, states: np.ndarray):
 
 def render_episode(replay: Replay, width: int, height: int, camera: str = "top", stride: int = 1, hold: int = 0,
                    progress=None) -> np.ndarray:
-    """Frames (T, height, width, 3) uint8 of the replay's every `stride`-th state (and its last,
-    shown `hold` more times), with trail and text."""
+    """Frames (T, height, width, 3) uint8 of every `stride`-th state (and the last, `hold` more times)."""
     require_choice("camera", camera, CAMERAS)
     require_int("width", width)
     require_int("height", height)
@@ -134,13 +121,11 @@ def render_episode(replay: Replay, width: int, height: int, camera: str = "top",
     finally:
         renderer.close()
     texts = [frame_text(replay, int(state)) for state in states]
-    if not panel:  # over the frame: two lines across its top
-        texts = [_two_lines(text.split("\n")) for text in texts]
     if panel:
         canvas = np.empty((len(frames), height, width, 3), np.uint8)
         canvas[:, :, :panel] = PANEL_RGB
         canvas[:, :, panel:] = frames
         frames = label(canvas, texts)
-    else:
-        frames = label(frames, texts, background=PANEL_RGB)
+    else:  # over the frame: two lines across its top
+        frames = label(frames, [_two_lines(text.split("\n")) for text in texts], background=PANEL_RGB)
     return np.concatenate([frames, np.repeat(frames[-1:], hold, axis=0)])

@@ -1,35 +1,8 @@
-"""Which headless OpenGL backend MuJoCo's renderer uses (`MUJOCO_GL`), chosen before `mujoco` is imported.
-
-MuJoCo reads `MUJOCO_GL` once, when `mujoco` is first imported, and loads that backend's OpenGL
-library then (`MUJOCO_GL=osmesa` without the OSMesa library makes `import mujoco` itself fail).
-A command that renders therefore checks the arguments it can check without simulating, then calls
-`setup()`, and only then imports what imports mujoco (`hte_jax.sim`, `hte_jax.viz.render`, ...).
-This module imports neither mujoco nor OpenGL.
-
-The choice (`choose`):
-
-* `MUJOCO_GL` set by the user is kept as given (egl, osmesa, glfw or glx; another value is a
-  one-line error) and tried like a candidate, so that one that cannot start is one line, not a
-  traceback at import.
-* unset: EGL, then OSMesa, the first that draws a frame. EGL runs on a GPU driver and, on a
-  CPU machine, on Mesa's software EGL (Debian `libegl-mesa0`, llvmpipe); OSMesa is Mesa's
-  off-screen software renderer (Debian `libosmesa6`). GLFW and GLX need a display: not tried.
-* none starts: `setup()` sets `MUJOCO_GL=disable`, so mujoco imports without any GL library and
-  the command still checks its files and remaining arguments; `require()` (before the command
-  simulates, and in `open_renderer`) then raises `RenderError`: one line saying what was tried,
-  why it failed and what to install.
-
-Each try runs in a short child process (`python -c`: import mujoco with that `MUJOCO_GL` and draw
-one 1x1 frame of an empty model with `mujoco.Renderer`; about 2 s on a CPU, mostly imports).
-Trying in this process is not safe: a failed GL load can leave PyOpenGL half-initialised (its
-platform is fixed at its first import) or abort the process inside a driver, and importing
-mujoco here would fix its backend before the choice is made. A process that has just tried a
-backend passes `HTE_JAX_GL_CHECKED=<backend>` beside `MUJOCO_GL` to the render processes it
-starts (`maze_eval --video`, the tests), which then skip the second try.
-
-Tests simulate a machine without EGL honestly through libglvnd's own variable:
-`__EGL_VENDOR_LIBRARY_FILENAMES=/nonexistent` leaves libEGL with no vendor driver, so EGL really
-fails to start (then OSMesa is tried, and with no OSMesa nothing starts).
+"""Which headless OpenGL backend MuJoCo renders with (`MUJOCO_GL`), chosen before `mujoco` is imported (which
+loads it, and fails if it is missing); this module imports neither. `choose`: the user's MUJOCO_GL (egl, osmesa,
+glfw or glx) if it starts, else EGL then OSMesa, the first that draws a frame in a short child process (a failed
+GL load can break the process trying it); none: `setup()` sets MUJOCO_GL=disable and `require()` raises a one-line
+`RenderError`. A process that has tried passes `HTE_JAX_GL_CHECKED=<backend>` to the render processes it starts.
 
     python -m hte_jax.viz.gl     # prints the backend chosen here, or the one-line reason (exit 2)
 """
@@ -62,8 +35,7 @@ class RenderError(RuntimeError):
 
 
 def try_backend(backend: str, env: dict | None = None, timeout: float = TRY_TIMEOUT_S) -> str | None:
-    """None if mujoco starts an OpenGL context with `MUJOCO_GL=backend` (in a child process with
-    `env`, default this process's environment), else a short reason why not."""
+    """None if mujoco starts OpenGL with `MUJOCO_GL=backend` (child process, `env` or os.environ), else why not."""
     env = dict(os.environ if env is None else env, MUJOCO_GL=backend)
     env.pop(CHECKED, None)
     try:
@@ -91,9 +63,8 @@ def _short(line: str, limit: int = 100) -> str:
 
 
 def choose(env: dict | None = None, attempt=try_backend) -> str:
-    """The MUJOCO_GL to render with: the one given in `env` (default os.environ) if it starts,
-    else the first of AUTOMATIC that starts; RenderError (one line) when none does or the given
-    value is not a renderer. `attempt(backend, env)`: None when `backend` starts, else why not."""
+    """The MUJOCO_GL to render with: the one in `env` (default os.environ) if it starts, else the first of
+    AUTOMATIC that starts (`attempt(backend, env)`: None or why not); RenderError if none or not a renderer."""
     env = os.environ if env is None else env
     given = env.get("MUJOCO_GL", "").strip().lower()
     if given:
@@ -117,11 +88,8 @@ def choose(env: dict | None = None, attempt=try_backend) -> str:
 
 
 def setup() -> str | None:
-    """Choose this process's backend and set MUJOCO_GL to it, before mujoco is imported; returns it.
-
-    None when none starts: MUJOCO_GL is then `disable` (mujoco imports without GL) and `require()`
-    raises why. A MUJOCO_GL that is not a renderer raises RenderError at once (bad input). With
-    mujoco already imported its backend is fixed: nothing is tried or changed."""
+    """Set MUJOCO_GL to this process's backend before mujoco is imported and return it (None: MUJOCO_GL=disable,
+`require()` raises why); a MUJOCO_GL that is not a renderer raises; after mujoco's import nothing changes."""
     global _unavailable
     if "mujoco" in sys.modules:
         return os.environ.get("MUJOCO_GL")

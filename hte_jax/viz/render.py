@@ -1,12 +1,4 @@
-"""Rendering recorded hexapod states with MuJoCo's own renderer (`mujoco.Renderer`), headless.
-
-A replay sets each recorded qpos and runs the kinematics only: nothing is re-simulated, so a
-rendered trajectory is exactly the recorded one. The render model is the simulation model plus a
-checkered floor (so motion is visible) with the damaged legs tinted red.
-
-Headless OpenGL: `MUJOCO_GL` must be chosen before `mujoco` is imported; `hte_jax.viz.gl.setup()`
-chooses it (EGL, then OSMesa) in commands that render.
-"""
+"""Rendering recorded states headless (`mujoco.Renderer`; `viz.gl.setup()` first): kinematics only, no re-simulation."""
 
 from __future__ import annotations
 
@@ -29,8 +21,7 @@ DAMAGED_RGBA = (0.85, 0.1, 0.1, 1.0)
 
 def render_spec(config: RobotConfig = RobotConfig(), damage: np.ndarray | None = None,
                 checks: float = 8.0) -> mujoco.MjSpec:
-    """The simulation model's spec with a checkered floor (`checks` texture repeats per metre) and
-    the links of damaged legs (6,) tinted."""
+    """The simulation model's spec with a checkered floor (`checks` repeats per metre), damaged legs (6,) tinted."""
     spec = build_spec(config)
     spec.add_texture(name="checker", type=mujoco.mjtTexture.mjTEXTURE_2D, builtin=mujoco.mjtBuiltin.mjBUILTIN_CHECKER,
                      rgb1=[0.82, 0.82, 0.82], rgb2=[0.62, 0.62, 0.66], width=256, height=256)
@@ -48,7 +39,6 @@ def render_spec(config: RobotConfig = RobotConfig(), damage: np.ndarray | None =
 
 
 def render_model(config: RobotConfig = RobotConfig(), damage: np.ndarray | None = None) -> mujoco.MjModel:
-    """The simulation model with a checkered floor and the links of damaged legs (6,) tinted."""
     return render_spec(config, damage).compile()
 
 
@@ -63,10 +53,9 @@ def open_renderer(model: mujoco.MjModel, width: int, height: int) -> mujoco.Rend
             return mujoco.Renderer(model, height=height, width=width)
     except Exception as error:  # mujoco raises several kinds when no GL context can be made
         backend = os.environ.get("MUJOCO_GL", "(unset)")
-        raise RenderError(
-            f"the renderer could not start with MUJOCO_GL={backend} ({type(error).__name__}: {' '.join(str(error).split())}); "
-            f"choose MUJOCO_GL before mujoco is imported (hte_jax.viz.gl.setup()); {gl.HOW_TO_GET}"
-        ) from None
+        raise RenderError(f"the renderer could not start with MUJOCO_GL={backend} ({type(error).__name__}: "
+                          f"{' '.join(str(error).split())}); choose MUJOCO_GL before mujoco is imported "
+                          f"(hte_jax.viz.gl.setup()); {gl.HOW_TO_GET}") from None
 
 
 def _camera(camera: Camera, base: np.ndarray) -> mujoco.MjvCamera:
@@ -82,8 +71,7 @@ def _camera(camera: Camera, base: np.ndarray) -> mujoco.MjvCamera:
 
 
 def posed(model: mujoco.MjModel, qpos: np.ndarray) -> Iterator[mujoco.MjData]:
-    """For each recorded state of `qpos` (T, nq), the model's data with that state set and its
-    kinematics computed (nothing is simulated); one MjData, updated in place."""
+    """For each state of `qpos` (T, nq), the model's data (one MjData, updated) with it set and its kinematics."""
     qpos = np.asarray(qpos, np.float64)
     if qpos.ndim != 2 or qpos.shape[1] != model.nq:
         raise ConfigError(f"qpos must have shape (T, {model.nq}), got {qpos.shape}")
@@ -94,14 +82,9 @@ def posed(model: mujoco.MjModel, qpos: np.ndarray) -> Iterator[mujoco.MjData]:
         yield data
 
 
-def render_frames(
-    model: mujoco.MjModel, qpos: np.ndarray, renderer: mujoco.Renderer, camera: Camera = Camera(), progress=None,
-    decorate: Callable[[int, mujoco.MjvScene], None] | None = None,
-) -> np.ndarray:
-    """Frames (T, H, W, 3) uint8 of the recorded states `qpos` (T, nq), one per state.
-
-    decorate(t, scene): adds geoms to frame t's scene (after the model's, before rendering).
-    """
+def render_frames(model: mujoco.MjModel, qpos: np.ndarray, renderer: mujoco.Renderer, camera: Camera = Camera(),
+                  progress=None, decorate: Callable[[int, mujoco.MjvScene], None] | None = None) -> np.ndarray:
+    """Frames (T, H, W, 3) uint8 of the recorded states `qpos` (T, nq); decorate(t, scene) adds geoms to frame t."""
     frames = np.empty((len(qpos), renderer.height, renderer.width, 3), np.uint8)
     for t, data in enumerate(posed(model, qpos)):
         mujoco.mj_camlight(model, data)
@@ -115,10 +98,8 @@ def render_frames(
 
 
 def label(frames: np.ndarray, text: str | Sequence[str], background: tuple[int, int, int] | None = None) -> np.ndarray:
-    """Frames (T, H, W, 3) with `text` (one for all frames, or one per frame; lines split by
-    newlines) written in their top-left corner in Pillow's default font, on a `background` box if given."""
+    """Frames (T, H, W, 3) with `text` (one, or one per frame) top-left, on a `background` box if given."""
     from PIL import Image, ImageDraw
-
     texts = [text] * len(frames) if isinstance(text, str) else list(text)
     if len(texts) != len(frames):
         raise ConfigError(f"{len(texts)} labels for {len(frames)} frames")
@@ -147,10 +128,7 @@ def tile(videos: list[np.ndarray], columns: int) -> np.ndarray:
 
 
 def write_video(path: str | Path, frames: np.ndarray, fps: float) -> Path:
-    """Write frames (T, H, W, 3) uint8 as MP4 (imageio-ffmpeg) or GIF (Pillow), by suffix.
-
-    An .mp4 without a usable ffmpeg is written as .gif beside it; returns the path written.
-    """
+    """Write frames (T, H, W, 3) uint8 as MP4 or GIF, by suffix (no usable ffmpeg: a .gif); returns the path."""
     path = Path(path)
     if path.suffix not in (".mp4", ".gif"):
         raise ConfigError(f"video file must end in .mp4 or .gif, got {path.name!r}")
@@ -158,13 +136,11 @@ def write_video(path: str | Path, frames: np.ndarray, fps: float) -> Path:
     if path.suffix == ".mp4":
         try:
             import imageio_ffmpeg
-
             _write_mp4(path, frames, fps, imageio_ffmpeg)
             return path
         except (ImportError, OSError, RuntimeError):
             path = path.with_suffix(".gif")
     from PIL import Image
-
     images = [Image.fromarray(frame) for frame in frames]
     images[0].save(path, save_all=True, append_images=images[1:], duration=round(1000 / fps), loop=0, optimize=True)
     return path
@@ -176,13 +152,9 @@ def _write_mp4(path: Path, frames: np.ndarray, fps: float, imageio_ffmpeg) -> No
     pad[:, :height, :width] = frames
     with warnings.catch_warnings():  # ffmpeg is a subprocess: JAX's fork warning does not apply to exec
         warnings.filterwarnings("ignore", message=r"os\.fork\(\) was called", category=RuntimeWarning)
-        _send(path, pad, fps, imageio_ffmpeg)
-
-
-def _send(path: Path, pad: np.ndarray, fps: float, imageio_ffmpeg) -> None:
-    writer = imageio_ffmpeg.write_frames(str(path), (pad.shape[2], pad.shape[1]), fps=fps, quality=7,
-                                         macro_block_size=1, ffmpeg_log_level="error")
-    writer.send(None)
-    for frame in pad:
-        writer.send(np.ascontiguousarray(frame))
-    writer.close()
+        writer = imageio_ffmpeg.write_frames(str(path), (pad.shape[2], pad.shape[1]), fps=fps, quality=7,
+                                             macro_block_size=1, ffmpeg_log_level="error")
+        writer.send(None)
+        for frame in pad:
+            writer.send(np.ascontiguousarray(frame))
+        writer.close()

@@ -1,11 +1,4 @@
-"""Videos of repertoire skills (`python -m experiments.render skills` and `patterns`).
-
-Each chosen skill is simulated for 3 s from standing (an HBR top-layer skill through its three
-1 s steps, or a flat repertoire's controller), intact or under a damage, with its state recorded
-every frame; the clips are rendered with `hte_jax.viz.render` (damaged legs red) and laid out on a
-grid. `patterns` runs one HBR skill once per contact pattern, the pattern held for all three steps
-("any": RTE's nearest elite of any pattern), each clip labelled.
-"""
+"""Videos of HBR or flat skills run 3 s from standing (`python -m experiments.render skills` / `patterns`)."""
 
 from __future__ import annotations
 
@@ -69,8 +62,7 @@ def flat_states(robot, params, damage, every: int):
 
 @functools.partial(jax.jit, static_argnames=("every",))
 def hbr_states(robot, hbr, genotypes, damage, every: int, patterns=None):
-    """qpos (B, SKILL_STEPS / every + 1, 25) of HBR skills `genotypes` (B, G) under `damage` (B, 6),
-    with `patterns` (B, 3) held per step if given."""
+    """qpos (B, SKILL_STEPS / every + 1, 25) of HBR skills (B, G) under `damage` (B, 6), `patterns` (B, 3) held."""
     result = execute_skill(robot, hbr, genotypes, standing_state(robot, damage), damage, patterns, record_every=every)
     steps = jnp.swapaxes(result.steps.qpos, 0, 1)  # (B, 3, F, 25)
     return jnp.concatenate([steps.reshape(steps.shape[0], -1, steps.shape[-1]), result.state.qpos[:, None]], axis=1)
@@ -78,8 +70,7 @@ def hbr_states(robot, hbr, genotypes, damage, every: int, patterns=None):
 
 def render_grid(states: np.ndarray, damage: np.ndarray, config: RobotConfig, camera: Camera, width: int, height: int,
                 columns: int, labels: list[str] | None = None, progress=None) -> np.ndarray:
-    """Frames (T, rows * height, columns * width, 3) uint8: each clip of `states` (N, T, 25) rendered
-    with the damaged legs (6,) red, labelled if `labels` (N,) are given, laid out on a grid."""
+    """Frames (T, rows * height, columns * width, 3) uint8: clips `states` (N, T, 25), damaged legs red, tiled."""
     model = render_model(config, damage)
     renderer = open_renderer(model, width, height)
     try:
