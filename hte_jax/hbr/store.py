@@ -27,6 +27,8 @@ LAYERS = ("bottom", "middle", "top")
 KIND = "hte_jax.hbr"
 KIND_VERSION = 1
 SHIPPED = "hbr_gpu/hbr.npz"  # trained with the gpu preset by experiments.train_hbr
+SPARE_KIND = "hte_jax.hbr.spare"
+SPARE_FILE = "spare.npz"  # beside an hbr.npz: its spare archive (`spare.with_spare`), used when present
 
 
 def shipped_hbr_path() -> Path:
@@ -104,10 +106,6 @@ def _step_model(path, arrays, count: int, capacity: int, prefix: str = "middle_"
     pad = capacity - count
     return StepModel(steps=jnp.asarray(np.pad(steps, ((0, pad), (0, 0)))),
                      spread=jnp.asarray(np.pad(spread, (0, pad), constant_values=np.inf)))
-
-
-SPARE_KIND = "hte_jax.hbr.spare"
-SPARE_FILE = "spare.npz"  # beside an hbr.npz: its spare archive (`spare.with_spare`), used when present
 
 
 def bottom_fingerprint(hbr: HBR) -> str:
