@@ -25,9 +25,11 @@ from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from types import SimpleNamespace
 
+import jax
 import numpy as np
+from jax.sharding import Mesh
 
-from experiments.devices import add_device_flags, device_mesh, is_writer
+from hte_jax import sharding
 from hte_jax.errors import ConfigError
 from hte_jax.qd.io import CheckpointError, read_header, stored_config
 
@@ -85,6 +87,32 @@ def setting_overrides(args: argparse.Namespace, keys) -> dict[str, str]:
     """The settings the flags of `add_setting_flags` give, then those of `--set`."""
     overrides = {key: getattr(args, key) for key in keys if getattr(args, key) is not None}
     return {**overrides, **set_overrides(args.set)}
+
+
+def add_device_flags(parser: argparse.ArgumentParser) -> None:
+    """`--devices N` (the first N visible devices; default all) and `--distributed` (a multi-host run)."""
+    parser.add_argument("--devices", type=int, default=None, metavar="N",
+                        help="spread every batch over the first N visible devices (default: all)")
+    parser.add_argument("--distributed", action="store_true",
+                        help="multi-host run: jax.distributed.initialize() first (SLURM / Open MPI / cloud "
+                             "TPU settings are read from the environment); only process 0 writes files")
+
+
+def device_mesh(args: argparse.Namespace) -> Mesh:
+    """The mesh the device flags ask for (call it before anything else touches jax's devices); ConfigError
+    on a device count out of range or a failed `jax.distributed.initialize()`."""
+    if args.distributed:
+        try:
+            jax.distributed.initialize()
+        except (RuntimeError, ValueError) as error:
+            first = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
+            raise ConfigError(f"--distributed: jax.distributed.initialize() failed: {first}") from None
+    return sharding.batch_mesh(sharding.check_device_count(args.devices))
+
+
+def is_writer() -> bool:
+    """Whether this process writes files (process 0 of a multi-host run, or the only one)."""
+    return jax.process_index() == 0
 
 
 def add_training_flags(parser: argparse.ArgumentParser, presets, out_help: str, progress_help: str,

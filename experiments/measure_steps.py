@@ -16,8 +16,7 @@ import time
 
 import jax
 
-from experiments.cli import fail, input_errors, interruptible
-from experiments.devices import add_device_flags, device_mesh, is_writer
+from experiments.cli import add_device_flags, device_mesh, fail, input_errors, interruptible, is_writer
 from hte_jax.flat.comparison import resolve
 from hte_jax.hbr.composition import measure_steps
 from hte_jax.hbr.store import load_hbr, save_hbr, shipped_hbr_path

@@ -7,22 +7,18 @@
     python -m experiments.render patterns --skill 1400 --damage leg1   # one skill, several contact patterns
     python -m experiments.render episode runs/maze-eval --variant hte --episode 0  # a recorded maze episode
 
-`skills` simulates each chosen skill for 3 s from standing (top-layer skills of an HBR, or the
-controllers of a flat repertoire, intact or under a named damage), records the state every frame
-and lays the clips out on a grid: a tracking camera (or `--camera top`, looking down), damaged legs
-in red. `patterns` executes one HBR skill with several contact patterns held for its three steps
-(what HTE chooses from; "any" is RTE's nearest elite of any pattern), each clip labelled.
-`episode` replays a maze episode recorded by `python -m experiments.maze_eval --video N` (the
-replay files under <run>/replays/; --episode I is the variant's I-th episode of the run): the
-whole maze seen from above (or --camera track), the goal in green, the path so far as a blue
-trail, and a panel naming the action, the executed skill and each step's contact pattern;
---speed simulated seconds per video second (default 4). MP4 through imageio-ffmpeg, GIF through
-Pillow (by the --out suffix).
+`skills`: each chosen skill (top-layer skills of an HBR, or a flat repertoire's controllers, intact
+or under a damage) simulated for 3 s from standing, the clips on a grid: a tracking camera (or
+`--camera top`), damaged legs in red. `patterns`: one HBR skill executed with several contact
+patterns held for its three steps ("any": RTE's nearest elite of any pattern), each clip labelled.
+`episode`: a maze episode recorded by `maze_eval --video N` (<run>/replays/; --episode I is the
+variant's I-th episode of the run), the maze seen from above (or --camera track), the goal in green,
+the path as a blue trail, a panel naming the action, skill and each step's contact pattern; --speed:
+simulated seconds per video second (default 4). MP4 (imageio-ffmpeg) or GIF (Pillow) by the --out suffix.
 
-Headless OpenGL, chosen for you when MUJOCO_GL is unset: EGL (a GPU driver, or Mesa's software
-EGL on a CPU), else OSMesa (Debian package libosmesa6); when neither starts, one line says what to
-install (hte_jax/viz/gl.py). Arguments and files are checked before OpenGL is needed (--help never
-needs it). Bad input gives a one-line error and exit 2.
+Headless OpenGL, chosen when MUJOCO_GL is unset: EGL (a GPU driver, or Mesa's software EGL), else
+OSMesa (Debian package libosmesa6); when neither starts, one line says what to install. Arguments and
+files are checked before OpenGL is needed. Bad input gives a one-line error and exit 2.
 """
 
 from __future__ import annotations

@@ -27,8 +27,7 @@ from pathlib import Path
 
 import jax
 
-from experiments.cli import input_errors, interruptible, resume_command
-from experiments.devices import add_device_flags, device_mesh, is_writer
+from experiments.cli import add_device_flags, device_mesh, input_errors, interruptible, is_writer, resume_command
 from hte_jax.errors import ConfigError
 from hte_jax.flat import training as flat
 from hte_jax.hbr import training as hbr_training
