@@ -46,21 +46,13 @@ def fail(message) -> int:
 
 @contextlib.contextmanager
 def input_errors(*types: type[BaseException]) -> Iterator[SimpleNamespace]:
-    """Reports an exception of `types` (default `INPUT_ERRORS`) with `fail` and swallows it; the yielded
-    object's `failed` then tells the caller to return `EXIT_BAD_INPUT`. Others propagate."""
+    """Reports an exception of `types` (default `INPUT_ERRORS`) with `fail` and swallows it, setting `failed`."""
     outcome = SimpleNamespace(failed=False)
     try:
         yield outcome
     except (types or INPUT_ERRORS) as error:
         fail(error)
         outcome.failed = True
-
-
-def add_set_flag(parser: argparse.ArgumentParser) -> None:
-    """`--set KEY=VALUE` (repeatable): any setting by its key, dotted through nested configurations."""
-    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                        help="override a setting by its key, dotted through nested configurations "
-                             "(planner.iterations=50, solver.ls_iterations=8, top.parents.selection=density); repeatable")
 
 
 def set_overrides(items: list[str]) -> dict[str, str]:
@@ -75,12 +67,14 @@ def set_overrides(items: list[str]) -> dict[str, str]:
 
 
 def add_setting_flags(parser: argparse.ArgumentParser, metavars: dict[str, str], aliases: dict | None = None) -> None:
-    """A flag overriding each setting ({key: metavar}): `--middle-generations` for `middle.generations`
-    unless `aliases` names another; then `--set`."""
+    """A flag overriding each setting ({key: metavar}; `--middle-generations` for `middle.generations`
+    unless `aliases` names another), then `--set KEY=VALUE` (repeatable): any setting by its dotted key."""
     for key, metavar in metavars.items():
         flag = (aliases or {}).get(key, "--" + key.replace(".", "-").replace("_", "-"))
         parser.add_argument(flag, dest=key, default=None, metavar=metavar, help=f"override {key}")
-    add_set_flag(parser)
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="override a setting by its key, dotted through nested configurations "
+                             "(planner.iterations=50, solver.ls_iterations=8, top.parents.selection=density); repeatable")
 
 
 def setting_overrides(args: argparse.Namespace, keys) -> dict[str, str]:
@@ -90,7 +84,6 @@ def setting_overrides(args: argparse.Namespace, keys) -> dict[str, str]:
 
 
 def add_device_flags(parser: argparse.ArgumentParser) -> None:
-    """`--devices N` (the first N visible devices; default all) and `--distributed` (a multi-host run)."""
     parser.add_argument("--devices", type=int, default=None, metavar="N",
                         help="spread every batch over the first N visible devices (default: all)")
     parser.add_argument("--distributed", action="store_true",
@@ -99,8 +92,7 @@ def add_device_flags(parser: argparse.ArgumentParser) -> None:
 
 
 def device_mesh(args: argparse.Namespace) -> Mesh:
-    """The mesh the device flags ask for (call it before anything else touches jax's devices); ConfigError
-    on a device count out of range or a failed `jax.distributed.initialize()`."""
+    """The mesh --devices and --distributed ask for (call it before anything touches jax's devices)."""
     if args.distributed:
         try:
             jax.distributed.initialize()
@@ -117,8 +109,6 @@ def is_writer() -> bool:
 
 def add_training_flags(parser: argparse.ArgumentParser, presets, out_help: str, progress_help: str,
                        metavars: dict[str, str]) -> None:
-    """The flags train_flat and train_hbr share: --preset, --out, --resume, --no-progress, --show-config,
-    the device flags, a flag per setting and --set."""
     parser.add_argument("--preset", default="cpu", help=f"one of {', '.join(presets)} (default cpu)")
     parser.add_argument("--out", default=None, help=out_help)
     parser.add_argument("--resume", action="store_true", help="continue the run in --out")
@@ -130,10 +120,8 @@ def add_training_flags(parser: argparse.ArgumentParser, presets, out_help: str, 
 
 def train_command(module: str, args, argv, out: str, checkpoints: dict[str, str], keys, preset: Callable,
                   with_overrides: Callable, train: Callable, report: Callable) -> int:
-    """train_flat's and train_hbr's run, within `interruptible` (Ctrl-C names the last of `checkpoints` and
-    the resume command): the device mesh, `preset()` with the setting flags and --set (on --resume, the
-    run's solver settings unless given, once its checkpoints are found readable; the setting flags are
-    `keys`), then --show-config, or `train` and `report(outcome)` on the process that writes files."""
+    """train_flat's and train_hbr's run, within `interruptible`: `preset()` with the flags of `keys` and --set
+    (on --resume, the run's solver settings unless given), then --show-config, or `train` and `report(outcome)`."""
     from hte_jax.sim.robot import stored_solver  # imports mujoco: not before a command needs it
 
     with interruptible(lambda: checkpoint_saved(out, checkpoints), resume_command(module, argv, out)):
@@ -156,9 +144,8 @@ def train_command(module: str, args, argv, out: str, checkpoints: dict[str, str]
 
 
 class Interruption:
-    """What the line Ctrl-C prints says. saved: what the command has written so far, as text or a
-    function giving it (called from another thread when Ctrl-C comes: it must only read files);
-    None: nothing. resume: the command that continues from what was saved, or None."""
+    """What the line Ctrl-C prints says. saved: what was written so far (None: nothing), or a function
+    giving it, called from another thread (it must only read files). resume: the command that continues."""
 
     def __init__(self, saved: str | Callable[[], str | None] | None = None, resume: str | None = None):
         self.saved = saved
@@ -179,11 +166,10 @@ def interruptible(
     saved: str | Callable[[], str | None] | None = None, resume: str | None = None
 ) -> Iterator[Interruption]:
     """Within the block, Ctrl-C prints `Interruption.line()` on stderr and ends the process with
-    `EXIT_INTERRUPTED` at once, without a traceback or waiting for running XLA computations. A Python
-    signal handler only runs when the main thread executes bytecode, so the signal wakes a watcher
-    thread (`signal.set_wakeup_fd`), which runs while the main thread waits in a jitted call and ends
-    the process with `os._exit` (checkpoints are written to a temporary file and renamed, so an exit
-    mid-write keeps the previous one). Outside the main thread the block runs unguarded."""
+    `EXIT_INTERRUPTED` at once. A Python signal handler only runs between bytecodes of the main thread,
+    so the signal wakes a watcher thread (`signal.set_wakeup_fd`) that calls `os._exit` even while the
+    main thread waits in a jitted call (checkpoints are written whole and renamed: an exit mid-write
+    keeps the previous one). Outside the main thread the block runs unguarded."""
     interruption = Interruption(saved, resume)
     if threading.current_thread() is not threading.main_thread():
         yield interruption
@@ -212,8 +198,7 @@ def _watch(woken: int, interruption: Interruption) -> None:
 
 
 def _stop(interruption: Interruption) -> None:
-    """Print the interruption's line and end the process now (stdout flushed first, so that lines
-    printed before Ctrl-C are not lost when it is a file or pipe)."""
+    """Print the interruption's line and end the process now (stdout flushed first: a file or pipe keeps its lines)."""
     line = interruption.line()
     for stream in (sys.stdout, sys.stderr):
         with contextlib.suppress(Exception):
@@ -249,8 +234,7 @@ def resumable_run(out: str | Path, checkpoints: Sequence[str]) -> dict:
 
 def checkpoint_saved(out: str | Path, checkpoints: dict[str, str]) -> str | None:
     """For `Interruption.saved`: the last of `checkpoints` ({file under out: what it holds, "" for the
-    run itself}, in training order) that exists and its generation, or that the run has none yet; None
-    if `out` holds no run (config.json). A checkpoint file is replaced whole, never written in place."""
+    run itself}, in training order) that exists and its generation; None if `out` holds no run."""
     out = Path(out)
     if not (out / "config.json").is_file():
         return None

@@ -19,8 +19,8 @@ import argparse
 import dataclasses
 import sys
 
-from experiments.cli import (add_set_flag, checkpoint_saved, input_errors, interruptible, resumable_run, resume_command,
-                             set_overrides)
+from experiments.cli import (add_setting_flags, checkpoint_saved, input_errors, interruptible, resumable_run,
+                             resume_command, set_overrides)
 from hte_jax.errors import ConfigError
 from hte_jax.flat.comparison import resolve
 from hte_jax.hbr.spare import SPARE_L, STRICT_CONTACT
@@ -43,7 +43,7 @@ def parser() -> argparse.ArgumentParser:
                    help="MJX implementation, jax or warp (default: the HBR's; on --resume, the run's)")
     p.add_argument("--resume", action="store_true", help="continue the run in --out")
     p.add_argument("--no-progress", action="store_true")
-    add_set_flag(p)
+    add_setting_flags(p, {})  # --set
     return p
 
 
