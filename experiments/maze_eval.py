@@ -15,24 +15,21 @@
     python -m experiments.maze_eval --set planner.iterations=50 --set solver.ls_iterations=8  # dotted keys
 
 Variants: hte, perfect-hte, random-hte, rte (on an HBR: the shipped one or --repertoire; rte also on a
-flat file), 2d-rte, 8d-rte (shipped flat repertoires), aprol (shipped 21 damaged repertoires).
---protocol paper: the paper's six variants on all 7 damages; hte-jax: hte-spare, perfect-spare,
-perfect-hte, hte, rte and 2d-rte on all 7 with --reflex-tilt 0.3 --reflex-release 0.15 (docs/results.md,
-lever 22). Damages: all (the paper's 7), or names / indices (none, leg0..leg5 = 0..5, legs1+4 = 6,
-any legs<i>+<j>). --damage-model: raised (the damaged leg blocked in the air, default) or locked.
---repertoire-dir: a subfolder per repertoire seed with hbr.npz, flat2d.npz, flat8d.npz, aprol.npz
-(`python -m experiments.train_set` trains one); a replication's score is the median over seeds.
---resume reads the batches a killed run finished (episodes_<k>.npz) and runs the others: the results
-equal an uninterrupted run's.
+flat file), 2d-rte, 8d-rte, aprol (shipped flat repertoires). --protocol paper: the paper's six variants
+on all 7 damages; hte-jax: hte-spare, perfect-spare, perfect-hte, hte, rte, 2d-rte on all 7 with
+--reflex-tilt 0.3 --reflex-release 0.15 (docs/results.md, lever 22). Damages: all (the paper's 7) or
+names / indices (none, leg0..leg5 = 0..5, legs1+4 = 6, legs<i>+<j>). --damage-model: raised (default)
+or locked. --repertoire-dir: a subfolder per seed with hbr.npz, flat2d.npz, flat8d.npz, aprol.npz
+(from `experiments.train_set`); a replication's score is the median over seeds. --resume reads the
+batches a killed run finished and runs the others: the results equal an uninterrupted run's.
 
-Writes config.json, episodes.json (one record per episode), summary.json (per variant and damage),
-statistics.json (quartiles of the replication medians, failure rates, pairwise Wilcoxon-Mann-Whitney
-tests with Bonferroni correction), episodes_<k>.npz (trajectories, plans, patterns of batch k) and
-plots/ under --out (default runs/maze-eval). --video N records the first N episodes of each variant
-(25 states per simulated second; no result changes) as replays/<variant>_ep<I>.npz, then renders
-videos/<variant>_ep<I>_<damage>.mp4 with `python -m experiments.render episode` (headless OpenGL);
-where no GL backend starts, one line says what to install and how to render them later. Bad values
-give a one-line error and exit status 2.
+Writes config.json, episodes.json, summary.json (per variant and damage), statistics.json (quartiles
+of the replication medians, failure rates, Wilcoxon-Mann-Whitney tests with Bonferroni correction),
+episodes_<k>.npz (trajectories, plans, patterns of batch k) and plots/ under --out (default
+runs/maze-eval). --video N records the first N episodes of each variant (no result changes) as
+replays/<variant>_ep<I>.npz and renders videos/<variant>_ep<I>_<damage>.mp4 with `experiments.render
+episode`; where no OpenGL backend starts, one line says what to install and how to render them later.
+Bad values give a one-line error and exit status 2.
 """
 
 from __future__ import annotations

@@ -3,9 +3,9 @@
     python -m experiments.measure_steps --hbr runs/hbr-gpu/hbr.npz          # in place (GPU: about a minute)
     python -m experiments.measure_steps --hbr old.npz --out new.npz --starts 8
 
-The step model (`hte_jax.hbr.composition.measure_steps`) is what planned composition predicts each
-elite's step with; `train_hbr` measures it at the end of training (`step_starts`), so this command
-is for HBR files trained before it existed. Start 0 is the neutral pose, the others a random elite.
+The step model (`hbr.composition.measure_steps`) predicts each elite's step in planned composition;
+`train_hbr` measures it (`step_starts`), so this command is for HBR files trained before it existed.
+Start 0 is the neutral pose, the others a random elite.
 """
 
 from __future__ import annotations

@@ -38,9 +38,7 @@ def main(argv=None) -> int:
 
 
 def _main(args, interrupt: Interruption) -> int:
-    given = any(x is not None for x in (args.hbr, args.flat8d, args.flat2d))
-    paths = []
-    if given:
+    if any(x is not None for x in (args.hbr, args.flat8d, args.flat2d)):
         paths = [*(args.hbr or []), *(args.flat8d or []), *(args.flat2d or [])]
     else:
         paths = [shipped_hbr_path(), shipped_flat_path("8d"), shipped_flat_path("2d")]
@@ -51,8 +49,7 @@ def _main(args, interrupt: Interruption) -> int:
     if errors.failed:
         return 2
     table = aggregate(rows)
-    text = markdown_table(table)
-    print(text, end="")
+    print(text := markdown_table(table), end="")
     out = Path(args.out)
     interrupt.saved = f"part of table2.json and table2.md written in {out}"
     out.mkdir(parents=True, exist_ok=True)

@@ -9,10 +9,9 @@
     python -m experiments.train_flat --variant 2d --set solver.solver_iterations=4   # any setting, dotted
 
 Writes config.json, checkpoint.npz, metrics.csv, repertoires.npz, summary.json and plots/ under
---out (default runs/flat-<variant>-<preset>). `--show-config` prints the resolved configuration.
-Bad values give a one-line error and exit status 2. A resumed run keeps the solver settings it was
-started with (4 / 8 for runs started before they were settings) unless they are given; a
-different value is then an error. Times: benchmarks/cpu_commands.py (2026-11-26).
+--out (default runs/flat-<variant>-<preset>); `--show-config` prints the resolved configuration. A
+resumed run keeps its solver settings (4 / 8 if it predates them); another value given is an error.
+Bad values give a one-line error and exit status 2. Times: benchmarks/cpu_commands.py (2026-11-26).
 """
 
 from __future__ import annotations

@@ -9,12 +9,10 @@
     python -m experiments.train_hbr --solver-iterations 4 --ls-iterations 8   # the physics' solver
     python -m experiments.train_hbr --set middle.parents.selection=density    # any setting, dotted
 
-Writes config.json, per-layer checkpoints and metrics CSVs, hbr.npz, summary.json and plots/
-under --out (default runs/hbr-<preset>). Every preset value has a flag; `--show-config` prints
-the resolved configuration and exits. Bad values give a one-line error and exit status 2.
-A resumed run keeps the solver settings it was started with (4 / 8 for runs started before they
-were settings) unless they are given; a different value is then an error.
-Times: benchmarks/cpu_commands.py (2026-11-26).
+Writes config.json, per-layer checkpoints and metrics CSVs, hbr.npz, summary.json and plots/ under
+--out (default runs/hbr-<preset>); `--show-config` prints the resolved configuration. A resumed run
+keeps its solver settings (4 / 8 if it predates them); another value given is an error. Bad values
+give a one-line error and exit status 2. Times: benchmarks/cpu_commands.py (2026-11-26).
 """
 
 from __future__ import annotations
