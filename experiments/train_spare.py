@@ -70,9 +70,9 @@ def main(argv=None) -> int:
                                   progress=not args.no_progress)
         if errors.failed:
             return 2
-        print(f"spare archive: {summary['elites']} elites over {summary['patterns']} patterns; "
-              f"elites lifting each leg: {summary['lifting_each_leg']['spare']} (the HBR's own: "
-              f"{summary['lifting_each_leg']['hbr']}); wrote {args.out}/spare.npz")
+        lifting = summary["lifting_each_leg"]
+        print(f"spare archive: {summary['elites']} elites over {summary['patterns']} patterns; elites lifting each "
+              f"leg: {lifting['spare']} (the HBR's own: {lifting['hbr']}); wrote {args.out}/spare.npz")
         return 0
 
 
