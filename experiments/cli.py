@@ -1,34 +1,21 @@
-"""What the command-line tools share: bad input becomes one `error: ...` line on stderr and exit status 2.
+"""What the command-line tools share. Bad input is one `error: ...` line on stderr and exit status 2:
 
     with input_errors() as errors:  # ConfigError or CheckpointError; input_errors(OSError) catches OSError only
         ...
     if errors.failed:
         return 2
 
-    return fail("--chunk must be >= 1, got 0")  # prints the line, returns 2
-
-    add_set_flag(parser)  # --set KEY=VALUE, repeatable: any setting by its dotted key
-    overrides.update(set_overrides(args.set))
-
-Ctrl-C ends a command at once with one line on stderr, `interrupted: <what was saved>[; resume
-with: <command>]` (or `interrupted: nothing written`), and exit status 130, also while the main
-thread waits in a long XLA call. Every command's `main` runs inside `interruptible` and keeps
-its `saved` up to date (text, or a function that reads the run folder when Ctrl-C comes):
-
-    @interruptible()  # nothing is written before the end
-    def main(argv=None) -> int: ...
-
-    with interruptible(lambda: checkpoint_saved(out, {"checkpoint.npz": ""}),
-                       resume_command("experiments.train_flat", argv, out)) as interrupt:
-        ...  # interrupt.saved = "wrote ..." as files are written
-
-    stored = resumable_run(out, ["checkpoint.npz"])  # --resume: ConfigError unless out holds a run
+Ctrl-C ends a command at once, also while the main thread waits in a long XLA call, with one line on
+stderr, `interrupted: <what was saved>[; resume with: <command>]` (or `interrupted: nothing written`),
+and exit status 130. Every command's `main` runs inside `interruptible` and keeps its `saved` up to
+date (text, or a function that reads the run folder when Ctrl-C comes).
 """
 
 from __future__ import annotations
 
 import argparse
 import contextlib
+import json
 import os
 import shlex
 import signal
@@ -36,9 +23,13 @@ import sys
 import threading
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
+from types import SimpleNamespace
 
+import jax
 import numpy as np
+from jax.sharding import Mesh
 
+from hte_jax import sharding
 from hte_jax.errors import ConfigError
 from hte_jax.qd.io import CheckpointError, read_header, stored_config
 
@@ -53,36 +44,15 @@ def fail(message) -> int:
     return EXIT_BAD_INPUT
 
 
-def input_errors(*types: type[BaseException]) -> InputErrors:
-    """A context manager that reports an exception of `types` (default `INPUT_ERRORS`) with `fail`
-    and swallows it; its `failed` then tells the caller to return `EXIT_BAD_INPUT`. Others propagate."""
-    return InputErrors(types or INPUT_ERRORS)
-
-
-class InputErrors:
-    """See `input_errors`."""
-
-    def __init__(self, types: tuple[type[BaseException], ...]):
-        self.types = types
-        self.failed = False
-
-    def __enter__(self) -> InputErrors:
-        return self
-
-    def __exit__(self, kind, error, traceback) -> bool:
-        if error is None or not isinstance(error, self.types):
-            return False
+@contextlib.contextmanager
+def input_errors(*types: type[BaseException]) -> Iterator[SimpleNamespace]:
+    """Reports an exception of `types` (default `INPUT_ERRORS`) with `fail` and swallows it, setting `failed`."""
+    outcome = SimpleNamespace(failed=False)
+    try:
+        yield outcome
+    except (types or INPUT_ERRORS) as error:
         fail(error)
-        self.failed = True
-        return True
-
-
-def add_set_flag(parser: argparse.ArgumentParser) -> None:
-    """`--set KEY=VALUE` (repeatable): override any setting by its key, dotted through nested
-    configurations (`config.with_overrides`); applied after the setting flags."""
-    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                        help="override a setting by its key, dotted through nested configurations "
-                             "(planner.iterations=50, solver.ls_iterations=8, top.parents.selection=density); repeatable")
+        outcome.failed = True
 
 
 def set_overrides(items: list[str]) -> dict[str, str]:
@@ -96,10 +66,86 @@ def set_overrides(items: list[str]) -> dict[str, str]:
     return overrides
 
 
+def add_setting_flags(parser: argparse.ArgumentParser, metavars: dict[str, str], aliases: dict | None = None) -> None:
+    """A flag overriding each setting ({key: metavar}; `--middle-generations` for `middle.generations`
+    unless `aliases` names another), then `--set KEY=VALUE` (repeatable): any setting by its dotted key."""
+    for key, metavar in metavars.items():
+        flag = (aliases or {}).get(key, "--" + key.replace(".", "-").replace("_", "-"))
+        parser.add_argument(flag, dest=key, default=None, metavar=metavar, help=f"override {key}")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="override a setting by its key, dotted through nested configurations "
+                             "(planner.iterations=50, solver.ls_iterations=8, top.parents.selection=density); repeatable")
+
+
+def setting_overrides(args: argparse.Namespace, keys) -> dict[str, str]:
+    """The settings the flags of `add_setting_flags` give, then those of `--set`."""
+    overrides = {key: getattr(args, key) for key in keys if getattr(args, key) is not None}
+    return {**overrides, **set_overrides(args.set)}
+
+
+def add_device_flags(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--devices", type=int, default=None, metavar="N",
+                        help="spread every batch over the first N visible devices (default: all)")
+    parser.add_argument("--distributed", action="store_true",
+                        help="multi-host run: jax.distributed.initialize() first (SLURM / Open MPI / cloud "
+                             "TPU settings are read from the environment); only process 0 writes files")
+
+
+def device_mesh(args: argparse.Namespace) -> Mesh:
+    """The mesh --devices and --distributed ask for (call it before anything touches jax's devices)."""
+    if args.distributed:
+        try:
+            jax.distributed.initialize()
+        except (RuntimeError, ValueError) as error:
+            first = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
+            raise ConfigError(f"--distributed: jax.distributed.initialize() failed: {first}") from None
+    return sharding.batch_mesh(sharding.check_device_count(args.devices))
+
+
+def is_writer() -> bool:
+    """Whether this process writes files (process 0 of a multi-host run, or the only one)."""
+    return jax.process_index() == 0
+
+
+def add_training_flags(parser: argparse.ArgumentParser, presets, out_help: str, progress_help: str,
+                       metavars: dict[str, str]) -> None:
+    parser.add_argument("--preset", default="cpu", help=f"one of {', '.join(presets)} (default cpu)")
+    parser.add_argument("--out", default=None, help=out_help)
+    parser.add_argument("--resume", action="store_true", help="continue the run in --out")
+    parser.add_argument("--no-progress", action="store_true", help=progress_help)
+    parser.add_argument("--show-config", action="store_true", help="print the resolved configuration and exit")
+    add_device_flags(parser)
+    add_setting_flags(parser, metavars)
+
+
+def train_command(module: str, args, argv, out: str, checkpoints: dict[str, str], keys, preset: Callable,
+                  with_overrides: Callable, train: Callable, report: Callable) -> int:
+    """train_flat's and train_hbr's run, within `interruptible`: `preset()` with the flags of `keys` and --set
+    (on --resume, the run's solver settings unless given), then --show-config, or `train` and `report(outcome)`."""
+    from hte_jax.sim.robot import stored_solver  # imports mujoco: not before a command needs it
+
+    with interruptible(lambda: checkpoint_saved(out, checkpoints), resume_command(module, argv, out)):
+        with input_errors() as errors:
+            mesh = device_mesh(args)  # first: --distributed must start before jax touches the devices
+            config = preset()
+            overrides = setting_overrides(args, keys)
+            if args.resume:
+                overrides = {**stored_solver(resumable_run(out, checkpoints)), **overrides}
+            config = with_overrides(config, overrides)
+            if args.show_config:
+                print(json.dumps(config.to_dict(), indent=2))
+                return 0
+            outcome = train(config, out, resume_run=args.resume, progress=not args.no_progress, mesh=mesh)
+        if errors.failed:
+            return EXIT_BAD_INPUT
+        if is_writer():
+            report(outcome)
+        return 0
+
+
 class Interruption:
-    """What the line Ctrl-C prints says. saved: what the command has written so far, as text or a
-    function giving it (called when Ctrl-C comes, from another thread: it must only read files);
-    None: nothing. resume: the command that continues from what was saved, or None."""
+    """What the line Ctrl-C prints says. saved: what was written so far (None: nothing), or a function
+    giving it, called from another thread (it must only read files). resume: the command that continues."""
 
     def __init__(self, saved: str | Callable[[], str | None] | None = None, resume: str | None = None):
         self.saved = saved
@@ -119,13 +165,11 @@ class Interruption:
 def interruptible(
     saved: str | Callable[[], str | None] | None = None, resume: str | None = None
 ) -> Iterator[Interruption]:
-    """Within the block, Ctrl-C (SIGINT) prints `Interruption.line()` on stderr and ends the process
-    with `EXIT_INTERRUPTED` at once, without a traceback and without waiting for running XLA
-    computations. A Python signal handler only runs when the main thread executes bytecode, so the
-    signal wakes a watcher thread instead (`signal.set_wakeup_fd`), which also runs while the main
-    thread waits inside a jitted call, and which ends the process with `os._exit`: checkpoints are
-    written to a temporary file and renamed (`qd.io.save_checkpoint`), so an exit mid-write keeps
-    the previous one. Outside the main thread (no signal handling there) the block runs unguarded."""
+    """Within the block, Ctrl-C prints `Interruption.line()` on stderr and ends the process with
+    `EXIT_INTERRUPTED` at once. A Python signal handler only runs between bytecodes of the main thread,
+    so the signal wakes a watcher thread (`signal.set_wakeup_fd`) that calls `os._exit` even while the
+    main thread waits in a jitted call (checkpoints are written whole and renamed: an exit mid-write
+    keeps the previous one). Outside the main thread the block runs unguarded."""
     interruption = Interruption(saved, resume)
     if threading.current_thread() is not threading.main_thread():
         yield interruption
@@ -154,8 +198,7 @@ def _watch(woken: int, interruption: Interruption) -> None:
 
 
 def _stop(interruption: Interruption) -> None:
-    """Print the interruption's line and end the process now (stdout flushed first, so that lines
-    printed before Ctrl-C are not lost when it is a file or pipe)."""
+    """Print the interruption's line and end the process now (stdout flushed first: a file or pipe keeps its lines)."""
     line = interruption.line()
     for stream in (sys.stdout, sys.stderr):
         with contextlib.suppress(Exception):
@@ -178,9 +221,8 @@ def resume_command(module: str, argv: Sequence[str] | None, out: str | Path) -> 
 
 
 def resumable_run(out: str | Path, checkpoints: Sequence[str]) -> dict:
-    """For `--resume`: the configuration of the run in `out` (ConfigError when out holds none),
-    once each of its `checkpoints` (files under out) that exists has been found to be a checkpoint
-    (CheckpointError naming the first that is not), before any time is spent starting the run."""
+    """For `--resume`, before any time is spent starting the run: the configuration of the run in `out`
+    (ConfigError when out holds none); CheckpointError if one of its `checkpoints` is not a checkpoint."""
     stored = stored_config(out)
     if stored is None:
         raise ConfigError(f"--resume: {out} holds no run to resume (no config.json); leave out --resume to start one")
@@ -191,10 +233,8 @@ def resumable_run(out: str | Path, checkpoints: Sequence[str]) -> dict:
 
 
 def checkpoint_saved(out: str | Path, checkpoints: dict[str, str]) -> str | None:
-    """What a training run folder holds, for `Interruption.saved`: the last of `checkpoints` ({file
-    under out: what it holds, "" for the run itself}, in training order) that exists and its
-    generation, or that the run has no checkpoint yet; None if `out` holds no run (config.json).
-    Reads the files as they are: a checkpoint file is replaced whole, never written in place."""
+    """For `Interruption.saved`: the last of `checkpoints` ({file under out: what it holds, "" for the
+    run itself}, in training order) that exists and its generation; None if `out` holds no run."""
     out = Path(out)
     if not (out / "config.json").is_file():
         return None

@@ -3,14 +3,13 @@
     python -m experiments.fit_gp --run runs/maze-eval
     python -m experiments.fit_gp --run runs/maze-eval --variant rte,hte --steps 400 --learning-rate 0.02
 
-Rebuilds each HBR episode's RTE GP from its episodes_<k>.npz (the executed skills' GP inputs and
-the repertoire's prior outcomes, from the HBR file the run used; the measured outcomes), then
-maximises the summed log marginal likelihood of all those GPs over the squared exponential
-kernel's length-scale, variance and noise with Adam, starting from the online loop's kernel
-(`gp.RTE_KERNEL`). Prints one line (the fitted kernel, the log-likelihood before and after) and
-writes fit.json (also the likelihood trace) into the run folder. Episodes on flat repertoires are
-left out. The online loop
-keeps its kernel: nothing reads fit.json. Bad input gives a one-line error and exit status 2.
+Rebuilds each HBR episode's RTE GP from its episodes_<k>.npz (the executed skills' GP inputs, the
+prior outcomes of the HBR file the run used, the measured outcomes), then maximises the summed log
+marginal likelihood of those GPs over the squared exponential kernel's length-scale, variance and
+noise with Adam, from the online loop's kernel (`gp.RTE_KERNEL`). Prints the fitted kernel and the
+log-likelihood before and after, and writes fit.json (also the likelihood trace) into the run folder;
+the online loop keeps its kernel. Episodes on flat repertoires are left out. Bad input gives a
+one-line error and exit status 2.
 """
 
 from __future__ import annotations
@@ -27,9 +26,9 @@ import numpy as np
 from experiments.cli import fail, input_errors, interruptible
 from hte_jax.errors import ConfigError, require_int, require_number
 from hte_jax.hbr.store import load_hbr
-from hte_jax.online.skills import ActionSet, action_set, replayed_models
 from hte_jax.online.gp import RTE_KERNEL, GPData
 from hte_jax.online.gp_fit import fit_kernel
+from hte_jax.online.skills import ActionSet, action_set, replayed_models
 from hte_jax.online.variants import variant as variant_named
 from hte_jax.qd.io import CheckpointError, read_checkpoint, write_json
 
@@ -117,14 +116,10 @@ def main(argv=None) -> int:
         return 2
     if not np.isfinite(trace[-1]):
         return fail(f"the fit diverged (log-likelihood {trace[-1]}); try a smaller --learning-rate")
-
-    def described(kernel):
-        return {"kind": kernel.kind, "length_scale": kernel.length_scale, "variance": kernel.variance,
-                "noise": kernel.noise}
-
+    fields = ("kind", "length_scale", "variance", "noise")
     observations = int(data.mask.sum())
     write_json(run / "fit.json", {
-        "initial": described(RTE_KERNEL), "fitted": described(fitted),
+        "initial": {k: getattr(RTE_KERNEL, k) for k in fields}, "fitted": {k: getattr(fitted, k) for k in fields},
         "log_likelihood": {"initial": float(trace[0]), "fitted": float(trace[-1])},
         "observations": observations, **info, "steps": args.steps, "learning_rate": args.learning_rate,
         "trace": [float(t) for t in trace],

@@ -2,10 +2,9 @@
 
     python -m experiments.inspect_checkpoint runs/top/checkpoint.npz
 
-Prints the format version, the stored metadata (container, config; a repertoire file's task spec)
-and every array's shape, plus the number of elites and their fitness range when the file holds a
-repertoire (a checkpoint's, or each repertoire of a repertoire, HBR or flat file). A missing,
-truncated, corrupt or foreign file gives a one-line error and exit status 2.
+Prints the format version, the stored metadata and every array's shape, plus the number of elites
+and their fitness range for each repertoire the file holds. A missing, truncated, corrupt or foreign
+file gives a one-line error and exit status 2.
 """
 
 from __future__ import annotations
@@ -55,9 +54,7 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     with input_errors(CheckpointError) as errors:
         print(describe(args.path))
-    if errors.failed:
-        return 2
-    return 0
+    return 2 if errors.failed else 0
 
 
 if __name__ == "__main__":

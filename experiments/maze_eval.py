@@ -14,27 +14,22 @@
     python -m experiments.maze_eval --maze two_rooms --variant hte,rte   # another world (assets/mazes/ or a JSON file)
     python -m experiments.maze_eval --set planner.iterations=50 --set solver.ls_iterations=8  # dotted keys
 
-Variants: hte, perfect-hte, random-hte, rte (on an HBR: the shipped one or --repertoire; rte
-also on a flat file), 2d-rte, 8d-rte (shipped flat repertoires), aprol (shipped 21 damaged
-repertoires). --protocol paper: the paper's six variants on all 7 damages; --protocol hte-jax:
-hte-spare, perfect-spare, perfect-hte, hte, rte and 2d-rte on all 7, with --reflex-tilt 0.3
---reflex-release 0.15 (the sets of docs/results.md, lever 22). Damages: all (the
-paper's 7), or names / indices (none, leg0..leg5 = 0..5, legs1+4 = 6, any legs<i>+<j>).
---damage-model: raised (the damaged leg blocked in the air, default) or locked (standing pose).
---repertoire-dir: one subfolder per repertoire seed, each with hbr.npz, flat2d.npz, flat8d.npz,
-aprol.npz (the paper: 4 seeds; `python -m experiments.train_set` trains one); a replication's score
-is the median over seeds. --resume continues a killed run in --out: the batches it finished are read
-from their episodes_<k>.npz, the others run; the results equal an uninterrupted run's.
-Writes config.json, episodes.json (one record per episode), summary.json (per variant and
-damage), statistics.json (the paper's statistics: quartiles of the replication medians, failure
-rates, pairwise Wilcoxon-Mann-Whitney tests with Bonferroni correction), episodes_<k>.npz
-(trajectories, plans, patterns of batch k) and plots/ under --out (default runs/maze-eval).
---video N records the first N episodes of each variant (the full state 25 times per simulated
-second; recording changes no result) as replays/<variant>_ep<I>.npz and, once the results are
-written, renders them as videos/<variant>_ep<I>_<damage>.mp4 with `python -m experiments.render
-episode` (headless OpenGL, chosen when MUJOCO_GL is unset: EGL, else OSMesa). Where neither starts,
-the run keeps its results and replays and says in one line what to install and how to render
-the videos later. Bad values give a one-line error and exit status 2.
+Variants: hte, perfect-hte, random-hte, rte (on an HBR: the shipped one or --repertoire; rte also on a
+flat file), 2d-rte, 8d-rte, aprol (shipped flat repertoires). --protocol paper: the paper's six variants
+on all 7 damages; hte-jax: hte-spare, perfect-spare, perfect-hte, hte, rte, 2d-rte on all 7 with
+--reflex-tilt 0.3 --reflex-release 0.15 (docs/results.md, lever 22). Damages: all (the paper's 7) or
+names / indices (none, leg0..leg5 = 0..5, legs1+4 = 6, legs<i>+<j>). --damage-model: raised (default)
+or locked. --repertoire-dir: a subfolder per seed with hbr.npz, flat2d.npz, flat8d.npz, aprol.npz
+(from `experiments.train_set`); a replication's score is the median over seeds. --resume reads the
+batches a killed run finished and runs the others: the results equal an uninterrupted run's.
+
+Writes config.json, episodes.json, summary.json (per variant and damage), statistics.json (quartiles
+of the replication medians, failure rates, Wilcoxon-Mann-Whitney tests with Bonferroni correction),
+episodes_<k>.npz (trajectories, plans, patterns of batch k) and plots/ under --out (default
+runs/maze-eval). --video N records the first N episodes of each variant (no result changes) as
+replays/<variant>_ep<I>.npz and renders videos/<variant>_ep<I>_<damage>.mp4 with `experiments.render
+episode`; where no OpenGL backend starts, one line says what to install and how to render them later.
+Bad values give a one-line error and exit status 2.
 """
 
 from __future__ import annotations
@@ -50,46 +45,20 @@ from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
-
 from tqdm.auto import tqdm
 
-from experiments.cli import Interruption, add_set_flag, input_errors, interruptible, resume_command, set_overrides
-from experiments.devices import add_device_flags, device_mesh, is_writer
+from experiments.cli import (Interruption, add_device_flags, add_setting_flags, device_mesh, input_errors,
+                             interruptible, is_writer, resume_command, setting_overrides)
 from hte_jax.config import settings
 from hte_jax.errors import ConfigError, require_int
-from hte_jax.online.evaluation import (
-    PRESETS,
-    PROTOCOLS,
-    EvalConfig,
-    batch_labels,
-    batches,
-    episode_numbers,
-    episode_records,
-    prediction_errors,
-    preset,
-    protocol_overrides,
-    rows_to_record,
-    run_batch,
-    summarise,
-    with_overrides,
-)
+from hte_jax.online.evaluation import (PRESETS, PROTOCOLS, EvalConfig, batch_labels, batches, episode_numbers,
+                                      episode_records, prediction_errors, preset, protocol_overrides, rows_to_record,
+                                      run_batch, summarise, with_overrides)
+from hte_jax.online.plots import (episode_track, plot_actions, plot_episodes, plot_failures, plot_prediction_error,
+                                  plot_protocol_box, plot_variant_mazes)
 from hte_jax.online.recording import replay_path, save_replay
-from hte_jax.online.plots import (
-    episode_track,
-    plot_actions,
-    plot_episodes,
-    plot_failures,
-    plot_prediction_error,
-    plot_protocol_box,
-    plot_variant_mazes,
-)
-from hte_jax.online.statistics import (
-    PAPER_FAILURE_REDUCTION,
-    PAPER_QUARTILES,
-    failure_reduction,
-    failure_reductions,
-    protocol_statistics,
-)
+from hte_jax.online.statistics import (PAPER_FAILURE_REDUCTION, PAPER_QUARTILES, failure_reduction, failure_reductions,
+                                       protocol_statistics)
 from hte_jax.qd.io import prepare_run_dir, read_checkpoint, save_checkpoint, write_json
 from hte_jax.sharding import mesh_size
 from hte_jax.sim.mjx_import import require_impl
@@ -98,7 +67,6 @@ from hte_jax.viz import gl
 SETTINGS = list(settings(EvalConfig))  # override keys, inlined settings (the planner's, the solver's) by their names
 RECORD_EVERY = 4  # control steps between the recorded states of --video episodes (25 per simulated second)
 ROOT = Path(__file__).resolve().parents[1]
-ALIASES = {"variants": "--variant", "damages": "--damage"}
 
 
 def parser() -> argparse.ArgumentParser:
@@ -114,10 +82,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--video", default="0", metavar="N",
                    help="record the first N episodes of each variant and write their videos (default 0: none)")
     add_device_flags(p)
-    for key in SETTINGS:
-        flag = ALIASES.get(key, "--" + key.replace("_", "-"))
-        p.add_argument(flag, dest=key, default=None, metavar="V", help=f"override {key}")
-    add_set_flag(p)
+    add_setting_flags(p, dict.fromkeys(SETTINGS, "V"), {"variants": "--variant", "damages": "--damage"})
     return p
 
 
@@ -132,8 +97,7 @@ def _main(args, interrupt: Interruption, argv) -> int:
         mesh = device_mesh(args)  # first: --distributed must start before jax touches the devices
         writer = is_writer()  # only process 0 of a multi-host run writes files
         overrides = protocol_overrides(args.protocol) if args.protocol is not None else {}
-        overrides.update({k: getattr(args, k) for k in SETTINGS if getattr(args, k) is not None})
-        overrides.update(set_overrides(args.set))
+        overrides.update(setting_overrides(args, SETTINGS))
         config = with_overrides(preset(args.preset), overrides)
         videos = _video_count(args.video)
         if args.show_config:
@@ -182,8 +146,7 @@ def _main(args, interrupt: Interruption, argv) -> int:
             interrupt.saved = f"wrote {_batch_files(k + 1, len(planned))} in {out}, no summary"
             _plot_batch(out / "plots", result, curves, tracks, maze)
             print(f"batch {k} ({'/'.join(variants)} on seed {seed}: {result.repertoire['path']}, "
-                  f"{result.repertoire['actions']} actions): "
-                  f"{len(rows)} episodes in {result.timings.total:.1f} s, "
+                  f"{result.repertoire['actions']} actions): {len(rows)} episodes in {result.timings.total:.1f} s, "
                   f"planning median {np.median(result.timings.plan):.2f} s per action")
     if errors.failed:
         return 2
@@ -247,10 +210,9 @@ def _save_replays(out: Path, result, numbers: list[int], batch: int) -> list[tup
 
 
 def _write_videos(out: Path, recorded: list[tuple[str, int]], progress: bool) -> str | None:
-    """Render every recorded episode with `python -m experiments.render episode` into out/videos, in
-    its own process (MUJOCO_GL must be chosen before mujoco is imported, and this process has
-    imported it), with the GL backend chosen once here (`hte_jax.viz.gl`). None when every video is
-    written, else one line: videos not rendered, why, and the command that renders them later."""
+    """Render every recorded episode into out/videos with `python -m experiments.render episode`, each in
+    its own process (MUJOCO_GL must be set before mujoco is imported), the GL backend chosen once here.
+    None when every video is written, else one line: what was not rendered, why, and how to later."""
     if not recorded:
         return None
     try:
@@ -315,14 +277,10 @@ def _load_batch(path: Path, seed: int, labels: list[tuple[str, str, int]]):
 
 def _save_batch(path: Path, result, records: list[dict]) -> None:
     ep = result.episodes
-    arrays = {
-        "trajectory": ep.trajectory, "taken": ep.taken, "reached": ep.reached, "broken": ep.broken,
-        "damage": ep.damage, "action": ep.history.action, "map": ep.history.map, "planned": ep.history.planned,
-        "start": ep.history.start,
-        "predicted": ep.history.predicted, "observed": ep.history.observed, "value": ep.history.value,
-        "path": ep.history.path, "path_length": ep.history.path_length, "patterns": ep.history.patterns,
-        "errors": ep.history.errors, "contacts": ep.history.contacts, "leg_travel": ep.history.leg_travel,
-    }
+    arrays = {**{k: getattr(ep, k) for k in ("trajectory", "taken", "reached", "broken", "damage")},
+              **{k: getattr(ep.history, k) for k in ("action", "map", "planned", "start", "predicted", "observed",
+                                                      "value", "path", "path_length", "patterns", "errors", "contacts",
+                                                      "leg_travel")}}
     labels = {"seed": result.seed, "variants": result.variants, "damages": result.damages, "replicates": result.replicates,
               "repertoire": result.repertoire, "plan_seconds": result.timings.plan, "act_seconds": result.timings.act,
               "records": records}

@@ -3,9 +3,9 @@
     python -m experiments.measure_steps --hbr runs/hbr-gpu/hbr.npz          # in place (GPU: about a minute)
     python -m experiments.measure_steps --hbr old.npz --out new.npz --starts 8
 
-The step model (`hte_jax.hbr.composition.measure_steps`) is what planned composition predicts each
-elite's step with; `train_hbr` measures it at the end of training (`step_starts`), so this command
-is for HBR files trained before it existed. Start 0 is the neutral pose, the others a random elite.
+The step model (`hbr.composition.measure_steps`) predicts each elite's step in planned composition;
+`train_hbr` measures it (`step_starts`), so this command is for HBR files trained before it existed.
+Start 0 is the neutral pose, the others a random elite.
 """
 
 from __future__ import annotations
@@ -16,8 +16,7 @@ import time
 
 import jax
 
-from experiments.cli import fail, input_errors, interruptible
-from experiments.devices import add_device_flags, device_mesh, is_writer
+from experiments.cli import add_device_flags, device_mesh, fail, input_errors, interruptible, is_writer
 from hte_jax.flat.comparison import resolve
 from hte_jax.hbr.composition import measure_steps
 from hte_jax.hbr.store import load_hbr, save_hbr, shipped_hbr_path

@@ -9,11 +9,10 @@ paper's nearest elite to each waypoint).
     python -m experiments.modulation --hbr runs/hbr-gpu --skills 200 --seed 1   # another sample
     python -m experiments.modulation --data runs/modulation/modulation.npz --radius 0.1 --out runs/mod-r01
 
-Presets: cpu (default) re-executes 48 skills spread over the whole map of final positions
-(`hte_jax.hbr.modulation.spread_skills`: the skills ordered along a Z-order curve over the map,
-every (skills / 48)-th taken from a start drawn with --seed, default 0), so the figures keep their
-shape and each skill is equally likely to count in the summary's means; gpu re-executes every
-skill (2813 x 64 on the shipped HBR). --skills N|all overrides the preset's count.
+Presets: cpu (default) re-executes 48 skills spread over the map of final positions (ordered along a
+Z-order curve, every (skills / 48)-th from a start drawn with --seed: `hbr.modulation.spread_skills`),
+so the figures keep their shape and each skill is equally likely to count in the summary's means;
+gpu every skill (2813 x 64 on the shipped HBR). --skills N|all overrides the preset's count.
 
 Writes under --out (default runs/modulation): modulation_map.png (Fig. 4), modulation_grid.png
 (Fig. 5), modulation.json (summary, the skills' sample and per-skill counts) and modulation.npz
@@ -42,7 +41,6 @@ from hte_jax.online.secondary import allowed_patterns
 from hte_jax.qd.io import CheckpointError, write_json
 from hte_jax.sim.robot import load_robot
 from hte_jax.sim.rollout import standing_state
-
 
 # skills: how many to sample spread over the map (None: every skill); chunk: executions per jitted call
 PRESETS = {"cpu": {"skills": 48, "chunk": 512}, "gpu": {"skills": None, "chunk": 4096}}
@@ -127,14 +125,10 @@ def _main(args, interrupt: Interruption) -> int:
         bar.update()
         plot_modulation_grid(mod, out / "modulation_grid.png", task.extent)
         bar.update()
-    counts = mod.counts(args.radius)
-    summary = mod.summary()
+    counts, summary = mod.counts(args.radius), mod.summary()
     write_json(out / "modulation.json", {
-        "summary": summary,
-        "composition": None if args.data is not None else args.composition,
-        "sample": sample,
-        "step_model": hbr.step_model is not None,
-        "radius_m": args.radius,
+        "summary": summary, "composition": None if args.data is not None else args.composition, "sample": sample,
+        "step_model": hbr.step_model is not None, "radius_m": args.radius,
         "per_skill": {"slot": mod.slots.tolist(), **{k: np.asarray(v).tolist() for k, v in counts.items()}},
     })
     if args.data is None:

@@ -7,22 +7,18 @@
     python -m experiments.render patterns --skill 1400 --damage leg1   # one skill, several contact patterns
     python -m experiments.render episode runs/maze-eval --variant hte --episode 0  # a recorded maze episode
 
-`skills` simulates each chosen skill for 3 s from standing (top-layer skills of an HBR, or the
-controllers of a flat repertoire, intact or under a named damage), records the state every frame
-and lays the clips out on a grid: a tracking camera (or `--camera top`, looking down), damaged legs
-in red. `patterns` executes one HBR skill with several contact patterns held for its three steps
-(what HTE chooses from; "any" is RTE's nearest elite of any pattern), each clip labelled.
-`episode` replays a maze episode recorded by `python -m experiments.maze_eval --video N` (the
-replay files under <run>/replays/; --episode I is the variant's I-th episode of the run): the
-whole maze seen from above (or --camera track), the goal in green, the path so far as a blue
-trail, and a panel naming the action, the executed skill and each step's contact pattern;
---speed simulated seconds per video second (default 4). MP4 through imageio-ffmpeg, GIF through
-Pillow (by the --out suffix).
+`skills`: each chosen skill (top-layer skills of an HBR, or a flat repertoire's controllers, intact
+or under a damage) simulated for 3 s from standing, the clips on a grid: a tracking camera (or
+`--camera top`), damaged legs in red. `patterns`: one HBR skill executed with several contact
+patterns held for its three steps ("any": RTE's nearest elite of any pattern), each clip labelled.
+`episode`: a maze episode recorded by `maze_eval --video N` (<run>/replays/; --episode I is the
+variant's I-th episode of the run), the maze seen from above (or --camera track), the goal in green,
+the path as a blue trail, a panel naming the action, skill and each step's contact pattern; --speed:
+simulated seconds per video second (default 4). MP4 (imageio-ffmpeg) or GIF (Pillow) by the --out suffix.
 
-Headless OpenGL, chosen for you when MUJOCO_GL is unset: EGL (a GPU driver, or Mesa's software
-EGL on a CPU), else OSMesa (Debian package libosmesa6); when neither starts, one line says what to
-install (hte_jax/viz/gl.py). Arguments and files are checked before OpenGL is needed (--help never
-needs it). Bad input gives a one-line error and exit 2.
+Headless OpenGL, chosen when MUJOCO_GL is unset: EGL (a GPU driver, or Mesa's software EGL), else
+OSMesa (Debian package libosmesa6); when neither starts, one line says what to install. Arguments and
+files are checked before OpenGL is needed. Bad input gives a one-line error and exit 2.
 """
 
 from __future__ import annotations
@@ -56,24 +52,20 @@ def parser() -> argparse.ArgumentParser:
     source.add_argument("--flat", default=None, help="flat repertoire file, or 2d / 8d for the shipped ones")
     s.add_argument("--count", type=int, default=6, help="skills, spread evenly over the repertoire (default 6)")
     s.add_argument("--skills", default=None, help="comma-separated skill numbers (0 .. filled - 1) instead of --count")
-    s.add_argument("--damage", default="none", help="none, leg0..leg5, legs<i>+<j> (default none)")
-    s.add_argument("--damage-model", default="raised", help=DAMAGE_MODELS)
-    s.add_argument("--camera", default="track", help=f"one of {', '.join(CAMERAS)}")
-    s.add_argument("--width", type=int, default=320)
-    s.add_argument("--height", type=int, default=240)
-    s.add_argument("--fps", type=int, default=25, help="frames per simulated second (divides 100)")
-    s.add_argument("--columns", type=int, default=3)
-    s.add_argument("--out", default="runs/render/skills.mp4", help=".mp4 or .gif")
-    s.add_argument("--no-progress", action="store_true")
     q = sub.add_parser("patterns", help="one HBR skill executed with several contact patterns, side by side")
     q.add_argument("--hbr", default=None, help="HBR file or run folder (default: the shipped HBR)")
     q.add_argument("--skill", type=int, default=None, help="skill number (default: the middle one)")
     q.add_argument("--patterns", default="any,63,47,61,45,31,59",
                    help="comma-separated contact patterns 0..63 (leg 0 = most significant bit) or any")
-    for flag, default in (("--damage", "none"), ("--damage-model", "raised"), ("--camera", "track"), ("--width", 320),
-                          ("--height", 240), ("--fps", 25), ("--columns", 4), ("--out", "runs/render/patterns.mp4")):
-        q.add_argument(flag, type=type(default), default=default)
-    q.add_argument("--no-progress", action="store_true")
+    for clips, columns, name in ((s, 3, "skills"), (q, 4, "patterns")):
+        clips.add_argument("--damage", default="none", help="none, leg0..leg5, legs<i>+<j> (default none)")
+        clips.add_argument("--damage-model", default="raised", help=DAMAGE_MODELS)
+        clips.add_argument("--camera", default="track", help=f"one of {', '.join(CAMERAS)}")
+        clips.add_argument("--width", type=int, default=320)
+        clips.add_argument("--height", type=int, default=240)
+        clips.add_argument("--fps", type=int, default=25, help="frames per simulated second (divides 100)")
+        clips.add_argument("--columns", type=int, default=columns)
+        clips.add_argument("--out", default=f"runs/render/{name}.mp4", help=".mp4 or .gif")
     e = sub.add_parser("episode", help="a maze episode replayed from a maze_eval run folder (recorded with --video)")
     e.add_argument("run", help="run folder of python -m experiments.maze_eval --video N")
     e.add_argument("--variant", default=None, help="variant (default: the first recorded, in name order)")
@@ -84,7 +76,8 @@ def parser() -> argparse.ArgumentParser:
     e.add_argument("--fps", type=int, default=25, help="video frames per second (default 25)")
     e.add_argument("--speed", type=float, default=4.0, help="simulated seconds per video second (default 4)")
     e.add_argument("--out", default=None, help=".mp4 or .gif (default <run>/videos/<variant>_ep<I>_<damage>.mp4)")
-    e.add_argument("--no-progress", action="store_true")
+    for command in (s, q, e):
+        command.add_argument("--no-progress", action="store_true")
     return p
 
 
@@ -123,31 +116,29 @@ def check_arguments(args) -> None:
             raise ConfigError(f"--count must be >= 1, got {args.count}")
 
 
-def _load_hbr(path_arg):
-    from hte_jax.flat.comparison import resolve
-    from hte_jax.hbr.store import load_hbr
-
-    path = None if path_arg is None else resolve(path_arg)
-    if path is not None and not Path(path).is_file():
-        raise CheckpointError(f"{path}: no such HBR file")
-    hbr, _, _ = load_hbr(path)
-    return hbr, np.asarray(hbr.top.genotypes)[np.asarray(hbr.top.filled)]
-
-
-def _flat_params(flat_arg) -> np.ndarray:
+def _elites(args):
+    """(the HBR, None for a flat repertoire; the genotypes of its elites) that --hbr / --flat name."""
     from hte_jax.flat.comparison import resolve
     from hte_jax.flat.store import load_flat, shipped_flat_path
+    from hte_jax.hbr.store import load_hbr
 
-    path = shipped_flat_path(flat_arg) if flat_arg in ("2d", "8d") else resolve(flat_arg)
-    if not Path(path).is_file():
-        raise CheckpointError(f"{path}: no such repertoire file")
-    repertoire = load_flat(path)[0][0]
-    return np.asarray(repertoire.genotypes)[np.asarray(repertoire.filled)]
+    flat = getattr(args, "flat", None)
+    if flat is None:
+        path = None if args.hbr is None else resolve(args.hbr)
+        if path is not None and not Path(path).is_file():
+            raise CheckpointError(f"{path}: no such HBR file")
+        hbr = load_hbr(path)[0]
+        repertoire = hbr.top
+    else:
+        path = shipped_flat_path(flat) if flat in ("2d", "8d") else resolve(flat)
+        if not Path(path).is_file():
+            raise CheckpointError(f"{path}: no such repertoire file")
+        hbr, repertoire = None, load_flat(path)[0][0]
+    return hbr, np.asarray(repertoire.genotypes)[np.asarray(repertoire.filled)]
 
 
 def skills_video(args) -> Path:
-    """`skills` / `patterns`: load and check what `args` names, then simulate the clips, render the
-    grid and write the video."""
+    """`skills` / `patterns`: load and check what `args` names, simulate the clips, render the grid, write the video."""
     import jax.numpy as jnp
 
     from hte_jax.sim.damage import parse_damage
@@ -157,29 +148,25 @@ def skills_video(args) -> Path:
 
     config = RobotConfig(damage_model=args.damage_model)
     damage = parse_damage(args.damage)
-    labels = patterns = None
+    labels = held = None
     if args.command == "patterns":
         patterns = skills.parse_patterns(args.patterns)
-        hbr, genotypes = _load_hbr(args.hbr)
+        hbr, genotypes = _elites(args)
         skill = len(genotypes) // 2 if args.skill is None else args.skill
         picked = np.repeat(skills.chosen(1, len(genotypes), [skill]), patterns.size)
         labels = [skills.pattern_label(int(p)) for p in patterns]
-    elif args.flat is not None:
-        params = _flat_params(args.flat)
-        picked = skills.chosen(args.count, len(params), _skill_numbers(args.skills))
+        held = jnp.asarray(np.repeat(patterns[:, None], 3, axis=1))
     else:
-        hbr, genotypes = _load_hbr(args.hbr)
+        hbr, genotypes = _elites(args)
         picked = skills.chosen(args.count, len(genotypes), _skill_numbers(args.skills))
     gl.require()  # every input is checked: OpenGL is needed from here on
     robot, every = load_robot(config), CONTROL_HZ // args.fps
     batch = jnp.broadcast_to(jnp.asarray(damage), (picked.size, damage.size))
-    if args.command == "patterns":
-        held = jnp.asarray(np.repeat(patterns[:, None], 3, axis=1))
-        states = skills.hbr_states(robot, hbr, jnp.asarray(genotypes[picked]), batch, every, held)
-    elif args.flat is not None:
-        states = skills.flat_states(robot, jnp.asarray(params[picked]), batch, every)
+    clips = jnp.asarray(genotypes[picked])
+    if hbr is None:
+        states = skills.flat_states(robot, clips, batch, every)
     else:
-        states = skills.hbr_states(robot, hbr, jnp.asarray(genotypes[picked]), batch, every)
+        states = skills.hbr_states(robot, hbr, clips, batch, every, held)
     states = np.asarray(states)
     camera = Camera(args.camera, distance=1.2 if args.camera == "track" else 2.0)
     with tqdm(total=states.shape[0] * states.shape[1], desc="render", unit="frame", disable=args.no_progress) as bar:

@@ -14,7 +14,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from experiments.cli import Interruption, input_errors, interruptible
+from experiments.cli import input_errors, interruptible
 from hte_jax.errors import ConfigError
 from hte_jax.flat.comparison import aggregate, file_statistics, markdown_table
 from hte_jax.flat.store import shipped_flat_path
@@ -34,32 +34,25 @@ def parser() -> argparse.ArgumentParser:
 def main(argv=None) -> int:
     args = parser().parse_args(argv)
     with interruptible() as interrupt:
-        return _main(args, interrupt)
-
-
-def _main(args, interrupt: Interruption) -> int:
-    given = any(x is not None for x in (args.hbr, args.flat8d, args.flat2d))
-    paths = []
-    if given:
-        paths = [*(args.hbr or []), *(args.flat8d or []), *(args.flat2d or [])]
-    else:
-        paths = [shipped_hbr_path(), shipped_flat_path("8d"), shipped_flat_path("2d")]
-    with input_errors() as errors:
-        if not paths:
-            raise ConfigError("no repertoire given")
-        rows = [file_statistics(path) for path in paths]
-    if errors.failed:
-        return 2
-    table = aggregate(rows)
-    text = markdown_table(table)
-    print(text, end="")
-    out = Path(args.out)
-    interrupt.saved = f"part of table2.json and table2.md written in {out}"
-    out.mkdir(parents=True, exist_ok=True)
-    write_json(out / "table2.json", {"rows": rows, "aggregate": table})
-    (out / "table2.md").write_text(text)
-    print(f"wrote {out / 'table2.json'} and {out / 'table2.md'}")
-    return 0
+        if any(x is not None for x in (args.hbr, args.flat8d, args.flat2d)):
+            paths = [*(args.hbr or []), *(args.flat8d or []), *(args.flat2d or [])]
+        else:
+            paths = [shipped_hbr_path(), shipped_flat_path("8d"), shipped_flat_path("2d")]
+        with input_errors() as errors:
+            if not paths:
+                raise ConfigError("no repertoire given")
+            rows = [file_statistics(path) for path in paths]
+        if errors.failed:
+            return 2
+        table = aggregate(rows)
+        print(text := markdown_table(table), end="")
+        out = Path(args.out)
+        interrupt.saved = f"part of table2.json and table2.md written in {out}"
+        out.mkdir(parents=True, exist_ok=True)
+        write_json(out / "table2.json", {"rows": rows, "aggregate": table})
+        (out / "table2.md").write_text(text)
+        print(f"wrote {out / 'table2.json'} and {out / 'table2.md'}")
+        return 0
 
 
 if __name__ == "__main__":

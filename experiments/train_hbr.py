@@ -9,86 +9,44 @@
     python -m experiments.train_hbr --solver-iterations 4 --ls-iterations 8   # the physics' solver
     python -m experiments.train_hbr --set middle.parents.selection=density    # any setting, dotted
 
-Writes config.json, per-layer checkpoints and metrics CSVs, hbr.npz, summary.json and plots/
-under --out (default runs/hbr-<preset>). Every preset value has a flag; `--show-config` prints
-the resolved configuration and exits. Bad values give a one-line error and exit status 2.
-Times: benchmarks/cpu_commands.py (2026-11-26).
-A resumed run keeps the solver settings it was started with (4 / 8 for runs started before they
-were settings) unless they are given; a different value is then an error.
+Writes config.json, per-layer checkpoints and metrics CSVs, hbr.npz, summary.json and plots/ under
+--out (default runs/hbr-<preset>); `--show-config` prints the resolved configuration. A resumed run
+keeps its solver settings (4 / 8 if it predates them); another value given is an error. Bad values
+give a one-line error and exit status 2. Times: benchmarks/cpu_commands.py (2026-11-26).
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 
-from experiments.cli import (add_set_flag, checkpoint_saved, input_errors, interruptible, resumable_run,
-                             resume_command, set_overrides)
-from experiments.devices import add_device_flags, device_mesh, is_writer
+from experiments.cli import add_training_flags, train_command
 from hte_jax.config import settings
 from hte_jax.hbr.training import LAYERS, PRESETS, HBRConfig, preset, train_hbr, with_overrides
-from hte_jax.sim.robot import stored_solver
 
-
+# a flag per setting: "seed", "middle.generations" (--middle-generations), "solver_iterations" ...
+SETTINGS = {key: str(field.type).upper() for key, field in settings(HBRConfig).items()}
 CHECKPOINTS = {f"{layer}/checkpoint.npz": f"layer {layer}" for layer in LAYERS}  # in training order
-
-
-def _flag(key: str) -> str:
-    return "--" + key.replace(".", "-").replace("_", "-")
-
-
-def _settings() -> list[tuple[str, type]]:
-    """(override key, type) of every setting: "seed", "middle.generations", "solver_iterations" ..."""
-    return [(key, field.type) for key, field in settings(HBRConfig).items()]
 
 
 def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--preset", default="cpu", help=f"one of {', '.join(PRESETS)} (default cpu)")
-    p.add_argument("--out", default=None, help="run folder (default runs/hbr-<preset>)")
-    p.add_argument("--resume", action="store_true", help="continue the run in --out")
-    p.add_argument("--no-progress", action="store_true", help="no progress bars")
-    p.add_argument("--show-config", action="store_true", help="print the resolved configuration and exit")
-    add_device_flags(p)
-    for key, kind in _settings():
-        p.add_argument(_flag(key), dest=key, default=None, metavar=str(kind).upper(), help=f"override {key}")
-    add_set_flag(p)
+    add_training_flags(p, PRESETS, "run folder (default runs/hbr-<preset>)", "no progress bars", SETTINGS)
     return p
 
 
 def main(argv=None) -> int:
     args = parser().parse_args(argv)
     out = args.out or f"runs/hbr-{args.preset}"
-    with interruptible(lambda: checkpoint_saved(out, CHECKPOINTS), resume_command("experiments.train_hbr", argv, out)):
-        return _main(args, out)
 
+    def report(outcome) -> None:
+        stats = outcome.summary["statistics"]
+        print(f"{out}: bottom {stats['bottom']['elites']} primitives, middle {stats['middle']['elites']} motions "
+              f"({stats['middle']['contact_patterns']} contact patterns), top {stats['top']['elites']} skills "
+              f"(mean fitness {stats['top']['mean_fitness']:.3f})")
 
-def _main(args, out: str) -> int:
-    with input_errors() as errors:
-        mesh = device_mesh(args)  # first: --distributed must start before jax touches the devices
-        config: HBRConfig = preset(args.preset)
-        overrides = {key: getattr(args, key) for key, _ in _settings() if getattr(args, key) is not None}
-        overrides.update(set_overrides(args.set))
-        stored = resumable_run(out, CHECKPOINTS) if args.resume else None
-        if stored is not None:
-            overrides = {**stored_solver(stored), **overrides}
-        config = with_overrides(config, overrides)
-        if args.show_config:
-            print(json.dumps(config.to_dict(), indent=2))
-            return 0
-        outcome = train_hbr(config, out, resume_run=args.resume, progress=not args.no_progress, mesh=mesh)
-    if errors.failed:
-        return 2
-    if not is_writer():
-        return 0
-    stats = outcome.summary["statistics"]
-    print(
-        f"{out}: bottom {stats['bottom']['elites']} primitives, middle {stats['middle']['elites']} motions "
-        f"({stats['middle']['contact_patterns']} contact patterns), top {stats['top']['elites']} skills "
-        f"(mean fitness {stats['top']['mean_fitness']:.3f})"
-    )
-    return 0
+    return train_command("experiments.train_hbr", args, argv, out, CHECKPOINTS, SETTINGS,
+                         lambda: preset(args.preset), with_overrides, train_hbr, report)
 
 
 if __name__ == "__main__":

@@ -6,13 +6,12 @@
     python -m experiments.train_set --seed 1 --preset gpu --out runs/seeds/seed1 --resume --parts aprol
     python -m experiments.maze_eval --protocol hte-jax --preset gpu --repertoire-dir runs/seeds
 
-Trains, in order, each in its own run folder under --out/runs: the HBR, its spare archive, Flat-2D,
-Flat-8D and APROL's 21 (always impl jax: Warp runs one repertoire per call), then with --matched a
-Flat-2D whose evaluations equal the HBR's plus the spare archive's. Writes hbr.npz, spare.npz,
-flat2d.npz, flat8d.npz, aprol.npz (and matched/flat2d.npz) and set.json (per part: evaluations,
-elites, wall time) under --out. A killed run continues with --resume: finished parts are kept,
-the part it was in resumes from its checkpoint; --parts trains some parts only (two processes may
-train different parts of one set, e.g. on two GPUs). Bad values give a one-line error and exit status 2.
+Trains, each in a run folder under --out/runs: the HBR, its spare archive, Flat-2D, Flat-8D, APROL's
+21 (always impl jax), and with --matched a Flat-2D with the HBR's plus the spare archive's evaluations.
+Writes hbr.npz, spare.npz, flat2d.npz, flat8d.npz, aprol.npz (matched/flat2d.npz) and set.json (per
+part: evaluations, elites, wall time) under --out. --resume keeps finished parts and resumes the one
+it was in; --parts trains some parts only (two processes may train two parts of a set). Bad values
+give a one-line error and exit status 2.
 """
 
 from __future__ import annotations
@@ -27,8 +26,7 @@ from pathlib import Path
 
 import jax
 
-from experiments.cli import input_errors, interruptible, resume_command
-from experiments.devices import add_device_flags, device_mesh, is_writer
+from experiments.cli import add_device_flags, device_mesh, input_errors, interruptible, is_writer, resume_command
 from hte_jax.errors import ConfigError
 from hte_jax.flat import training as flat
 from hte_jax.hbr import training as hbr_training
@@ -61,8 +59,8 @@ def main(argv=None) -> int:
 
 
 def _saved(out: Path) -> str | None:
-    done = [part for part in PARTS if _final(out, part).is_file()]
-    return f"finished parts {', '.join(done) or 'none'} in {out}, the current part's checkpoint" if out.is_dir() else None
+    done = ", ".join(part for part in PARTS if _final(out, part).is_file()) or "none"
+    return f"finished parts {done} in {out}, the current part's checkpoint" if out.is_dir() else None
 
 
 def _final(out: Path, part: str) -> Path:
