@@ -27,9 +27,9 @@ def run(tmp_path_factory):
     saved = []
     original = maze_eval._save_batch
 
-    def keep(path, result):
+    def keep(path, result, *rest):
         saved.append(jax.tree.map(lambda x: x[:, 0], result.episodes.rte))  # K = 1 repertoire
-        original(path, result)
+        original(path, result, *rest)
 
     with pytest.MonkeyPatch.context() as patch:
         patch.setattr(maze_eval, "_save_batch", keep)
