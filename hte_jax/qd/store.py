@@ -45,12 +45,7 @@ def save_repertoire(path: str | Path, spec: TaskSpec, repertoire: Repertoire, me
 
 def load_repertoire(path: str | Path, spec: TaskSpec) -> tuple[Repertoire, dict]:
     """Read a file of `save_repertoire` written for this spec: (Repertoire on device, the header metadata)."""
-    arrays, header = read_checkpoint(path)
-    meta = header.get("metadata", {})
-    if meta.get("kind") != KIND:
-        raise CheckpointError(f"{path}: not a repertoire file (kind {meta.get('kind')!r})")
-    if meta.get("kind_version") != KIND_VERSION:
-        raise CheckpointError(f"{path}: repertoire file version {meta.get('kind_version')!r} is not supported")
+    arrays, meta = read_kind(path, KIND, KIND_VERSION, "repertoire")
     stored, wanted = meta.get("task"), jsonable(spec.metadata())
     if not isinstance(stored, dict):
         raise CheckpointError(f"{path}: bad repertoire header: no task")
