@@ -54,18 +54,18 @@ SLOWEST_FIRST = (
     "test_sharding.py",  # ~260: its own subprocess on 2 devices
     "test_composition.py",  # ~260
     "test_render.py",  # ~260
-    "test_spare.py",  # ~250 (test_modulation.py runs its planned execution of six skills)
+    "test_spare.py",  # ~250
     "test_flat_aprol.py",  # ~250
-    "test_seed_sets.py",  # ~250
+    "test_seed_sets.py",  # ~250 (test_protocol.py runs its 2D-RTE episodes)
     "test_rollout.py",  # ~240 (test_solver.py runs its default robot's rollouts)
     "test_extending.py",  # ~220
     "test_benchmarks_hbr.py",  # ~200 (the tiny HBR's programs)
     "test_flat.py",  # ~180
     "test_replay.py",  # ~170 (test_benchmarks.py)
     "test_solver.py",  # ~190 (test_rollout.py)
-    "test_protocol.py",  # ~150
+    "test_protocol.py",  # ~150 (test_seed_sets.py)
     "test_readme.py",  # ~130
-    "test_modulation.py",  # ~120 (test_spare.py)
+    "test_modulation.py",  # ~120
     "test_interrupts.py",  # ~110 (the tiny HBR's programs)
     "test_executor.py",  # ~100
     "test_execute.py",  # ~95
