@@ -46,10 +46,11 @@ def main(argv=None) -> int:
     def sized(batch):
         return with_overrides(base, {f"{layer}.{field}": batch for layer in LAYERS for field in ("batch_size", "init_size")})
 
-    # Lower layers: one random batch each, at the smallest batch size.
+    # Lower layers: one random batch each, at the smallest batch size, those the benchmarked layers
+    # stand on (middle: bottom; top: bottom and middle).
     lower = {}
     seed_config = sized(min(args.batch_sizes))
-    for layer in ("bottom", "middle"):
+    for layer in LAYERS[:max(LAYERS.index(name) for name in args.layers)]:
         algo = layer_algorithms(seed_config, robot, start, lower)[layer]()
         lower[layer] = algo.init(key).repertoire
 

@@ -5,8 +5,8 @@
 
 Each command's `main(argv)` runs in turn (so programs compiled for one, the tiny HBR's rollouts
 say, serve the next) on the outputs of the ones before: the tiny HBR, its sparing archive and
-the flat repertoires make the repertoire seed folder that `maze_eval` runs on, whose episodes
-`fit_gp` fits. After every command OUT/commands.json records each command's exit status (an
+the flat repertoires make the repertoire seed folder that `maze_eval` runs on (in a maze whose
+goal its episodes reach at once), whose episodes `fit_gp` fits. After every command OUT/commands.json records each command's exit status (an
 exception is recorded as its traceback's last line, and the next command still runs), wall and
 CPU time; the test checks them and the files under OUT/<command>/.
 """
@@ -26,15 +26,18 @@ from pathlib import Path
 # 16 rows per device (44 or more rows per device hang 2 forced devices on 2 cores: docs/design.md,
 # "Which arrays are replicated and which are split").
 STEP_CHUNK = 32
+NEAR_GOAL = "near_goal_maze.json"  # the maze maze_eval runs in (`near_goal_maze`)
 
 
 def commands(out: Path, render: bool) -> list[tuple[str, str, list[str]]]:
     """(name, module, argv) of every command, in the order they run."""
     hbr, seeds = out / "train_hbr", out / "seeds" / "0"
     quiet = ["--no-progress"]
-    # maze_eval keeps its default action cap (80): several episodes under that cap hung on 2 cores (issue 40)
+    # maze_eval keeps its default action cap (80): several episodes under that cap hung on 2 cores before
+    # their first action (issue 40). In the maze of `seed_folder` every episode ends at its goal after
+    # its first valid action: the programs of the default cap, compiled and run to the episodes' end.
     planner = ["--damage", "leg1", "--replicates", "1", "--iterations", "10", "--roots", "1", "--depth", "3",
-               "--candidates", "10"]
+               "--candidates", "10", "--maze", str(out / NEAR_GOAL)]
     chunk = ["--set", f"step_chunk={STEP_CHUNK}"]
     # Compiling each MJX program for 2 devices is most of the cost: the HBR trains its layers'
     # generations (the crash of issue 36 came after them), the other trainings only their initial
@@ -68,13 +71,23 @@ def commands(out: Path, render: bool) -> list[tuple[str, str, list[str]]]:
 
 def seed_folder(out: Path) -> int:
     """seeds/0/ with the files `maze_eval --repertoire-dir` reads: the tiny HBR, its spare archive beside it
-    (hte-spare's sparing sets), the flat 2-D repertoire."""
+    (hte-spare's sparing sets), the flat 2-D repertoire; and the maze `maze_eval` runs in (`NEAR_GOAL`)."""
     folder = out / "seeds" / "0"
     folder.mkdir(parents=True, exist_ok=True)
     shutil.copyfile(out / "train_hbr" / "hbr.npz", folder / "hbr.npz")
     shutil.copyfile(out / "train_spare" / "spare.npz", folder / "spare.npz")
     shutil.copyfile(out / "train_flat_2d" / "repertoires.npz", folder / "flat2d.npz")
+    (out / NEAR_GOAL).write_text(json.dumps(near_goal_maze()))
     return 0
+
+
+def near_goal_maze() -> dict:
+    """The paper's maze (its walls, boxes and start) with the goal at the start and a radius that
+    holds the whole maze: an episode reaches it with its first valid action."""
+    from hte_jax.online.maze import PAPER_MAZE
+
+    x, y, _ = PAPER_MAZE.start
+    return {"goal": [x, y], "goal_radius": 4.0}
 
 
 def run(name: str, module: str, argv: list[str], out: Path) -> int | str:

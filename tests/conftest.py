@@ -1,7 +1,7 @@
 """Session-wide settings: a persistent XLA compilation cache shared by all tests of a session (and
 by pytest-xdist workers), in-memory compiled programs released after each test module, the
-controllers of an HBR's middle elites computed once per test process, the benchmark-script
-tests run last, the OpenGL backend of the tests that draw frames (`gl_env`), and the fixtures
+controllers of an HBR's middle elites computed once per test process, the files in the order
+that balances two xdist workers (`SLOWEST_FIRST`), the OpenGL backend of the tests that draw frames (`gl_env`), and the fixtures
 several modules share (the default robot, the shipped HBR).
 
 MJX programs take 15-30 s to compile on a CPU; tests that build the same program again (a
@@ -39,12 +39,45 @@ def pytest_unconfigure(config):
         shutil.rmtree(_CACHE, ignore_errors=True)
 
 
-# Benchmark scripts and the Ctrl-C tests re-run programs (a training preset, say) that other tests compile first.
-_LAST = ("test_benchmarks.py", "test_benchmarks_hbr.py", "test_interrupts.py")
+# The order in which files start (pytest-xdist's --dist loadfile hands a free worker the next file,
+# `--no-loadscope-reorder` keeps this order): the slowest first, so the last files to start are
+# short and both workers end together (the CI time is the slower worker's). CPU seconds on a 2-core
+# machine (2026-11-26), heaviest first; files that share compiled programs through the persistent
+# cache (noted) are kept apart, so they run one after the other rather than side by side, and a
+# file that re-runs another's programs comes after it. Files not listed (each under about a
+# minute) follow in their own order. A file that grows past a minute belongs here.
+SLOWEST_FIRST = (
+    "test_commands.py",  # ~800: every command on 2 devices, its own subprocess
+    "test_hbr_training.py",  # ~700: the tiny HBR (test_benchmarks_hbr.py and test_interrupts.py re-run it)
+    "test_benchmarks.py",  # ~400 (test_replay.py runs its adaptation episode)
+    "test_episode.py",  # ~280
+    "test_sharding.py",  # ~260: its own subprocess on 2 devices
+    "test_composition.py",  # ~260
+    "test_render.py",  # ~260
+    "test_spare.py",  # ~250
+    "test_flat_aprol.py",  # ~250
+    "test_seed_sets.py",  # ~250 (test_protocol.py runs its 2D-RTE episodes)
+    "test_rollout.py",  # ~240 (test_solver.py runs its default robot's rollouts)
+    "test_extending.py",  # ~220
+    "test_benchmarks_hbr.py",  # ~200 (the tiny HBR's programs)
+    "test_flat.py",  # ~180
+    "test_replay.py",  # ~170 (test_benchmarks.py)
+    "test_solver.py",  # ~190 (test_rollout.py)
+    "test_protocol.py",  # ~150 (test_seed_sets.py)
+    "test_readme.py",  # ~130
+    "test_modulation.py",  # ~120
+    "test_interrupts.py",  # ~110 (the tiny HBR's programs)
+    "test_executor.py",  # ~100
+    "test_execute.py",  # ~95
+    "test_mcts.py",  # ~90
+    "test_fit_gp.py",  # ~80
+    "test_qd_loop.py",  # ~80
+)
 
 
 def pytest_collection_modifyitems(session, config, items):
-    items.sort(key=lambda item: item.path.name in _LAST)
+    rank = {name: i for i, name in enumerate(SLOWEST_FIRST)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))
 
 
 # .ci/run sets it: there a test that needs OpenGL fails instead of skipping (CI must draw frames).

@@ -1,5 +1,6 @@
 """The simulation, QD and online benchmark scripts run end to end at tiny sizes and write well-formed
 results. These check that the scripts work, not how fast anything is (speed lives in benchmarks/results).
+Each script's `main` runs in this process (tests/benchmark_runner.py), render_speed.py in its own.
 """
 
 import json
@@ -9,7 +10,7 @@ import pytest
 
 from hte_jax.flat.store import shipped_flat_path
 from hte_jax.sim.robot import RobotConfig
-from tests.benchmark_runner import benchmark_module, run_benchmark
+from tests.benchmark_runner import benchmark_module, run_benchmark, run_benchmark_process
 
 common = benchmark_module("common")
 
@@ -43,14 +44,16 @@ def test_qd_overhead_benchmark(tmp_path):
 
 
 def test_adaptation_benchmark(tmp_path):
+    """One leg-1 HTE episode of 2 actions with a planner of 8 iterations x 1 tree: the episode of
+    tests/test_replay.py's run without --video, so the two share their compiled programs."""
     out = tmp_path / "adapt.json"
-    stdout = run_benchmark("adaptation.py", "--batch-sizes", "2", "--max-actions", "2", "--iterations", "10", "--roots", "1",
-                  "--repeats", "1", "--out", str(out))
+    stdout = run_benchmark("adaptation.py", "--batch-sizes", "1", "--max-actions", "2", "--iterations", "8", "--roots", "1",
+                           "--repeats", "1", "--out", str(out))
     result = json.loads(out.read_text())
     (row,) = result["rows"]
-    assert row["episodes"] == 2 and row["plan_median_s"] > 0 and row["plan_p95_s"] >= row["plan_median_s"]
+    assert row["episodes"] == 1 and row["plan_median_s"] > 0 and row["plan_p95_s"] >= row["plan_median_s"]
     assert row["actions_per_run"] == [2] and len(row["runs"][0]["plan_s"]) == 2
-    assert result["settings"]["iterations"] == 10 and result["repertoire"]["kind"] == "hbr"
+    assert result["settings"]["iterations"] == 8 and result["repertoire"]["kind"] == "hbr"
     assert "plan med s" in stdout
 
 
@@ -58,7 +61,7 @@ def test_render_speed_benchmark(tmp_path, gl_env, monkeypatch):
     for name, value in gl_env.items():  # the backend that starts here (the test skips where none does)
         monkeypatch.setenv(name, value)
     out = tmp_path / "render.json"
-    stdout = run_benchmark("render_speed.py", "--seconds", "1", "--fps", "10", "--width", "64", "--height", "48",
+    stdout = run_benchmark_process("render_speed.py", "--seconds", "1", "--fps", "10", "--width", "64", "--height", "48",
                            "--repeats", "2", "--out", str(out))
     (row,) = json.loads(out.read_text())["rows"]
     assert row["frames"] == 10 and len(row["render_s_all"]) == 2 and row["render_s_median"] > 0
@@ -76,11 +79,12 @@ def test_setting_strings():
 
 
 def test_physics_frontier_benchmark(tmp_path):
-    """One setting against itself (no errors by construction) and the repertoire check on two elites."""
+    """One setting against itself (no errors by construction) and the repertoire check on two elites. Its
+    speed rollout is test_batch_size_benchmark's (batch 1, 20 steps, the default robot): one compile for both."""
     out = tmp_path / "frontier.json"
     setting = common.setting_label(RobotConfig())
     stdout = run_benchmark("physics_frontier.py", "--settings", setting, "--reference", setting, "--reference-checks", "",
-                           "--batch", "2", "--steps", "10", "--repeats", "1", "--fidelity-size", "4", "--skills", "0",
+                           "--batch", "1", "--steps", "20", "--repeats", "1", "--fidelity-size", "4", "--skills", "0",
                            "--repertoires", setting, "--elites", "2", "--flat", str(shipped_flat_path("2d")),
                            "--out", str(out))
     result = json.loads(out.read_text())

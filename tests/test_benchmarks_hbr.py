@@ -9,11 +9,12 @@ from tests.benchmark_runner import run_benchmark
 
 def test_hbr_layer_benchmark(tmp_path):
     out = tmp_path / "layers.json"
-    stdout = run_benchmark("hbr_layers.py", "--preset", "tiny", "--batch-sizes", "8", "--repeats", "1",
-                  "--layers", "bottom", "--out", str(out))
+    # the tiny preset's batch: its generation is the tiny HBR's (tests/test_hbr_training.py), compiled before
+    stdout = run_benchmark("hbr_layers.py", "--preset", "tiny", "--batch-sizes", "16", "--repeats", "1",
+                           "--layers", "bottom", "--out", str(out))
     result = json.loads(out.read_text())
     (row,) = result["rows"]
-    assert (row["layer"], row["batch"]) == ("bottom", 8)
+    assert (row["layer"], row["batch"]) == ("bottom", 16)
     assert row["evaluations_per_s"] > 0 and abs(row["steps_per_s"] / row["evaluations_per_s"] - 100) < 1e-6
     assert result["settings"]["preset"] == "tiny" and "eval/s" in stdout
 

@@ -130,7 +130,8 @@ def test_measured_steps_match_a_direct_rollout(shipped, capsys):
     np.testing.assert_array_equal(with_empty.steps[5:], 0.0)
     np.testing.assert_array_equal(with_empty.spread[5:], np.inf)
     assert "1/1" in capsys.readouterr().err  # the progress bar counted one block
-    several = measure_steps(robot, params, filled, hbr.middle_task, start, jax.random.key(0), starts=3)
+    # 3 starts in blocks of 5 samples: 3 blocks of the first call's program (no other compile)
+    several = measure_steps(robot, params, filled, hbr.middle_task, start, jax.random.key(0), starts=3, chunk=5)
     assert np.all(np.isfinite(several.spread)) and np.all(np.asarray(several.spread) > 0)
     assert np.all((np.asarray(several.steps) > 0) & (np.asarray(several.steps) < 1))
 

@@ -20,7 +20,7 @@ from hte_jax.errors import ConfigError
 from experiments.measure_steps import main as measure_main
 from hte_jax.qd.io import CheckpointError, prepare_run_dir, read_checkpoint, save_checkpoint
 from hte_jax.sim import standing_state
-from tests.benchmark_runner import run_benchmark
+from tests.benchmark_runner import run_benchmark_process  # resume_kill.py kills and restarts commands: its own process
 from tests import golden
 
 LAYERS = ("bottom", "middle", "top")
@@ -104,7 +104,7 @@ def test_sigkilled_command_resumes_bit_identical(tiny_run, tmp_path):
     its rename, then resumed to the end: the same hbr.npz, statistics and metrics as `tiny_run`, the
     temporary file left by the kill in the way of nothing."""
     out = tmp_path / "kill.json"
-    stdout = run_benchmark("resume_kill.py", "--scenarios", "bottom:block1+middle:write0", "--reference", str(tiny_run),
+    stdout = run_benchmark_process("resume_kill.py", "--scenarios", "bottom:block1+middle:write0", "--reference", str(tiny_run),
                            "--work-dir", str(tmp_path / "work"), "--out", str(out))
     (row,) = json.loads(out.read_text())["scenarios"]
     first, second = row["kills"]

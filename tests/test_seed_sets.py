@@ -53,8 +53,9 @@ def test_maze_eval_resumes_a_killed_run_to_the_same_results(tmp_path, capsys):
     for name in ("a", "b"):  # two seed folders holding one flat file: two batches of the same shapes
         (seeds / name).mkdir(parents=True)
         shutil.copyfile(shipped_flat_path("2d"), seeds / name / "flat2d.npz")
-    args = ["--variant", "2d-rte", "--damage", "leg1", "--max-actions", "2", "--repertoire-dir", str(seeds),
-            "--no-progress"]
+    # test_protocol.py's 2D-RTE batches (4 episodes of 2 actions, its planner): their compiled programs serve both
+    args = ["--variant", "2d-rte", "--damage", "none,leg1", "--replicates", "2", "--max-actions", "2", "--iterations", "50",
+            "--roots", "1", "--repertoire-dir", str(seeds), "--no-progress"]
     whole, resumed = tmp_path / "whole", tmp_path / "resumed"
     assert maze_main([*args, "--out", str(whole)]) == 0
     shutil.copytree(whole, resumed)

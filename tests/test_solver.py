@@ -21,12 +21,11 @@ from hte_jax.online.evaluation import EvalConfig
 from hte_jax.qd.io import prepare_run_dir
 from hte_jax.sim.damage import paper_damage_masks
 from hte_jax.sim.robot import FOOT_RADIUS, LEGACY_SOLVER, SOLVER_FIELDS, RobotConfig, SolverConfig, load_robot, mj_model
-from hte_jax.sim.rollout import RolloutSpec, rollout, standing_state
+from hte_jax.sim.rollout import rollout, standing_state
+from tests.test_rollout import SPEC  # with test_rollout's batch shape (16): the default robot's programs are shared
 
 # Converged: doubling both counts changes no final position (benchmarks/physics_frontier.py).
 REFERENCE = RobotConfig(solver_iterations=20, ls_iterations=20)
-# tests/test_rollout.py's batch shape and spec, so the default robot's programs come from the cache.
-SPEC = RolloutSpec(num_steps=300, pose_steps=tuple(range(0, 301, 10)), record_feet=True)
 OLD = dict(zip(SOLVER_FIELDS, LEGACY_SOLVER))
 
 
