@@ -21,6 +21,13 @@ def require_number(name: str, value, low: float = -math.inf, high: float = math.
         raise ConfigError(f"{name} must be a finite number in {bounds}, got {value!r}")
 
 
+def lookup(what: str, name, table: dict):
+    """`table[name]`; a ConfigError "unknown <what>" naming the choices otherwise."""
+    if name not in table:
+        raise ConfigError(f"unknown {what} {name!r}; choose one of {sorted(table)}")
+    return table[name]
+
+
 def require_choice(name: str, value, choices) -> None:
     if value not in choices:
         raise ConfigError(f"{name} must be one of {tuple(choices)}, got {value!r}")

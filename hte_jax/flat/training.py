@@ -16,7 +16,7 @@ from jax.sharding import Mesh
 
 from hte_jax.config import inline
 from hte_jax.config import with_overrides as _with_overrides
-from hte_jax.errors import ConfigError, require_int, require_number
+from hte_jax.errors import ConfigError, lookup, require_int, require_number
 from hte_jax.flat.plots import plot_flat
 from hte_jax.flat.store import FlatRepertoires, save_flat
 from hte_jax.flat.task import QD_OFFSET, FlatTask, evaluate_flat, flat_spec
@@ -106,11 +106,7 @@ PRESETS: dict[str, dict[str, FlatConfig]] = {
 
 
 def preset(name: str, variant: str) -> FlatConfig:
-    if name not in PRESETS:
-        raise ConfigError(f"unknown preset {name!r}; choose one of {sorted(PRESETS)}")
-    if variant not in VARIANTS:
-        raise ConfigError(f"unknown variant {variant!r}; choose one of {sorted(VARIANTS)}")
-    return PRESETS[name][variant]
+    return lookup("variant", variant, lookup("preset", name, PRESETS))
 
 
 def flat_algorithm(config: FlatConfig, mesh: Mesh | None = None) -> BatchedMapElites:

@@ -16,7 +16,7 @@ from jax.sharding import Mesh
 
 from hte_jax.config import config_dict, config_from_dict, inline
 from hte_jax.config import with_overrides as _with_overrides
-from hte_jax.errors import ConfigError, require_choice, require_int, require_number
+from hte_jax.errors import lookup, require_choice, require_int, require_number
 from hte_jax.hbr import bottom as bottom_layer
 from hte_jax.hbr import middle as middle_layer
 from hte_jax.hbr.analysis import hbr_statistics
@@ -159,9 +159,7 @@ def normalised_config(data: dict) -> dict:
 
 
 def preset(name: str) -> HBRConfig:
-    if name not in PRESETS:
-        raise ConfigError(f"unknown preset {name!r}; choose one of {sorted(PRESETS)}")
-    return PRESETS[name]
+    return lookup("preset", name, PRESETS)
 
 
 def layer_algorithms(config: HBRConfig, robot: Robot, start, lower: dict,

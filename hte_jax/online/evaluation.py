@@ -24,7 +24,7 @@ import numpy as np
 from jax.sharding import Mesh
 
 from hte_jax.config import config_dict, config_from_dict, inline
-from hte_jax.errors import ConfigError, require_choice, require_int
+from hte_jax.errors import ConfigError, lookup, require_choice, require_int
 from hte_jax.config import with_overrides as _with_overrides
 from hte_jax.flat.store import load_flat, shipped_flat_path
 from hte_jax.hbr.store import load_hbr, load_spare, spare_beside
@@ -173,9 +173,7 @@ class EvalConfig:
 def protocol_overrides(name: str) -> dict:
     """The EvalConfig values a named protocol fixes (its variants, every damage, its robot); a copy
     the caller may update with its own overrides."""
-    if name not in PROTOCOLS:
-        raise ConfigError(f"unknown protocol {name!r}; choose one of {sorted(PROTOCOLS)}")
-    return dict(PROTOCOLS[name])
+    return dict(lookup("protocol", name, PROTOCOLS))
 
 
 # cpu: 7 episodes per variant, 154 s on 2 cores (benchmarks/cpu_commands.py); gpu: the paper's 30
@@ -188,9 +186,7 @@ PRESETS = {
 
 
 def preset(name: str) -> EvalConfig:
-    if name not in PRESETS:
-        raise ConfigError(f"unknown preset {name!r}; choose one of {sorted(PRESETS)}")
-    return PRESETS[name]
+    return lookup("preset", name, PRESETS)
 
 
 def load_skills(path: str | Path | None, maps: bool = False, composition: str = "planned", spare: bool = False,
