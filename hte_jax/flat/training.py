@@ -16,7 +16,7 @@ from jax.sharding import Mesh
 
 from hte_jax.config import inline
 from hte_jax.config import with_overrides as _with_overrides
-from hte_jax.errors import ConfigError, lookup, require_int, require_number
+from hte_jax.errors import ConfigError, check_fields, integer, lookup, number
 from hte_jax.flat.plots import plot_flat
 from hte_jax.flat.store import FlatRepertoires, save_flat
 from hte_jax.flat.task import QD_OFFSET, FlatTask, evaluate_flat, flat_spec
@@ -46,11 +46,11 @@ class FlatConfig(StoredConfig):
     variant: str
     batch_size: int
     init_size: int
-    generations: int
-    block_size: int
+    generations: int = integer(minimum=0)
+    block_size: int = integer()
     mutation_rate: float = 0.14
-    eta_m: float = 10.0
-    seed: int = 0
+    eta_m: float = number(10.0, 0.0)
+    seed: int = integer(0, minimum=0)
     bins: int = 100
     contact_threshold: float = 0.3
     solver: SolverConfig = inline(SolverConfig())
@@ -58,10 +58,7 @@ class FlatConfig(StoredConfig):
     def __post_init__(self):
         if self.variant not in VARIANTS:
             raise ConfigError(f"variant must be one of {sorted(VARIANTS)}, got {self.variant!r}")
-        require_int("generations", self.generations, minimum=0)
-        require_int("block_size", self.block_size)
-        require_int("seed", self.seed, minimum=0)
-        require_number("eta_m", self.eta_m, 0.0)
+        check_fields(self)
         self.task  # noqa: B018 - validates bins and contact_threshold
         self.map_elites_config()  # validates batch, init and mutation
         if self.solver.impl == "warp" and len(self.damages) > 1:  # vmapped runs: Warp's contact buffer is per call

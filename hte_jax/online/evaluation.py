@@ -24,7 +24,7 @@ import numpy as np
 from jax.sharding import Mesh
 
 from hte_jax.config import config_dict, config_from_dict, inline
-from hte_jax.errors import ConfigError, lookup, require_choice, require_int
+from hte_jax.errors import ConfigError, check_fields, choice, integer, lookup
 from hte_jax.config import with_overrides as _with_overrides
 from hte_jax.flat.store import load_flat, shipped_flat_path
 from hte_jax.hbr.store import load_hbr, load_spare, spare_beside
@@ -84,15 +84,15 @@ class EvalConfig:
 
     variants: str = "hte"
     damages: str = "all"
-    replicates: int = 1
+    replicates: int = integer(1)
     repertoire: str = ""
     repertoire_dir: str = ""
     damage_model: str = "raised"
     max_actions: int = 80
     planner: PlannerConfig = inline(PlannerConfig(iterations=200, roots=2))
-    composition: str = "planned"
+    composition: str = choice("planned", COMPOSITIONS)
     spare: str = ""
-    seed: int = 0
+    seed: int = integer(0, minimum=0)
     solver: SolverConfig = inline(SolverConfig())
     reflex_tilt: float = RobotConfig.reflex_tilt
     reflex_release: float = RobotConfig.reflex_release
@@ -100,9 +100,7 @@ class EvalConfig:
     maze: str = ""
 
     def __post_init__(self):
-        require_int("replicates", self.replicates)
-        require_int("seed", self.seed, 0)
-        require_choice("composition", self.composition, COMPOSITIONS)
+        check_fields(self)
         for name in self.variant_list:
             variant_named(name)  # validates the name
         self.damage_list  # noqa: B018 (validates the names)
