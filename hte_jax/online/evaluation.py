@@ -267,9 +267,8 @@ def batch_labels(config: EvalConfig, variants: list[str]) -> list[tuple[str, str
     return [(v, d, r) for v in variants for d in config.damage_list for r in range(config.replicates)]
 
 
-def run_batch(config: EvalConfig, path: str | None, variants: list[str], maze: Maze | None = None,
-              progress: bool = True, key: jax.Array | None = None, seed: int = 0,
-              record: tuple[int, ...] = (), record_every: int = 4, mesh: Mesh | None = None) -> BatchResult:
+def run_batch(config: EvalConfig, path: str | None, variants: list[str], maze: Maze | None = None, progress: bool = True,
+              seed: int = 0, record: tuple[int, ...] = (), record_every: int = 4, mesh: Mesh | None = None) -> BatchResult:
     """Every (variant, damage, replicate) of `variants` on one repertoire (of seed `seed`), as one
     batch of episodes. record: batch rows whose states are recorded every `record_every` control
     steps (`BatchResult.replays`); none by default, and then nothing is recorded. mesh: the devices
@@ -286,9 +285,8 @@ def run_batch(config: EvalConfig, path: str | None, variants: list[str], maze: M
     damages = np.stack([parse_damage(d) for _, d, _ in labels])
     adaptation = config.adaptation
     start = start_states(maze, damages, config.robot)
-    if key is None:
-        key = jax.random.PRNGKey(config.seed)
-        key = key if seed == 0 else jax.random.fold_in(key, seed)
+    key = jax.random.PRNGKey(config.seed)
+    key = key if seed == 0 else jax.random.fold_in(key, seed)
     episodes = start_episodes(adaptation, skills, start, damages, rules, np.asarray(which), key)
     robot = maze_robot(maze, config.robot)
     recorder = Recorder(tuple(record), record_every) if record else None
