@@ -273,9 +273,7 @@ def _load_batch(path: Path, seed: int, labels: list[tuple[str, str, int]]):
 def _save_batch(path: Path, result, records: list[dict]) -> None:
     ep = result.episodes
     arrays = {**{k: getattr(ep, k) for k in ("trajectory", "taken", "reached", "broken", "damage")},
-              **{k: getattr(ep.history, k) for k in ("action", "map", "planned", "start", "predicted", "observed",
-                                                      "value", "path", "path_length", "patterns", "errors", "contacts",
-                                                      "leg_travel")}}
+              **{field.name: getattr(ep.history, field.name) for field in dataclasses.fields(ep.history)}}
     labels = {"seed": result.seed, "variants": result.variants, "damages": result.damages, "replicates": result.replicates,
               "repertoire": result.repertoire, "plan_seconds": result.timings.plan, "act_seconds": result.timings.act,
               "records": records}
