@@ -16,7 +16,7 @@ from jax.sharding import Mesh
 
 from hte_jax.config import inline
 from hte_jax.config import with_overrides as _with_overrides
-from hte_jax.errors import ConfigError, check_fields, integer, lookup, number
+from hte_jax.errors import ConfigError, check_fields, choice, integer, lookup, number
 from hte_jax.flat.plots import plot_flat
 from hte_jax.flat.store import FlatRepertoires, save_flat
 from hte_jax.flat.task import QD_OFFSET, FlatTask, evaluate_flat, flat_spec
@@ -43,7 +43,7 @@ class FlatConfig(StoredConfig):
     """Everything that defines a trained set of flat repertoires: the variant, `LayerSchedule`'s settings
     per repertoire, `FlatTask`'s bins and contact_threshold, and the solver (as `HBRConfig`'s)."""
 
-    variant: str
+    variant: str = choice(dataclasses.MISSING, VARIANTS)
     batch_size: int
     init_size: int
     generations: int = integer(minimum=0)
@@ -56,8 +56,6 @@ class FlatConfig(StoredConfig):
     solver: SolverConfig = inline(SolverConfig())
 
     def __post_init__(self):
-        if self.variant not in VARIANTS:
-            raise ConfigError(f"variant must be one of {sorted(VARIANTS)}, got {self.variant!r}")
         check_fields(self)
         self.task  # noqa: B018 - validates bins and contact_threshold
         self.map_elites_config()  # validates batch, init and mutation
