@@ -47,8 +47,8 @@ from types import SimpleNamespace
 import numpy as np
 from tqdm.auto import tqdm
 
-from experiments.cli import (Interruption, add_device_flags, add_setting_flags, device_mesh, input_errors,
-                             interruptible, is_writer, resume_command, setting_overrides)
+from experiments.cli import (add_device_flags, add_setting_flags, device_mesh, input_errors,
+                             interruptible, is_writer, resumable_run, resume_command, setting_overrides)
 from hte_jax.config import settings
 from hte_jax.errors import ConfigError, require_int
 from hte_jax.online.evaluation import (PRESETS, PROTOCOLS, EvalConfig, batch_labels, batches, episode_numbers,
@@ -89,98 +89,93 @@ def parser() -> argparse.ArgumentParser:
 def main(argv=None) -> int:
     args = parser().parse_args(argv)
     with interruptible() as interrupt:
-        return _main(args, interrupt, argv)
-
-
-def _main(args, interrupt: Interruption, argv) -> int:
-    with input_errors() as errors:
-        mesh = device_mesh(args)  # first: --distributed must start before jax touches the devices
-        writer = is_writer()  # only process 0 of a multi-host run writes files
-        overrides = protocol_overrides(args.protocol) if args.protocol is not None else {}
-        overrides.update(setting_overrides(args, SETTINGS))
-        config = with_overrides(preset(args.preset), overrides)
-        videos = _video_count(args.video)
-        if args.show_config:
-            print(json.dumps(config.to_dict(), indent=2))
-            return 0
-        require_impl(config.robot.impl, mesh_size(mesh))  # its backend, here and on these devices
-        out = Path(args.out)
-        stored = {"preset": args.preset, "protocol": args.protocol, **config.to_dict()}
-        if args.resume:
-            if not (out / "config.json").is_file():
-                raise ConfigError(f"--resume: {out} holds no run to resume (no config.json); leave out --resume to start one")
-            prepare_run_dir(out, stored, resume_run=True)  # ConfigError unless it is this run
-        elif writer:
-            out.mkdir(parents=True, exist_ok=True)
-            for old in out.glob("episodes_*.npz"):  # an earlier run's batches: this run replaces them
-                old.unlink()
-            write_json(out / "config.json", stored)
-        interrupt.saved = f"wrote {out / 'config.json'} only"
-        interrupt.resume = resume_command("experiments.maze_eval", argv, out)
-        maze = config.maze_task  # read once for every batch and plot
-        records, curves, tracks = [], {}, {}
-        earlier, recorded = {}, []  # episodes of each variant in earlier batches; (variant, episode) recorded
-        planned = batches(config)
-        for k, (seed, path, variants) in enumerate(planned):
-            labels = [v for v, _, _ in batch_labels(config, variants)]
-            to_record = rows_to_record(labels, videos, earlier)
-            numbers = episode_numbers(labels, earlier)
-            earlier = {v: earlier.get(v, 0) + labels.count(v) for v in {*earlier, *labels}}
-            batch_file = out / f"episodes_{k}.npz"
-            if args.resume and batch_file.is_file():
-                result, rows = _load_batch(batch_file, seed, batch_labels(config, variants))
+        with input_errors() as errors:
+            mesh = device_mesh(args)  # first: --distributed must start before jax touches the devices
+            writer = is_writer()  # only process 0 of a multi-host run writes files
+            overrides = protocol_overrides(args.protocol) if args.protocol is not None else {}
+            overrides.update(setting_overrides(args, SETTINGS))
+            config = with_overrides(preset(args.preset), overrides)
+            videos = _video_count(args.video)
+            if args.show_config:
+                print(json.dumps(config.to_dict(), indent=2))
+                return 0
+            require_impl(config.robot.impl, mesh_size(mesh))  # its backend, here and on these devices
+            out = Path(args.out)
+            stored = {"preset": args.preset, "protocol": args.protocol, **config.to_dict()}
+            if args.resume:
+                resumable_run(out, ())  # ConfigError unless out holds a run
+                prepare_run_dir(out, stored, resume_run=True)  # ConfigError unless it is this run
+            elif writer:
+                out.mkdir(parents=True, exist_ok=True)
+                for old in out.glob("episodes_*.npz"):  # an earlier run's batches: this run replaces them
+                    old.unlink()
+                write_json(out / "config.json", stored)
+            interrupt.saved = f"wrote {out / 'config.json'} only"
+            interrupt.resume = resume_command("experiments.maze_eval", argv, out)
+            maze = config.maze_task  # read once for every batch and plot
+            records, curves, tracks = [], {}, {}
+            earlier, recorded = {}, []  # episodes of each variant in earlier batches; (variant, episode) recorded
+            planned = batches(config)
+            for k, (seed, path, variants) in enumerate(planned):
+                labels = [v for v, _, _ in batch_labels(config, variants)]
+                to_record = rows_to_record(labels, videos, earlier)
+                numbers = episode_numbers(labels, earlier)
+                earlier = {v: earlier.get(v, 0) + labels.count(v) for v in {*earlier, *labels}}
+                batch_file = out / f"episodes_{k}.npz"
+                if args.resume and batch_file.is_file():
+                    result, rows = _load_batch(batch_file, seed, batch_labels(config, variants))
+                    records += rows
+                    recorded += [(labels[row], numbers[row]) for row in to_record]
+                    if writer:
+                        _plot_batch(out / "plots", result, curves, tracks, maze)
+                    print(f"batch {k} ({'/'.join(variants)} on seed {seed}): read from {batch_file}")
+                    continue
+                result = run_batch(config, path, variants, maze, progress=not args.no_progress, seed=seed,
+                                   record=to_record, record_every=RECORD_EVERY, mesh=mesh)
+                rows = episode_records(result, config.max_actions)
                 records += rows
-                recorded += [(labels[row], numbers[row]) for row in to_record]
-                if writer:
-                    _plot_batch(out / "plots", result, curves, tracks, maze)
-                print(f"batch {k} ({'/'.join(variants)} on seed {seed}): read from {batch_file}")
-                continue
-            result = run_batch(config, path, variants, maze, progress=not args.no_progress, seed=seed,
-                               record=to_record, record_every=RECORD_EVERY, mesh=mesh)
-            rows = episode_records(result, config.max_actions)
-            records += rows
-            if not writer:
-                continue
-            recorded += _save_replays(out, result, numbers, k)  # before the batch file: a read batch has its replays
-            _save_batch(batch_file, result, rows)
-            interrupt.saved = f"wrote {_batch_files(k + 1, len(planned))} in {out}, no summary"
-            _plot_batch(out / "plots", result, curves, tracks, maze)
-            print(f"batch {k} ({'/'.join(variants)} on seed {seed}: {result.repertoire['path']}, "
-                  f"{result.repertoire['actions']} actions): {len(rows)} episodes in {result.timings.total:.1f} s, "
-                  f"planning median {np.median(result.timings.plan):.2f} s per action")
-    if errors.failed:
-        return 2
-    if not writer:
+                if not writer:
+                    continue
+                recorded += _save_replays(out, result, numbers, k)  # before the batch file: a read batch has its replays
+                _save_batch(batch_file, result, rows)
+                interrupt.saved = f"wrote {_batch_files(k + 1, len(planned))} in {out}, no summary"
+                _plot_batch(out / "plots", result, curves, tracks, maze)
+                print(f"batch {k} ({'/'.join(variants)} on seed {seed}: {result.repertoire['path']}, "
+                      f"{result.repertoire['actions']} actions): {len(rows)} episodes in {result.timings.total:.1f} s, "
+                      f"planning median {np.median(result.timings.plan):.2f} s per action")
+        if errors.failed:
+            return 2
+        if not writer:
+            return 0
+        interrupt.saved = f"wrote {_batch_files(len(planned), len(planned))} in {out}, part of the summaries, plots, videos"
+        order = {name: i for i, name in enumerate(config.variant_list)}
+        records.sort(key=lambda r: order[r["variant"]])  # stable: the variants in the order asked for
+        summary = summarise(records, config.max_actions)
+        statistics = protocol_statistics(records)
+        variant, baseline, paper_reduction = PAPER_FAILURE_REDUCTION
+        if variant in statistics["variants"] and baseline in statistics["variants"]:
+            statistics["failure_reduction"] = {"variant": variant, "baseline": baseline, "paper_percent": paper_reduction,
+                                               "percent": failure_reduction(statistics, variant, baseline)}
+        if baseline in statistics["variants"] and len(statistics["variants"]) > 1:
+            statistics["failure_reductions"] = {"baseline": baseline, "percent": failure_reductions(statistics, baseline)}
+        write_json(out / "episodes.json", {"episodes": records})
+        write_json(out / "summary.json", summary)
+        write_json(out / "statistics.json", statistics)
+        plot_prediction_error(out / "plots" / "prediction_error.png", curves)
+        plot_actions(out / "plots" / "actions.png", records, config.max_actions)
+        plot_protocol_box(out / "plots" / "fig6_actions.png", statistics, config.max_actions, PAPER_QUARTILES)
+        plot_failures(out / "plots" / "fig7_failures.png", statistics)
+        plot_variant_mazes(out / "plots" / "maze_variants.png", maze, tracks)
+        unrendered = _write_videos(out, recorded, progress=not args.no_progress)
+        print(f"{'variant':<12} {'damage':<8} {'rep':>3} {'actions':>7}  result")
+        for r in records:
+            result = "goal" if r["reached"] else ("flipped" if r["broken"] else "failed")
+            print(f"{r['variant']:<12} {r['damage']:<8} {r['replicate']:>3} {r['actions']:>7}  {result}")
+        _print_statistics(statistics)
+        if unrendered:  # the results are written: the run succeeded without its videos
+            print(unrendered, file=sys.stderr)
+        print(f"wrote {out}")
         return 0
-    interrupt.saved = f"wrote {_batch_files(len(planned), len(planned))} in {out}, part of the summaries, plots, videos"
-    order = {name: i for i, name in enumerate(config.variant_list)}
-    records.sort(key=lambda r: order[r["variant"]])  # stable: the variants in the order asked for
-    summary = summarise(records, config.max_actions)
-    statistics = protocol_statistics(records)
-    variant, baseline, paper_reduction = PAPER_FAILURE_REDUCTION
-    if variant in statistics["variants"] and baseline in statistics["variants"]:
-        statistics["failure_reduction"] = {"variant": variant, "baseline": baseline, "paper_percent": paper_reduction,
-                                           "percent": failure_reduction(statistics, variant, baseline)}
-    if baseline in statistics["variants"] and len(statistics["variants"]) > 1:
-        statistics["failure_reductions"] = {"baseline": baseline, "percent": failure_reductions(statistics, baseline)}
-    write_json(out / "episodes.json", {"episodes": records})
-    write_json(out / "summary.json", summary)
-    write_json(out / "statistics.json", statistics)
-    plot_prediction_error(out / "plots" / "prediction_error.png", curves)
-    plot_actions(out / "plots" / "actions.png", records, config.max_actions)
-    plot_protocol_box(out / "plots" / "fig6_actions.png", statistics, config.max_actions, PAPER_QUARTILES)
-    plot_failures(out / "plots" / "fig7_failures.png", statistics)
-    plot_variant_mazes(out / "plots" / "maze_variants.png", maze, tracks)
-    unrendered = _write_videos(out, recorded, progress=not args.no_progress)
-    print(f"{'variant':<12} {'damage':<8} {'rep':>3} {'actions':>7}  result")
-    for r in records:
-        result = "goal" if r["reached"] else ("flipped" if r["broken"] else "failed")
-        print(f"{r['variant']:<12} {r['damage']:<8} {r['replicate']:>3} {r['actions']:>7}  {result}")
-    _print_statistics(statistics)
-    if unrendered:  # the results are written: the run succeeded without its videos
-        print(unrendered, file=sys.stderr)
-    print(f"wrote {out}")
-    return 0
 
 
 def _batch_files(count: int, total: int) -> str:
@@ -278,9 +273,7 @@ def _load_batch(path: Path, seed: int, labels: list[tuple[str, str, int]]):
 def _save_batch(path: Path, result, records: list[dict]) -> None:
     ep = result.episodes
     arrays = {**{k: getattr(ep, k) for k in ("trajectory", "taken", "reached", "broken", "damage")},
-              **{k: getattr(ep.history, k) for k in ("action", "map", "planned", "start", "predicted", "observed",
-                                                      "value", "path", "path_length", "patterns", "errors", "contacts",
-                                                      "leg_travel")}}
+              **{field.name: getattr(ep.history, field.name) for field in dataclasses.fields(ep.history)}}
     labels = {"seed": result.seed, "variants": result.variants, "damages": result.damages, "replicates": result.replicates,
               "repertoire": result.repertoire, "plan_seconds": result.timings.plan, "act_seconds": result.timings.act,
               "records": records}

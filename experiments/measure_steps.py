@@ -16,11 +16,11 @@ import time
 
 import jax
 
-from experiments.cli import add_device_flags, device_mesh, fail, input_errors, interruptible, is_writer
+from experiments.cli import add_device_flags, device_mesh, input_errors, interruptible, is_writer
+from hte_jax.errors import ConfigError
 from hte_jax.flat.comparison import resolve
 from hte_jax.hbr.composition import measure_steps
 from hte_jax.hbr.store import load_hbr, save_hbr, shipped_hbr_path
-from hte_jax.qd.io import CheckpointError
 from hte_jax.sharding import mesh_size
 from hte_jax.sim.mjx_import import require_impl
 from hte_jax.sim.robot import RobotConfig, load_robot, stored_solver
@@ -44,12 +44,10 @@ def parser() -> argparse.ArgumentParser:
 @interruptible()  # Ctrl-C: `interrupted: nothing written` (the HBR file is replaced at the end)
 def main(argv=None) -> int:
     args = parser().parse_args(argv)
-    for name in ("starts", "chunk"):
-        if getattr(args, name) < 1:
-            return fail(f"--{name} must be >= 1, got {getattr(args, name)}")
-    if args.seed < 0:
-        return fail(f"--seed must be >= 0, got {args.seed}")
-    with input_errors(CheckpointError) as errors:
+    with input_errors() as errors:
+        for name, low in (("starts", 1), ("chunk", 1), ("seed", 0)):
+            if getattr(args, name) < low:
+                raise ConfigError(f"--{name} must be >= {low}, got {getattr(args, name)}")
         mesh = device_mesh(args)  # first: --distributed must start before jax touches the devices
         path = shipped_hbr_path() if args.hbr is None else resolve(args.hbr)
         hbr, top_task, meta = load_hbr(path)

@@ -30,7 +30,7 @@ import jax
 import numpy as np
 from tqdm.auto import tqdm
 
-from experiments.cli import Interruption, fail, input_errors, interruptible
+from experiments.cli import input_errors, interruptible
 from hte_jax.errors import ConfigError
 from hte_jax.flat.comparison import resolve
 from hte_jax.hbr.composition import COMPOSITIONS, planning_table
@@ -38,7 +38,7 @@ from hte_jax.hbr.modulation import Modulation, modulate, spread_skills
 from hte_jax.hbr.plots import plot_modulation_grid, plot_modulation_map
 from hte_jax.hbr.store import load_hbr
 from hte_jax.online.secondary import allowed_patterns
-from hte_jax.qd.io import CheckpointError, write_json
+from hte_jax.qd.io import write_json
 from hte_jax.sim.robot import load_robot
 from hte_jax.sim.rollout import standing_state
 
@@ -86,71 +86,56 @@ def skill_count(text: str | None, preset: str) -> int | None:
 def main(argv=None) -> int:
     args = parser().parse_args(argv)
     with interruptible() as interrupt:
-        return _main(args, interrupt)
-
-
-def _main(args, interrupt: Interruption) -> int:
-    chunk = PRESETS[args.preset]["chunk"] if args.chunk is None else args.chunk
-    if args.radius is not None and not args.radius > 0:
-        return fail(f"--radius must be > 0, got {args.radius}")
-    if chunk < 1:
-        return fail(f"--chunk must be >= 1, got {chunk}")
-    with input_errors() as errors:
-        count = skill_count(args.skills, args.preset)
-    if errors.failed:
-        return 2
-    with input_errors(CheckpointError) as errors:
-        hbr, task, _ = load_hbr(None if args.hbr is None else resolve(args.hbr))
-    if errors.failed:
-        return 2
-    progress = not args.no_progress
-    sample = None
-    if args.data is not None:
-        with input_errors(OSError, ValueError) as errors:
-            mod = Modulation.load(args.data)
+        chunk = PRESETS[args.preset]["chunk"] if args.chunk is None else args.chunk
+        with input_errors(OSError, ValueError) as errors:  # ConfigError and CheckpointError too; a bad --data file
+            if args.radius is not None and not args.radius > 0:
+                raise ConfigError(f"--radius must be > 0, got {args.radius}")
+            if chunk < 1:
+                raise ConfigError(f"--chunk must be >= 1, got {chunk}")
+            count = skill_count(args.skills, args.preset)
+            hbr, task, _ = load_hbr(None if args.hbr is None else resolve(args.hbr))
+            mod = None if args.data is None else Modulation.load(args.data)
         if errors.failed:
             return 2
-    else:
-        filled = int(np.asarray(hbr.top.filled).sum())
-        skills = None
-        if count is not None and count < filled:
-            skills = spread_skills(hbr.top.filled, hbr.top.descriptors, count, args.seed)
-            sample = {"skills": int(skills.size), "of": filled, "seed": args.seed}
-        mod = _simulate(hbr, task, skills, args, chunk, progress)
-    out = Path(args.out)
-    interrupt.saved = f"part of the figures and data written in {out}"
-    out.mkdir(parents=True, exist_ok=True)
-    with tqdm(total=2, desc="figures", unit="figure", disable=not progress, leave=False) as bar:
-        plot_modulation_map(mod, out / "modulation_map.png", task.extent, args.radius)
-        bar.update()
-        plot_modulation_grid(mod, out / "modulation_grid.png", task.extent)
-        bar.update()
-    counts, summary = mod.counts(args.radius), mod.summary()
-    write_json(out / "modulation.json", {
-        "summary": summary, "composition": None if args.data is not None else args.composition, "sample": sample,
-        "step_model": hbr.step_model is not None, "radius_m": args.radius,
-        "per_skill": {"slot": mod.slots.tolist(), **{k: np.asarray(v).tolist() for k, v in counts.items()}},
-    })
-    if args.data is None:
-        mod.save(out / "modulation.npz")
-    print(json.dumps({k: v for k, v in summary.items() if k != "skills_showing_each_pattern"}, indent=2))
-    if sample is not None:
-        print(f"{sample['skills']} of {sample['of']} skills, spread over the map (seed {sample['seed']}); "
-              "--skills all (or --preset gpu) re-executes every skill")
-    print(f"wrote figures and data under {out}")
-    return 0
-
-
-def _simulate(hbr, task, skills, args, chunk: int, progress: bool) -> Modulation:
-    with tqdm(total=2, desc="standing state, planning table", disable=not progress, leave=False) as bar:
-        robot = load_robot()
-        start = jax.block_until_ready(standing_state(robot))
-        bar.update()
-        table = planning_table(hbr) if args.composition == "planned" else None
-        bar.update()
-    patterns = allowed_patterns() if args.patterns == "candidates" else None
-    return modulate(robot, hbr, task, start, skills=skills, patterns=patterns, chunk=chunk, progress=progress,
-                    table=table)
+        progress = not args.no_progress
+        sample = None
+        if mod is None:
+            filled = int(np.asarray(hbr.top.filled).sum())
+            skills = None
+            if count is not None and count < filled:
+                skills = spread_skills(hbr.top.filled, hbr.top.descriptors, count, args.seed)
+                sample = {"skills": int(skills.size), "of": filled, "seed": args.seed}
+            with tqdm(total=2, desc="standing state, planning table", disable=not progress, leave=False) as bar:
+                robot = load_robot()
+                start = jax.block_until_ready(standing_state(robot))
+                bar.update()
+                table = planning_table(hbr) if args.composition == "planned" else None
+                bar.update()
+            patterns = allowed_patterns() if args.patterns == "candidates" else None
+            mod = modulate(robot, hbr, task, start, skills=skills, patterns=patterns, chunk=chunk, progress=progress,
+                           table=table)
+        out = Path(args.out)
+        interrupt.saved = f"part of the figures and data written in {out}"
+        out.mkdir(parents=True, exist_ok=True)
+        with tqdm(total=2, desc="figures", unit="figure", disable=not progress, leave=False) as bar:
+            plot_modulation_map(mod, out / "modulation_map.png", task.extent, args.radius)
+            bar.update()
+            plot_modulation_grid(mod, out / "modulation_grid.png", task.extent)
+            bar.update()
+        counts, summary = mod.counts(args.radius), mod.summary()
+        write_json(out / "modulation.json", {
+            "summary": summary, "composition": None if args.data is not None else args.composition, "sample": sample,
+            "step_model": hbr.step_model is not None, "radius_m": args.radius,
+            "per_skill": {"slot": mod.slots.tolist(), **{k: np.asarray(v).tolist() for k, v in counts.items()}},
+        })
+        if args.data is None:
+            mod.save(out / "modulation.npz")
+        print(json.dumps({k: v for k, v in summary.items() if k != "skills_showing_each_pattern"}, indent=2))
+        if sample is not None:
+            print(f"{sample['skills']} of {sample['of']} skills, spread over the map (seed {sample['seed']}); "
+                  "--skills all (or --preset gpu) re-executes every skill")
+        print(f"wrote figures and data under {out}")
+        return 0
 
 
 if __name__ == "__main__":

@@ -52,12 +52,6 @@ def parser() -> argparse.ArgumentParser:
     return p
 
 
-def main(argv=None) -> int:
-    args = parser().parse_args(argv)
-    with interruptible(lambda: _saved(Path(args.out)), resume_command("experiments.train_set", argv, args.out)):
-        return _main(args)
-
-
 def _saved(out: Path) -> str | None:
     done = ", ".join(part for part in PARTS if _final(out, part).is_file()) or "none"
     return f"finished parts {done} in {out}, the current part's checkpoint" if out.is_dir() else None
@@ -68,55 +62,58 @@ def _final(out: Path, part: str) -> Path:
     return out / {"hbr": "hbr.npz", "spare": SPARE_FILE, "matched": str(MATCHED)}.get(part, FLAT_FILES.get(part, ""))
 
 
-def _main(args) -> int:
-    with input_errors() as errors:
-        mesh = device_mesh(args)
-        out = Path(args.out)
-        parts = _parts(args.parts, args.matched)
-        if out.exists() and any(out.iterdir()) and not args.resume:
-            raise ConfigError(f"{out} is not empty: pass --resume to continue the set there, or another --out")
-        if args.resume and not out.is_dir():
-            raise ConfigError(f"--resume: {out} holds no set to resume")
-        if args.impl not in ("jax", "warp"):
-            raise ConfigError(f"--impl must be jax or warp, got {args.impl!r}")
-        solver = dataclasses.replace(hbr_training.preset(args.preset).solver, impl=args.impl)
-        hbr_config = dataclasses.replace(hbr_training.preset(args.preset), seed=args.seed, solver=solver)
-        for part in parts:
-            if _final(out, part).is_file():
-                continue
-            run_dir = out / "runs" / part
-            resume, progress, began = (run_dir / "config.json").is_file(), not args.no_progress, time.perf_counter()
-            impl = "jax" if part == "aprol" else args.impl
-            if part == "hbr":
-                summary = hbr_training.train_hbr(hbr_config, run_dir, resume_run=resume, progress=progress,
-                                                 mesh=mesh).summary
-                record = {"evaluations": sum(s["evaluations"] for s in summary["layers"].values()),
-                          "elites": {k: s["filled"] for k, s in summary["layers"].items()},
-                          "statistics": summary["statistics"]}
-            elif part == "spare":
-                if not _final(out, "hbr").is_file():
-                    raise ConfigError(f"the spare archive needs {_final(out, 'hbr')}: train part hbr first")
-                hbr, _, _ = load_hbr(_final(out, "hbr"))
-                summary = hbr_training.train_spare(hbr, hbr_config, run_dir, resume_run=resume, progress=progress)
-                record = {k: summary[k] for k in ("evaluations", "elites", "patterns", "lifting_each_leg")}
-            else:
-                config = dataclasses.replace(flat.preset(args.preset, "2d" if part == "matched" else part),
-                                             seed=args.seed, solver=dataclasses.replace(solver, impl=impl))
-                if part == "matched":
-                    config = dataclasses.replace(config, generations=_matched_generations(out, config))
-                summary = flat.train_flat(config, run_dir, resume_run=resume, progress=progress, mesh=mesh).summary
-                record = {k: summary[k] for k in ("evaluations", "elites", "statistics")}
-            if not is_writer():
-                continue
-            produced = run_dir / {"hbr": "hbr.npz", "spare": SPARE_FILE}.get(part, "repertoires.npz")
-            write_json(run_dir / "part.json", {**record, "impl": impl, "wall_time_s": round(time.perf_counter() - began, 1)})
-            _final(out, part).parent.mkdir(parents=True, exist_ok=True)
-            shutil.copyfile(produced, _final(out, part))
-            records = {p: _record(out, p) for p in PARTS if (out / "runs" / p / "part.json").is_file()}
-            write_json(out / "set.json", {"seed": args.seed, "preset": args.preset,
-                                          "devices": [str(d) for d in jax.devices()], "parts": records})
-            print(f"{out}: {part} done, {record['evaluations']} evaluations")
-    return 2 if errors.failed else 0
+def main(argv=None) -> int:
+    args = parser().parse_args(argv)
+    with interruptible(lambda: _saved(Path(args.out)), resume_command("experiments.train_set", argv, args.out)):
+        with input_errors() as errors:
+            mesh = device_mesh(args)
+            out = Path(args.out)
+            parts = _parts(args.parts, args.matched)
+            if out.exists() and any(out.iterdir()) and not args.resume:
+                raise ConfigError(f"{out} is not empty: pass --resume to continue the set there, or another --out")
+            if args.resume and not out.is_dir():
+                raise ConfigError(f"--resume: {out} holds no set to resume")
+            if args.impl not in ("jax", "warp"):
+                raise ConfigError(f"--impl must be jax or warp, got {args.impl!r}")
+            solver = dataclasses.replace(hbr_training.preset(args.preset).solver, impl=args.impl)
+            hbr_config = dataclasses.replace(hbr_training.preset(args.preset), seed=args.seed, solver=solver)
+            for part in parts:
+                if _final(out, part).is_file():
+                    continue
+                run_dir = out / "runs" / part
+                resume, progress, began = (run_dir / "config.json").is_file(), not args.no_progress, time.perf_counter()
+                impl = "jax" if part == "aprol" else args.impl
+                if part == "hbr":
+                    summary = hbr_training.train_hbr(hbr_config, run_dir, resume_run=resume, progress=progress,
+                                                     mesh=mesh).summary
+                    record = {"evaluations": sum(s["evaluations"] for s in summary["layers"].values()),
+                              "elites": {k: s["filled"] for k, s in summary["layers"].items()},
+                              "statistics": summary["statistics"]}
+                elif part == "spare":
+                    if not _final(out, "hbr").is_file():
+                        raise ConfigError(f"the spare archive needs {_final(out, 'hbr')}: train part hbr first")
+                    hbr, _, _ = load_hbr(_final(out, "hbr"))
+                    summary = hbr_training.train_spare(hbr, hbr_config, run_dir, resume_run=resume, progress=progress)
+                    record = {k: summary[k] for k in ("evaluations", "elites", "patterns", "lifting_each_leg")}
+                else:
+                    config = dataclasses.replace(flat.preset(args.preset, "2d" if part == "matched" else part),
+                                                 seed=args.seed, solver=dataclasses.replace(solver, impl=impl))
+                    if part == "matched":
+                        config = dataclasses.replace(config, generations=_matched_generations(out, config))
+                    summary = flat.train_flat(config, run_dir, resume_run=resume, progress=progress, mesh=mesh).summary
+                    record = {k: summary[k] for k in ("evaluations", "elites", "statistics")}
+                if not is_writer():
+                    continue
+                produced = run_dir / {"hbr": "hbr.npz", "spare": SPARE_FILE}.get(part, "repertoires.npz")
+                write_json(run_dir / "part.json",
+                           {**record, "impl": impl, "wall_time_s": round(time.perf_counter() - began, 1)})
+                _final(out, part).parent.mkdir(parents=True, exist_ok=True)
+                shutil.copyfile(produced, _final(out, part))
+                records = {p: _record(out, p) for p in PARTS if (out / "runs" / p / "part.json").is_file()}
+                write_json(out / "set.json", {"seed": args.seed, "preset": args.preset,
+                                              "devices": [str(d) for d in jax.devices()], "parts": records})
+                print(f"{out}: {part} done, {record['evaluations']} evaluations")
+        return 2 if errors.failed else 0
 
 
 def _parts(text: str | None, matched: bool) -> list[str]:

@@ -12,8 +12,8 @@ import numpy as np  # noqa: E402
 
 from hte_jax.flat.store import FlatRepertoires  # noqa: E402
 from hte_jax.hbr.middle import NUM_PATTERNS, pattern_code  # noqa: E402
-from hte_jax.hbr.plots import draw_pattern_counts, draw_xy_map, save_figure, xy_title  # noqa: E402
-from hte_jax.qd.plots import grid_projection, plot_metrics  # noqa: E402
+from hte_jax.hbr.plots import draw_pattern_counts, draw_xy_map, xy_title  # noqa: E402
+from hte_jax.qd.plots import grid_projection, plot_metrics, save_figure  # noqa: E402
 
 
 def xy_image(flat: FlatRepertoires, index: int) -> np.ndarray:
@@ -56,5 +56,4 @@ def plot_flat(flat: FlatRepertoires, metrics_csv, plot_dir):
         draw_pattern_counts(ax, contact_pattern_counts(flat, 0), "flat 8d: ")
         save_figure(fig, plot_dir / "contact_patterns.png")
     if Path(metrics_csv).exists():
-        plt.close(plot_metrics(metrics_csv, title=f"flat {flat.task.descriptor} ({len(flat)} repertoires)",
-                               path=plot_dir / "metrics.png"))
+        plot_metrics(metrics_csv, plot_dir / "metrics.png", title=f"flat {flat.task.descriptor} ({len(flat)} repertoires)")

@@ -10,7 +10,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from hte_jax.errors import ConfigError
+from hte_jax.errors import lookup
 from hte_jax.flat.task import FlatTask, flat_spec
 from hte_jax.qd.io import CheckpointError, elite_arrays, save_checkpoint
 from hte_jax.qd.repertoire import Repertoire
@@ -25,9 +25,7 @@ SHIPPED = {"2d": "flat_gpu/flat2d.npz", "8d": "flat_gpu/flat8d.npz", "aprol": "f
 
 
 def shipped_flat_path(variant: str) -> Path:
-    if variant not in SHIPPED:
-        raise ConfigError(f"unknown flat variant {variant!r}; choose one of {sorted(SHIPPED)}")
-    return assets_dir() / SHIPPED[variant]
+    return assets_dir() / lookup("flat variant", variant, SHIPPED)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -10,7 +10,7 @@ import math
 import jax
 import jax.numpy as jnp
 
-from hte_jax.errors import ConfigError, require_int, require_number
+from hte_jax.errors import check_fields, choice, integer, number
 from hte_jax.geometry import angle_error, planar_pose, relative_pose
 from hte_jax.hbr.top import TopTask
 from hte_jax.qd.grid import Grid
@@ -31,19 +31,14 @@ class FlatTask:
     """What a flat repertoire measures (hashable): descriptor "2d" or "8d", `bins` x-y cells per axis over
     [-extent, extent] m, `steps` control steps (100 per s), contact_threshold of the 8d contact bits."""
 
-    descriptor: str = "2d"
-    bins: int = 100
-    extent: float = 1.5
-    steps: int = 300
-    contact_threshold: float = 0.3
+    descriptor: str = choice("2d", DESCRIPTOR_DIMS)
+    bins: int = integer(100)
+    extent: float = number(1.5, 0.0, open_low=True)
+    steps: int = integer(300)
+    contact_threshold: float = number(0.3, 0.0, 1.0)
 
     def __post_init__(self):
-        if self.descriptor not in DESCRIPTOR_DIMS:
-            raise ConfigError(f"descriptor must be one of {sorted(DESCRIPTOR_DIMS)}, got {self.descriptor!r}")
-        require_int("bins", self.bins)
-        require_number("extent", self.extent, 0.0, open_low=True)
-        require_int("steps", self.steps)
-        require_number("contact_threshold", self.contact_threshold, 0.0, 1.0)
+        check_fields(self)
 
     @property
     def descriptor_dim(self) -> int:

@@ -16,7 +16,7 @@ from jax.sharding import Mesh
 
 from hte_jax.config import inline
 from hte_jax.config import with_overrides as _with_overrides
-from hte_jax.errors import ConfigError, require_int, require_number
+from hte_jax.errors import ConfigError, check_fields, choice, integer, lookup, number
 from hte_jax.flat.plots import plot_flat
 from hte_jax.flat.store import FlatRepertoires, save_flat
 from hte_jax.flat.task import QD_OFFSET, FlatTask, evaluate_flat, flat_spec
@@ -43,25 +43,20 @@ class FlatConfig(StoredConfig):
     """Everything that defines a trained set of flat repertoires: the variant, `LayerSchedule`'s settings
     per repertoire, `FlatTask`'s bins and contact_threshold, and the solver (as `HBRConfig`'s)."""
 
-    variant: str
+    variant: str = choice(dataclasses.MISSING, VARIANTS)
     batch_size: int
     init_size: int
-    generations: int
-    block_size: int
+    generations: int = integer(minimum=0)
+    block_size: int = integer()
     mutation_rate: float = 0.14
-    eta_m: float = 10.0
-    seed: int = 0
+    eta_m: float = number(10.0, 0.0)
+    seed: int = integer(0, minimum=0)
     bins: int = 100
     contact_threshold: float = 0.3
     solver: SolverConfig = inline(SolverConfig())
 
     def __post_init__(self):
-        if self.variant not in VARIANTS:
-            raise ConfigError(f"variant must be one of {sorted(VARIANTS)}, got {self.variant!r}")
-        require_int("generations", self.generations, minimum=0)
-        require_int("block_size", self.block_size)
-        require_int("seed", self.seed, minimum=0)
-        require_number("eta_m", self.eta_m, 0.0)
+        check_fields(self)
         self.task  # noqa: B018 - validates bins and contact_threshold
         self.map_elites_config()  # validates batch, init and mutation
         if self.solver.impl == "warp" and len(self.damages) > 1:  # vmapped runs: Warp's contact buffer is per call
@@ -106,11 +101,7 @@ PRESETS: dict[str, dict[str, FlatConfig]] = {
 
 
 def preset(name: str, variant: str) -> FlatConfig:
-    if name not in PRESETS:
-        raise ConfigError(f"unknown preset {name!r}; choose one of {sorted(PRESETS)}")
-    if variant not in VARIANTS:
-        raise ConfigError(f"unknown variant {variant!r}; choose one of {sorted(VARIANTS)}")
-    return PRESETS[name][variant]
+    return lookup("variant", variant, lookup("preset", name, PRESETS))
 
 
 def flat_algorithm(config: FlatConfig, mesh: Mesh | None = None) -> BatchedMapElites:

@@ -9,7 +9,7 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
-from hte_jax.errors import require_choice, require_int, require_number
+from hte_jax.errors import check_fields, choice, integer, number
 from hte_jax.qd.archive import Archive
 from hte_jax.qd.repertoire import Evaluation
 from hte_jax.qd.task_spec import EvaluateFn, TaskSpec
@@ -31,18 +31,14 @@ class BottomTask:
     """How a leg primitive is evaluated (hashable): `steps` control steps (100 = 1 s), swing / height
     descriptors over [-range, range] m, `duty_levels` duty levels, fitness "commands" or "genes"."""
 
-    steps: int = 100
-    swing_range: float = 0.2
-    height_range: float = 0.06
-    duty_levels: int = 4
-    fitness: str = "commands"
+    steps: int = integer(100)
+    swing_range: float = number(0.2, 0.0, open_low=True)
+    height_range: float = number(0.06, 0.0, open_low=True)
+    duty_levels: int = integer(4, minimum=2)
+    fitness: str = choice("commands", BOTTOM_FITNESSES)
 
     def __post_init__(self):
-        require_int("bottom steps", self.steps)
-        require_number("bottom swing_range", self.swing_range, 0.0, open_low=True)
-        require_number("bottom height_range", self.height_range, 0.0, open_low=True)
-        require_int("bottom duty_levels", self.duty_levels, minimum=2)
-        require_choice("bottom fitness", self.fitness, BOTTOM_FITNESSES)
+        check_fields(self, "bottom ")
 
     @property
     def spec(self) -> RolloutSpec:

@@ -98,12 +98,11 @@ def select_middle(hbr: HBR, desired: jax.Array, pattern: jax.Array, chunk: int =
     return map_rows(block, (desired, pattern.astype(jnp.int32)), (0.0, ANY_PATTERN), chunk)
 
 
-def step_elite(hbr: HBR, here: jax.Array, target: jax.Array, pattern: jax.Array, query: jax.Array | None = None,
+def step_elite(hbr: HBR, here: jax.Array, target: jax.Array, pattern: jax.Array,
                elite: jax.Array | None = None) -> tuple[jax.Array, jax.Array]:
-    """`select_middle`'s (index, found) for a step from world pose `here` (B, 3) towards `target` (B, 3), or
-    for the normalised step `query` (B, 3); elite (B,) int32: run instead where >= 0 (a planner's choice)."""
-    desired = hbr.middle_task.normalise(relative_pose(here, target)) if query is None else query
-    index, found = select_middle(hbr, desired, pattern)
+    """`select_middle`'s (index, found) for a step from world pose `here` (B, 3) towards `target` (B, 3);
+    elite (B,) int32: run instead where >= 0 (a planner's choice)."""
+    index, found = select_middle(hbr, hbr.middle_task.normalise(relative_pose(here, target)), pattern)
     if elite is not None:
         index, found = jnp.where(elite >= 0, elite, index), found | (elite >= 0)
     return index, found
@@ -124,10 +123,10 @@ def run_elite(robot: Robot, hbr: HBR, state: SimState, damage: jax.Array, index:
 
 
 def execute_step(robot: Robot, hbr: HBR, state: SimState, damage: jax.Array, target: jax.Array, pattern: jax.Array,
-                 limits: ValidityLimits = ValidityLimits(), query: jax.Array | None = None, record_every: int = 0,
+                 limits: ValidityLimits = ValidityLimits(), record_every: int = 0,
                  elite: jax.Array | None = None) -> StepResult:
     """Walk one second towards the world pose `target` (B, 3) with contact `pattern` (B,) (-1: any)."""
-    index, found = step_elite(hbr, state_pose(state), target, pattern, query, elite)
+    index, found = step_elite(hbr, state_pose(state), target, pattern, elite)
     return run_elite(robot, hbr, state, damage, index, found, limits, record_every)
 
 

@@ -11,7 +11,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from hte_jax.errors import require_int, require_number
+from hte_jax.errors import check_fields, integer, number
 from hte_jax.geometry import angle_error, medoid_index, planar_pose, relative_pose
 from hte_jax.qd.archive import Archive, map_rows, squared_distance
 from hte_jax.qd.repertoire import Evaluation, Repertoire
@@ -34,20 +34,15 @@ class MiddleTask:
     max_step (m) / max_turn (rad): |x|, |y| / |yaw| range of the primary descriptor; a leg's bit is 1
     above `contact_threshold` of the second; purity: fitness penalty per unit of contact on lifted legs."""
 
-    samples: int = 10
-    steps: int = 100
-    max_step: float = 0.5
-    max_turn: float = 1.0
-    contact_threshold: float = 0.3
-    purity: float = 0.0
+    samples: int = integer(10)
+    steps: int = integer(100)
+    max_step: float = number(0.5, 0.0, open_low=True)
+    max_turn: float = number(1.0, 0.0, open_low=True)
+    contact_threshold: float = number(0.3, 0.0, 1.0)
+    purity: float = number(0.0, 0.0)
 
     def __post_init__(self):
-        require_int("middle samples", self.samples)
-        require_int("middle steps", self.steps)
-        require_number("middle max_step", self.max_step, 0.0, open_low=True)
-        require_number("middle max_turn", self.max_turn, 0.0, open_low=True)
-        require_number("middle contact_threshold", self.contact_threshold, 0.0, 1.0)
-        require_number("middle purity", self.purity, 0.0)
+        check_fields(self, "middle ")
 
     @property
     def spec(self) -> RolloutSpec:

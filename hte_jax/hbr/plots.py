@@ -14,13 +14,7 @@ from hte_jax.hbr.analysis import pattern_histogram  # noqa: E402
 from hte_jax.hbr.hierarchy import HBR  # noqa: E402
 from hte_jax.hbr.middle import pattern_bits  # noqa: E402
 from hte_jax.hbr.top import TopTask  # noqa: E402
-from hte_jax.qd.plots import grid_projection, plot_metrics  # noqa: E402
-
-
-def save_figure(fig, path):
-    Path(path).parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120, bbox_inches="tight")
-    plt.close(fig)
+from hte_jax.qd.plots import grid_projection, plot_metrics, save_figure  # noqa: E402
 
 
 def _elites(repertoire):
@@ -103,7 +97,7 @@ def plot_hbr(hbr: HBR, task: TopTask, run_dir, plot_dir):
     for layer in ("bottom", "middle", "top"):
         log = Path(run_dir) / layer / "metrics.csv"
         if log.exists():
-            plt.close(plot_metrics(log, title=f"{layer} layer", path=plot_dir / f"{layer}_metrics.png"))
+            plot_metrics(log, plot_dir / f"{layer}_metrics.png", title=f"{layer} layer")
 
 
 def plot_modulation_map(modulation, path, extent: float = 1.5, radius: float | None = None):

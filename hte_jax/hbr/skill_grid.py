@@ -7,7 +7,7 @@ import dataclasses
 
 import jax
 
-from hte_jax.errors import require_int, require_number
+from hte_jax.errors import check_fields, integer, number
 from hte_jax.qd.grid import Grid
 
 
@@ -15,12 +15,11 @@ from hte_jax.qd.grid import Grid
 class TopTask:
     """The top layer's grid: `bins` x `bins` cells over [-extent, extent]^2 metres."""
 
-    bins: int = 100
-    extent: float = 1.5
+    bins: int = integer(100)
+    extent: float = number(1.5, 0.0, open_low=True)
 
     def __post_init__(self):
-        require_int("top bins", self.bins)
-        require_number("top extent", self.extent, 0.0, open_low=True)
+        check_fields(self, "top ")
 
     def grid(self) -> Grid:
         return Grid(bins=(self.bins, self.bins), low=(0.0, 0.0), high=(1.0, 1.0))

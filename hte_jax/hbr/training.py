@@ -16,7 +16,7 @@ from jax.sharding import Mesh
 
 from hte_jax.config import config_dict, config_from_dict, inline
 from hte_jax.config import with_overrides as _with_overrides
-from hte_jax.errors import ConfigError, require_choice, require_int, require_number
+from hte_jax.errors import check_fields, choice, integer, lookup, number
 from hte_jax.hbr import bottom as bottom_layer
 from hte_jax.hbr import middle as middle_layer
 from hte_jax.hbr.analysis import hbr_statistics
@@ -63,17 +63,15 @@ class LayerSchedule:
 
     batch_size: int
     init_size: int
-    generations: int
-    block_size: int
+    generations: int = integer(minimum=0)
+    block_size: int = integer()
     mutation_rate: float
     eta_m: float = 10.0
-    capacity: int = 1
+    capacity: int = integer(1)
     parents: SelectionConfig = inline(SelectionConfig())
 
     def __post_init__(self):
-        require_int("generations", self.generations, minimum=0)
-        require_int("block_size", self.block_size)
-        require_int("capacity", self.capacity)
+        check_fields(self)
         self.map_elites_config(qd_offset=0.0)  # batch, init size and mutation checks live there
 
     @property
@@ -95,29 +93,20 @@ class HBRConfig(StoredConfig):
     bottom: LayerSchedule
     middle: LayerSchedule
     top: LayerSchedule
-    seed: int = 0
-    middle_samples: int = 10
-    contact_threshold: float = 0.3
-    contact_purity: float = 0.0
-    bottom_l: float = bottom_layer.ARCHIVE_L
-    middle_l: float = middle_layer.ARCHIVE_L
-    top_bins: int = 100
-    bottom_fitness: str = "commands"
+    seed: int = integer(0, minimum=0)
+    middle_samples: int = integer(10)
+    contact_threshold: float = number(0.3, 0.0, 1.0)
+    contact_purity: float = number(0.0, 0.0)
+    bottom_l: float = number(bottom_layer.ARCHIVE_L, 0.0, open_low=True)
+    middle_l: float = number(middle_layer.ARCHIVE_L, 0.0, open_low=True)
+    top_bins: int = integer(100)
+    bottom_fitness: str = choice("commands", BOTTOM_FITNESSES)
     solver: SolverConfig = inline(SolverConfig())
-    step_starts: int = 8
-    step_chunk: int = 8192
+    step_starts: int = integer(8, minimum=0)
+    step_chunk: int = integer(8192)
 
     def __post_init__(self):
-        require_int("seed", self.seed, minimum=0)
-        require_int("middle_samples", self.middle_samples)
-        require_int("step_starts", self.step_starts, minimum=0)
-        require_int("step_chunk", self.step_chunk)
-        require_number("contact_threshold", self.contact_threshold, 0.0, 1.0)
-        require_number("contact_purity", self.contact_purity, 0.0)
-        require_number("bottom_l", self.bottom_l, 0.0, open_low=True)
-        require_number("middle_l", self.middle_l, 0.0, open_low=True)
-        require_int("top_bins", self.top_bins)
-        require_choice("bottom_fitness", self.bottom_fitness, BOTTOM_FITNESSES)
+        check_fields(self)
 
     @property
     def bottom_task(self) -> BottomTask:
@@ -159,9 +148,7 @@ def normalised_config(data: dict) -> dict:
 
 
 def preset(name: str) -> HBRConfig:
-    if name not in PRESETS:
-        raise ConfigError(f"unknown preset {name!r}; choose one of {sorted(PRESETS)}")
-    return PRESETS[name]
+    return lookup("preset", name, PRESETS)
 
 
 def layer_algorithms(config: HBRConfig, robot: Robot, start, lower: dict,

@@ -24,7 +24,7 @@ import numpy as np
 from jax.sharding import Mesh
 
 from hte_jax.config import config_dict, config_from_dict, inline
-from hte_jax.errors import ConfigError, require_choice, require_int
+from hte_jax.errors import ConfigError, check_fields, choice, integer, lookup
 from hte_jax.config import with_overrides as _with_overrides
 from hte_jax.flat.store import load_flat, shipped_flat_path
 from hte_jax.hbr.store import load_hbr, load_spare, spare_beside
@@ -84,15 +84,15 @@ class EvalConfig:
 
     variants: str = "hte"
     damages: str = "all"
-    replicates: int = 1
+    replicates: int = integer(1)
     repertoire: str = ""
     repertoire_dir: str = ""
     damage_model: str = "raised"
     max_actions: int = 80
     planner: PlannerConfig = inline(PlannerConfig(iterations=200, roots=2))
-    composition: str = "planned"
+    composition: str = choice("planned", COMPOSITIONS)
     spare: str = ""
-    seed: int = 0
+    seed: int = integer(0, minimum=0)
     solver: SolverConfig = inline(SolverConfig())
     reflex_tilt: float = RobotConfig.reflex_tilt
     reflex_release: float = RobotConfig.reflex_release
@@ -100,9 +100,7 @@ class EvalConfig:
     maze: str = ""
 
     def __post_init__(self):
-        require_int("replicates", self.replicates)
-        require_int("seed", self.seed, 0)
-        require_choice("composition", self.composition, COMPOSITIONS)
+        check_fields(self)
         for name in self.variant_list:
             variant_named(name)  # validates the name
         self.damage_list  # noqa: B018 (validates the names)
@@ -173,9 +171,7 @@ class EvalConfig:
 def protocol_overrides(name: str) -> dict:
     """The EvalConfig values a named protocol fixes (its variants, every damage, its robot); a copy
     the caller may update with its own overrides."""
-    if name not in PROTOCOLS:
-        raise ConfigError(f"unknown protocol {name!r}; choose one of {sorted(PROTOCOLS)}")
-    return dict(PROTOCOLS[name])
+    return dict(lookup("protocol", name, PROTOCOLS))
 
 
 # cpu: 7 episodes per variant, 154 s on 2 cores (benchmarks/cpu_commands.py); gpu: the paper's 30
@@ -188,9 +184,7 @@ PRESETS = {
 
 
 def preset(name: str) -> EvalConfig:
-    if name not in PRESETS:
-        raise ConfigError(f"unknown preset {name!r}; choose one of {sorted(PRESETS)}")
-    return PRESETS[name]
+    return lookup("preset", name, PRESETS)
 
 
 def load_skills(path: str | Path | None, maps: bool = False, composition: str = "planned", spare: bool = False,
@@ -273,9 +267,8 @@ def batch_labels(config: EvalConfig, variants: list[str]) -> list[tuple[str, str
     return [(v, d, r) for v in variants for d in config.damage_list for r in range(config.replicates)]
 
 
-def run_batch(config: EvalConfig, path: str | None, variants: list[str], maze: Maze | None = None,
-              progress: bool = True, key: jax.Array | None = None, seed: int = 0,
-              record: tuple[int, ...] = (), record_every: int = 4, mesh: Mesh | None = None) -> BatchResult:
+def run_batch(config: EvalConfig, path: str | None, variants: list[str], maze: Maze | None = None, progress: bool = True,
+              seed: int = 0, record: tuple[int, ...] = (), record_every: int = 4, mesh: Mesh | None = None) -> BatchResult:
     """Every (variant, damage, replicate) of `variants` on one repertoire (of seed `seed`), as one
     batch of episodes. record: batch rows whose states are recorded every `record_every` control
     steps (`BatchResult.replays`); none by default, and then nothing is recorded. mesh: the devices
@@ -292,9 +285,8 @@ def run_batch(config: EvalConfig, path: str | None, variants: list[str], maze: M
     damages = np.stack([parse_damage(d) for _, d, _ in labels])
     adaptation = config.adaptation
     start = start_states(maze, damages, config.robot)
-    if key is None:
-        key = jax.random.PRNGKey(config.seed)
-        key = key if seed == 0 else jax.random.fold_in(key, seed)
+    key = jax.random.PRNGKey(config.seed)
+    key = key if seed == 0 else jax.random.fold_in(key, seed)
     episodes = start_episodes(adaptation, skills, start, damages, rules, np.asarray(which), key)
     robot = maze_robot(maze, config.robot)
     recorder = Recorder(tuple(record), record_every) if record else None

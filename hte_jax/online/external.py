@@ -83,9 +83,8 @@ class ExecutorRobot:
         self.reason = int(seconds.invalid_reason)
         return seconds
 
-    def _second(self, params: np.ndarray) -> Second:
-        before = self.pose()
-        seconds = self._run(params)
+    def _last(self, before: jax.Array, seconds: Seconds) -> Second:
+        """The last of the reported `seconds` as a `Second`, its displacement from the pose `before` (1, 3)."""
         after = jnp.asarray(seconds.poses[-1:], jnp.float32)
         travel = np.zeros((1, NUM_LEGS), np.float32) if seconds.leg_travel is None else seconds.leg_travel[-1:]
         reason = jnp.asarray([int(seconds.invalid_reason)], jnp.int32)
@@ -94,21 +93,16 @@ class ExecutorRobot:
                       leg_travel=jnp.asarray(travel, jnp.float32))
 
     def second(self, state, hbr, elite, found, alive) -> Second:
-        return self._second(np.asarray(hbr.middle_params[elite], np.float32))
+        return self._last(self.pose(), self._run(np.asarray(hbr.middle_params[elite], np.float32)))
 
     def neutral(self, state) -> Second:
-        return self._second(np.zeros((1, NUM_PARAMS), np.float32))
+        return self._last(self.pose(), self._run(np.zeros((1, NUM_PARAMS), np.float32)))
 
     def flat(self, state, params) -> tuple[Second, jax.Array]:
         origin = self.pose()
         controller = np.asarray(params[0], np.float32)
         seconds = self._run(np.stack([controller] * (SECONDS_PER_ACTION - 1) + [np.zeros(NUM_PARAMS, np.float32)]))
-        poses = jnp.asarray(np.asarray(seconds.poses, np.float32)[None])  # (1, 4, 3)
-        reason = jnp.asarray([int(seconds.invalid_reason)], jnp.int32)
-        zeros = jnp.zeros((1, NUM_LEGS), jnp.float32)
-        last = Second(state=None, pose=poses[:, -1], displacement=relative_pose(origin, poses[:, -1]), valid=reason == 0,
-                      invalid_reason=reason, contact_fraction=zeros, leg_travel=zeros)
-        return last, poses
+        return self._last(origin, seconds), jnp.asarray(np.asarray(seconds.poses, np.float32)[None])  # (1, 4, 3)
 
 
 def run_episode(maze: Maze, config: AdaptationConfig, skills: Skills, executor: Executor, variant: str = "hte",

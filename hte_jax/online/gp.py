@@ -12,7 +12,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from hte_jax.errors import require_choice, require_int, require_number
+from hte_jax.errors import check_fields, choice, number, require_int
 
 KERNELS = ("squared_exponential", "matern52")
 
@@ -22,16 +22,13 @@ class Kernel:
     """A stationary kernel k(a, b) = variance * f(|a - b| / length_scale), observation noise `noise`. kind:
     "squared_exponential" (limbo Exp: exp(-r^2 / 2)) or "matern52" ((1 + sqrt5 r + 5 r^2 / 3) exp(-sqrt5 r))."""
 
-    kind: str
-    length_scale: float
-    variance: float
-    noise: float
+    kind: str = choice(dataclasses.MISSING, KERNELS)
+    length_scale: float = number(low=0.0, open_low=True)
+    variance: float = number(low=0.0, open_low=True)
+    noise: float = number(low=0.0)
 
     def __post_init__(self):
-        require_choice("kernel kind", self.kind, KERNELS)
-        require_number("kernel length_scale", self.length_scale, 0.0, open_low=True)
-        require_number("kernel variance", self.variance, 0.0, open_low=True)
-        require_number("kernel noise", self.noise, 0.0)
+        check_fields(self, "kernel ")
 
     def __call__(self, a: jax.Array, b: jax.Array) -> jax.Array:
         """(A, D), (B, D) -> (A, B) covariances."""

@@ -12,7 +12,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from hte_jax.errors import ConfigError, require_number
+from hte_jax.errors import ConfigError, check_fields, number
 
 Box = tuple[float, float, float, float]
 
@@ -32,15 +32,14 @@ class Maze:
     bounds: Box = (0.0, 0.0, 4.5, 4.0)
     start: tuple[float, float, float] = (2.32, 3.27, float(np.pi))
     goal: tuple[float, float] = (3.79, 0.424)
-    goal_radius: float = 0.25
-    robot_radius: float = 0.25
+    goal_radius: float = number(0.25, 0.0, open_low=True)
+    robot_radius: float = number(0.25, 0.0)
 
     def __post_init__(self):
         for box in (*self.obstacles, self.bounds):
             if len(box) != 4 or not (box[0] < box[2] and box[1] < box[3]):
                 raise ConfigError(f"box {box!r} must be (x1, y1, x2, y2) with x1 < x2 and y1 < y2")
-        require_number("goal_radius", self.goal_radius, 0.0, open_low=True)
-        require_number("robot_radius", self.robot_radius, 0.0)
+        check_fields(self)
 
     @property
     def boxes(self) -> np.ndarray:

@@ -13,7 +13,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from hte_jax.errors import require_int, require_number
+from hte_jax.errors import check_fields, integer, number
 from hte_jax.geometry import compose_pose
 from hte_jax.online.maze import GridSpec, Maze, in_bounds, move_collides, point_collides, reached_goal
 
@@ -23,22 +23,18 @@ class PlannerConfig:
     """MCTS settings, the original's but iterations x roots (6000 x 32 there): UCT c `exploration`, progressive
     widening exponent a, discount gamma, `depth` the longest path, `candidates` ranked at each expansion."""
 
-    iterations: int = 1000
-    roots: int = 4
-    exploration: float = 100.0
-    widening: float = 0.5
-    gamma: float = 0.9
-    depth: int = 20
-    candidates: int = 100
+    iterations: int = integer(1000)
+    roots: int = integer(4)
+    exploration: float = number(100.0, 0.0)
+    widening: float = number(0.5, 0.0, 1.0, open_low=True)
+    gamma: float = number(0.9, 0.0, 1.0)
+    depth: int = integer(20)
+    candidates: int = integer(100)
     collision_reward: float = -1000.0
     goal_reward: float = 100.0
 
     def __post_init__(self):
-        for name in ("iterations", "roots", "depth", "candidates"):
-            require_int(name, getattr(self, name))
-        require_number("exploration", self.exploration, 0.0)
-        require_number("widening", self.widening, 0.0, 1.0, open_low=True)
-        require_number("gamma", self.gamma, 0.0, 1.0)
+        check_fields(self)
 
     @property
     def max_children(self) -> int:

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import matplotlib
 
 matplotlib.use("Agg")
@@ -13,12 +11,7 @@ from matplotlib.patches import Circle, Rectangle  # noqa: E402
 
 from hte_jax.online.episode import SECONDS_PER_ACTION, Episodes  # noqa: E402
 from hte_jax.online.maze import Maze  # noqa: E402
-
-
-def _save(fig, path):
-    Path(path).parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120, bbox_inches="tight")
-    plt.close(fig)
+from hte_jax.qd.plots import save_figure  # noqa: E402
 
 
 def draw_maze(ax, maze: Maze) -> None:
@@ -60,7 +53,7 @@ def plot_episodes(path, maze: Maze, episodes: Episodes, indices, labels, title: 
     ax.set_title(title)
     if len(indices) <= 12:
         ax.legend(fontsize=6, loc="lower left")
-    _save(fig, path)
+    save_figure(fig, path)
 
 
 def plot_prediction_error(path, curves: dict[str, np.ndarray]) -> None:
@@ -80,7 +73,7 @@ def plot_prediction_error(path, curves: dict[str, np.ndarray]) -> None:
     ax.set(xlabel="action", ylabel="|predicted - measured| end position (m)",
            title="RTE GP prediction error (median, 25-75 %)")
     ax.legend(fontsize=7)
-    _save(fig, path)
+    save_figure(fig, path)
 
 
 def plot_actions(path, records: list[dict], max_actions: int) -> None:
@@ -92,7 +85,7 @@ def plot_actions(path, records: list[dict], max_actions: int) -> None:
     ax.set_xticks(range(1, len(variants) + 1), variants)
     ax.axhline(max_actions, color="tab:red", ls=":", lw=1)
     ax.set_ylabel("actions to reach the goal")
-    _save(fig, path)
+    save_figure(fig, path)
 
 
 def plot_protocol_box(path, statistics: dict, max_actions: int, paper: dict | None = None) -> None:
@@ -114,7 +107,7 @@ def plot_protocol_box(path, statistics: dict, max_actions: int, paper: dict | No
         ax.legend(handles, ["paper's 25 / 50 / 75 %"], fontsize=7, loc="upper left")
     ax.axhline(max_actions, color="0.5", ls=":", lw=1)
     ax.set(ylabel="median actions per replication", title="actions to reach the goal (failures count as the cap)")
-    _save(fig, path)
+    save_figure(fig, path)
 
 
 def plot_failures(path, statistics: dict) -> None:
@@ -130,7 +123,7 @@ def plot_failures(path, statistics: dict) -> None:
     ax.set_xticks(x, variants)
     ax.set_ylabel("failed episodes (%)")
     ax.legend(fontsize=7)
-    _save(fig, path)
+    save_figure(fig, path)
 
 
 def plot_variant_mazes(path, maze: Maze, tracks: dict[str, list[tuple[str, np.ndarray]]]) -> None:
@@ -149,4 +142,4 @@ def plot_variant_mazes(path, maze: Maze, tracks: dict[str, list[tuple[str, np.nd
             ax.plot(track[-1, 0], track[-1, 1], "o", color=colour, ms=3)
         ax.set_title(name)
         ax.legend(fontsize=5, loc="lower left")
-    _save(fig, path)
+    save_figure(fig, path)

@@ -21,7 +21,7 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
-from hte_jax.errors import ConfigError, require_bounds, require_int, require_number
+from hte_jax.errors import ConfigError, check_fields, integer, number, require_bounds
 from hte_jax.qd.repertoire import (Evaluation, Insertion, Repertoire, best_per_target, empty_repertoire, insertable,
                                    write)
 
@@ -66,23 +66,19 @@ def _ordered_mean(values: jax.Array) -> jax.Array:
 class Archive:
     """An unstructured archive container (static, hashable); l, k, eps: those of the rules above."""
 
-    capacity: int  # slots
+    capacity: int = integer()  # slots
     low: tuple[float, ...]  # descriptor bounds
     high: tuple[float, ...]
-    l: float
-    k: int = 15
-    eps: float = 0.1
-    chunk_size: int = 512  # candidates per block of distance computations (memory ~ chunk x capacity)
+    l: float = number(low=0.0, open_low=True)
+    k: int = integer(15)
+    eps: float = number(0.1, 0.0, 1.0)
+    chunk_size: int = integer(512)  # candidates per block of distance computations (memory ~ chunk x capacity)
 
     def __post_init__(self):
-        require_int("archive capacity", self.capacity)
+        check_fields(self, "archive ")
         require_bounds("archive", self.low, self.high)
-        require_number("archive l", self.l, 0.0, open_low=True)
-        require_int("archive k", self.k)
-        require_number("archive eps", self.eps, 0.0, 1.0)
         if self.eps == 1.0:
             raise ConfigError("archive eps must be < 1 (eps = 1 disables the second-neighbour rule)")
-        require_int("archive chunk_size", self.chunk_size)
 
     @property
     def descriptor_dim(self) -> int:

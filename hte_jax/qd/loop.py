@@ -17,7 +17,7 @@ from tqdm.auto import tqdm
 
 from hte_jax import sharding
 from hte_jax.config import config_dict, inline
-from hte_jax.errors import ConfigError, require_int, require_number
+from hte_jax.errors import ConfigError, check_fields, integer, number, require_int
 from hte_jax.qd import io
 from hte_jax.qd.emitters import Emitter, config_emitter
 from hte_jax.qd.metrics import MetricsLog, RepertoireMetrics, repertoire_metrics
@@ -34,25 +34,19 @@ class MapElitesConfig:
     """Hyper-parameters (hashable; the original's per layer in docs/design.md); a `MapElites` given its own emitter
     reads only batch_size, init_size and qd_offset."""
 
-    batch_size: int = 200  # offspring per generation
-    init_size: int = 200  # random individuals first, a multiple of batch_size
-    mutation_rate: float = 0.14  # per gene, polynomial mutation
-    eta_m: float = 10.0
-    crossover_rate: float = 0.0  # share of offspring made by SBX crossover
-    eta_c: float = 10.0
-    qd_offset: float = 0.0  # fitness lower bound of the QD score
+    batch_size: int = integer(200)  # offspring per generation
+    init_size: int = integer(200)  # random individuals first, a multiple of batch_size
+    mutation_rate: float = number(0.14, 0.0, 1.0)  # per gene, polynomial mutation
+    eta_m: float = number(10.0, 0.0)
+    crossover_rate: float = number(0.0, 0.0, 1.0)  # share of offspring made by SBX crossover
+    eta_c: float = number(10.0, 0.0)
+    qd_offset: float = number(0.0)  # fitness lower bound of the QD score
     parents: SelectionConfig = inline(SelectionConfig())
 
     def __post_init__(self):
-        require_int("batch_size", self.batch_size)
-        require_int("init_size", self.init_size)
+        check_fields(self)
         if self.init_size % self.batch_size:
             raise ConfigError(f"init_size={self.init_size} must be a multiple of batch_size={self.batch_size}")
-        require_number("mutation_rate", self.mutation_rate, 0.0, 1.0)
-        require_number("crossover_rate", self.crossover_rate, 0.0, 1.0)
-        require_number("eta_m", self.eta_m, 0.0)
-        require_number("eta_c", self.eta_c, 0.0)
-        require_number("qd_offset", self.qd_offset)
 
 
 @struct.dataclass

@@ -1,4 +1,4 @@
-"""Matplotlib views of QD runs: grid projections and metric curves (Figures, saved as PNG given `path`)."""
+"""Matplotlib views of QD runs: grid projections and metric curves, and `save_figure` (PNG) for every figure."""
 
 from __future__ import annotations
 
@@ -15,6 +15,13 @@ from hte_jax.qd.metrics import MetricsLog  # noqa: E402
 from hte_jax.qd.repertoire import Repertoire  # noqa: E402
 
 
+def save_figure(fig, path) -> None:
+    """Write `fig` as a PNG at `path` (folders made) and close it."""
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120, bbox_inches="tight")
+    plt.close(fig)
+
+
 def grid_projection(grid: Grid, repertoire: Repertoire, dims: tuple[int, int] = (0, 1)) -> np.ndarray:
     """(bins[dims[0]], bins[dims[1]]) best fitness over the other dimensions; NaN where empty."""
     fitness = np.where(np.asarray(repertoire.filled), np.asarray(repertoire.fitnesses, np.float64), -np.inf)
@@ -26,8 +33,8 @@ def grid_projection(grid: Grid, repertoire: Repertoire, dims: tuple[int, int] = 
     return np.where(np.isfinite(best), best, np.nan)
 
 
-def plot_metrics(log_path: str | Path, *, title: str = "", path: str | Path | None = None):
-    """Coverage, QD score and max / mean fitness against evaluations, from a metrics CSV."""
+def plot_metrics(log_path: str | Path, path: str | Path, *, title: str = "") -> None:
+    """Coverage, QD score and max / mean fitness against evaluations, from a metrics CSV, saved at `path`."""
     rows = MetricsLog(log_path).read()
 
     def column(name):
@@ -49,7 +56,4 @@ def plot_metrics(log_path: str | Path, *, title: str = "", path: str | Path | No
     if title:
         fig.suptitle(title)
     fig.tight_layout()
-    if path is not None:
-        Path(path).parent.mkdir(parents=True, exist_ok=True)
-        fig.savefig(path, dpi=120, bbox_inches="tight")
-    return fig
+    save_figure(fig, path)

@@ -8,7 +8,7 @@ import importlib
 import jax
 import jax.numpy as jnp
 
-from hte_jax.errors import ConfigError, require_choice, require_int, require_number
+from hte_jax.errors import ConfigError, check_fields, choice, integer, number
 from hte_jax.qd.repertoire import Repertoire
 
 MAX_DENSITY_CELLS = 1 << 22
@@ -29,23 +29,18 @@ class SelectionConfig:
 
     # "uniform" (the original's), "density" (`density_selection` over a density_bins^density_dims grid) or "frontier"
     # (`hbr.selection`: a share frontier_fraction among the outermost elites of angle x level bins, the rest uniformly)
-    selection: str = "uniform"
-    density_bins: int = 16
-    density_dims: int = 3
-    frontier_fraction: float = 0.5
-    frontier_angle_bins: int = 16
-    frontier_level_bins: int = 16
+    selection: str = choice("uniform", SELECTIONS)
+    density_bins: int = integer(16)
+    density_dims: int = integer(3)
+    frontier_fraction: float = number(0.5, 0.0, 1.0)
+    frontier_angle_bins: int = integer(16)
+    frontier_level_bins: int = integer(16)
 
     def __post_init__(self):
-        require_choice("selection", self.selection, SELECTIONS)
-        require_int("density_bins", self.density_bins)
-        require_int("density_dims", self.density_dims)
+        check_fields(self)
         if self.density_bins**self.density_dims > MAX_DENSITY_CELLS:
             raise ConfigError(f"density_bins^density_dims = {self.density_bins}^{self.density_dims} exceeds "
                               f"{MAX_DENSITY_CELLS} cells")
-        require_number("frontier_fraction", self.frontier_fraction, 0.0, 1.0)
-        require_int("frontier_angle_bins", self.frontier_angle_bins)
-        require_int("frontier_level_bins", self.frontier_level_bins)
 
 
 def selection_from_config(config: SelectionConfig, container):

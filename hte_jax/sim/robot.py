@@ -14,7 +14,7 @@ import numpy as np
 from flax import struct
 
 from hte_jax import sharding
-from hte_jax.errors import ConfigError, require_choice, require_int, require_number
+from hte_jax.errors import ConfigError, check_fields, choice, integer, number
 from hte_jax.sim.mjx_import import IMPLS, mjx, require_impl
 
 NUM_LEGS = 6
@@ -47,49 +47,37 @@ class RobotConfig:
     """Simulation options of the hexapod (hashable: a static jit argument); reflex: past `reflex_tilt` the neutral
     pose is held until the controller segment ends, or the tilt is back below `reflex_release`."""
 
-    timestep: float = 0.01  # physics step (s), dividing control_dt
-    control_dt: float = 0.01  # controller period (s; the original's servos: 100 Hz)
-    solver_iterations: int = 4  # Newton iteration cap
-    ls_iterations: int = 4  # line-search iteration cap
-    solver_tolerance: float = 1e-8  # Newton early stop below this cost improvement or scaled gradient
-    impl: str = "jax"  # MJX's physics: "jax" (any device) or "warp" (MuJoCo Warp, the `warp` extra)
-    servo_gain: float = 1.0  # velocity servo kv, N m s/rad: torque = kv (v_cmd - qdot), clipped
-    armature: float = 0.01  # rotor inertia added to every leg joint, kg m^2
-    max_torque: float = 4.0  # N m
-    max_joint_velocity: float = 5.0  # commanded, rad/s
+    timestep: float = number(0.01, 0.0, open_low=True)  # physics step (s), dividing control_dt
+    control_dt: float = number(0.01, 0.0, open_low=True)  # controller period (s; the original's servos: 100 Hz)
+    solver_iterations: int = integer(4)  # Newton iteration cap
+    ls_iterations: int = integer(4)  # line-search iteration cap
+    solver_tolerance: float = number(1e-8, 0.0)  # Newton early stop below this cost improvement or scaled gradient
+    impl: str = choice("jax", IMPLS)  # MJX's physics: "jax" (any device) or "warp" (MuJoCo Warp, the `warp` extra)
+    servo_gain: float = number(1.0, 0.0, open_low=True)  # velocity servo kv, N m s/rad: torque = kv (v_cmd - qdot)
+    armature: float = number(0.01, 0.0)  # rotor inertia added to every leg joint, kg m^2
+    max_torque: float = number(4.0, 0.0, open_low=True)  # N m
+    max_joint_velocity: float = number(5.0, 0.0, open_low=True)  # commanded, rad/s
     joint_limits: bool = True  # the +-pi/2 joint ranges
     walls: tuple[tuple[float, float, float, float], ...] = ()  # boxes (x1, y1, x2, y2), m, 0.9 m high
     # What touches walls: "bumper" (an invisible massless sphere, the planner's disc: cheap sphere-box contacts),
     # "links" (body, links and feet: exact, about 25x slower in the maze) or "feet".
-    wall_contact: str = "bumper"
-    bumper_radius: float = 0.25  # m, the planner's robot radius
+    wall_contact: str = choice("bumper", WALL_CONTACTS)
+    bumper_radius: float = number(0.25, 0.0, open_low=True)  # m, the planner's robot radius
     body_floor_contact: bool = False  # body and links collide with the floor (online: a robot that tips over)
-    damage_model: str = "raised"  # a damaged leg's pose, "raised" (the paper's) or "locked" (`sim.damage`)
-    reflex_tilt: float = 0.0  # rad; 0: no reflex (the paper's robot)
-    reflex_release: float = 0.0  # rad; 0: held until the segment ends
-    reflex_rate: float = 0.0  # rad/s; > 0: fires only while the tilt also grows faster than this (a fall)
+    damage_model: str = choice("raised", DAMAGE_MODELS)  # a damaged leg's pose, "raised" (the paper's) or "locked"
+    reflex_tilt: float = number(0.0, 0.0, math.pi)  # rad; 0: no reflex (the paper's robot)
+    reflex_release: float = number(0.0, 0.0)  # rad; 0: held until the segment ends
+    reflex_rate: float = number(0.0, 0.0)  # rad/s; > 0: fires only while the tilt also grows faster than this (a fall)
 
     def __post_init__(self):
-        for name in ("timestep", "control_dt", "servo_gain", "max_torque", "max_joint_velocity"):
-            require_number(name, getattr(self, name), 0.0, open_low=True)
+        check_fields(self)
         ratio = self.control_dt / self.timestep
         if abs(ratio - round(ratio)) > 1e-6:
             raise ConfigError(f"control_dt={self.control_dt} must be a whole multiple of timestep={self.timestep}")
-        require_int("solver_iterations", self.solver_iterations)
-        require_int("ls_iterations", self.ls_iterations)
-        require_number("solver_tolerance", self.solver_tolerance, 0.0)
-        require_choice("impl", self.impl, IMPLS)
-        require_number("armature", self.armature, 0.0)
-        require_choice("wall_contact", self.wall_contact, WALL_CONTACTS)
-        require_number("bumper_radius", self.bumper_radius, 0.0, open_low=True)
-        require_number("reflex_tilt", self.reflex_tilt, 0.0, math.pi)
-        require_number("reflex_release", self.reflex_release, 0.0)
-        require_number("reflex_rate", self.reflex_rate, 0.0)
         if (self.reflex_release or self.reflex_rate) and not self.reflex_tilt:
             raise ConfigError("reflex_release and reflex_rate shape the tilt reflex: set reflex_tilt > 0 too")
         if self.reflex_release >= self.reflex_tilt > 0.0:
             raise ConfigError(f"reflex_release={self.reflex_release} must be below reflex_tilt={self.reflex_tilt}")
-        require_choice("damage_model", self.damage_model, DAMAGE_MODELS)
         for wall in self.walls:
             if len(wall) != 4 or not (wall[0] < wall[2] and wall[1] < wall[3]):
                 raise ConfigError(f"wall {wall!r} must be (x1, y1, x2, y2) with x1 < x2 and y1 < y2")
