@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from hte_jax.errors import ConfigError
-from hte_jax.sim.controller import target_table, servo_command
+from hte_jax.sim.controller import commanded_travel, servo_command, target_table
 from hte_jax.sim.damage import DAMAGED_POSE, paper_damage_masks
 from hte_jax.sim.robot import RobotConfig, build_spec, load_robot, mj_model, without_idle_springs
 from hte_jax.sim.rollout import (InvalidReason, RolloutSpec, initial_state, reflex_braced, rollout, standing_state,
@@ -150,6 +150,25 @@ def test_joint_travel_sums_the_joint_angle_changes(batch, robot):
     assert np.isfinite(dirty).all()  # a blown-up individual adds nothing after it went invalid
 
 
+def _period_travel(params):
+    """(B, 36) controllers -> (B, 18) rad each joint's target moves around one period (NumPy)."""
+    tables = np.stack([_np(target_table(jnp.asarray(p))) for p in params]).astype(np.float64)
+    return np.abs(np.roll(tables, -1, axis=1) - tables).sum(axis=1)
+
+
+def test_target_travel_is_what_the_controller_commanded_whatever_the_damage(batch):
+    """Without the reflex, 3 s of one controller command three periods of its target travel
+    (`commanded_travel`, per leg), on a damaged leg too: the damage holds the leg, it does not change
+    what the controller asks (a locked leg must still look stuck)."""
+    res, params = batch["clean"], batch["params"]
+    valid = _np(res.valid)
+    assert valid[DAMAGED].all() and valid.sum() >= 12
+    np.testing.assert_allclose(_np(res.target_travel)[valid], 3 * _period_travel(params[valid]), rtol=1e-4, atol=1e-4)
+    legs = _np(res.target_travel).reshape(-1, 6, 3).sum(-1)
+    np.testing.assert_allclose(legs[valid], 3 * _np(commanded_travel(jnp.asarray(params[valid]))), rtol=1e-4)
+    assert (legs[DAMAGED][batch["damages"][DAMAGED]] > 1.0).all()  # the held legs were asked to move
+
+
 def test_invalid_rollouts_are_flagged_and_isolated(batch):
     """Acceptance 5: NaN, explosion, flip are flagged per individual; the batch survives."""
     dirty, clean = batch["dirty"], batch["clean"]
@@ -242,7 +261,7 @@ def test_tilt_reflex_holds_the_neutral_pose_until_the_segment_ends(robot, batch)
     reflexive = load_robot(dataclasses.replace(robot.config, reflex_tilt=0.1))
     upright = jax.tree.map(lambda x: x[jnp.asarray([TRIPOD_IDX, TRIPOD_IDX])], batch["init"])
     starts = jax.tree.map(lambda a, b: jnp.stack([a[0], b[1]]), _tilted(upright, 15.0, 0.05), upright)
-    spec = RolloutSpec(num_steps=200, pose_steps=(0, 50, 100, 200))
+    spec = RolloutSpec(num_steps=200, pose_steps=(0, 50, 100, 200), record_joint_travel=True)
     tripods = jnp.asarray(np.stack([np.stack([TRIPOD, TRIPOD])] * 2))
     reflexes = rollout(reflexive, tripods, jnp.zeros(6, bool), starts, spec)
     reference = rollout(robot, tripods.at[0, 0].set(0.0), jnp.zeros(6, bool), starts, spec)
@@ -253,6 +272,10 @@ def test_tilt_reflex_holds_the_neutral_pose_until_the_segment_ends(robot, batch)
     assert np.linalg.norm(pos[2, :2] - pos[1, :2]) < 0.01  # stood in its first second
     assert pos[3, 0] - pos[2, 0] > 0.03  # and walked in the second
     assert _up_z(_np(reflexes.base_quat[1])).min() > math.cos(0.1)  # the upright tripod stayed below the angle
+    # the gait's commanded travel: none while the reflex held the tilted tripod, then one period; the upright
+    # tripod's two periods
+    period = _period_travel(TRIPOD[None])[0]
+    np.testing.assert_allclose(_np(reflexes.target_travel), [period, 2 * period], rtol=1e-4, atol=1e-4)
     # without the reflex, the tilted tripod does not stand still in its first second
     free = rollout(robot, tripods, jnp.zeros(6, bool), starts, spec)
     assert np.abs(_np(free.base_pos[0, 2]) - pos[2]).max() > 0.01

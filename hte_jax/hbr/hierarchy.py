@@ -53,7 +53,8 @@ class StepResult:
     """One 1 s step of B robots: state (B, ...) after it, valid (B,), invalid_reason (B,) int32 `InvalidReason`
     bits, middle_index (B,) int32 elite run, pattern_found (B,) (False: no elite has the pattern, the nearest
     of any ran), displacement (B, 3) (x, y, yaw) in the step's start frame, contact_fraction (B, 6), qpos
-    (B, F, 25) every `record_every` control steps or None, leg_travel (B, 6) rad each leg's joints moved."""
+    (B, F, 25) every `record_every` control steps or None, leg_travel (B, 6) rad each leg's joints moved and
+    leg_commanded (B, 6) rad its joint targets moved (`RolloutResult.target_travel`: after the tilt reflex)."""
 
     state: SimState
     valid: jax.Array
@@ -64,6 +65,7 @@ class StepResult:
     contact_fraction: jax.Array
     qpos: jax.Array | None = None
     leg_travel: jax.Array | None = None
+    leg_commanded: jax.Array | None = None
 
 
 @struct.dataclass
@@ -116,10 +118,14 @@ def run_elite(robot: Robot, hbr: HBR, state: SimState, damage: jax.Array, index:
                        record_qpos_every=record_every, record_joint_travel=True)
     result = rollout(robot, hbr.middle_params[index], damage, state, spec)
     poses = planar_pose(result.base_pos, result.base_quat)
+
+    def per_leg(joints):  # (B, 18) -> (B, 6)
+        return joints.reshape(-1, NUM_LEGS, NUM_JOINTS // NUM_LEGS).sum(axis=-1)
+
     return StepResult(state=result.final_state, valid=result.valid, invalid_reason=result.invalid_reason,
                       middle_index=index, pattern_found=found, displacement=relative_pose(poses[:, 0], poses[:, 1]),
                       contact_fraction=result.foot_contacts.mean(axis=1), qpos=result.qpos,
-                      leg_travel=result.joint_travel.reshape(-1, NUM_LEGS, NUM_JOINTS // NUM_LEGS).sum(axis=-1))
+                      leg_travel=per_leg(result.joint_travel), leg_commanded=per_leg(result.target_travel))
 
 
 def execute_step(robot: Robot, hbr: HBR, state: SimState, damage: jax.Array, target: jax.Array, pattern: jax.Array,

@@ -32,7 +32,8 @@ ONLINE_LIMITS = ValidityLimits(max_tilt=math.pi / 2, min_base_height=0.0, body_o
 class Second:
     """What B robots did in one second: state SimState (B, ...) (None if host-driven), pose (B, 3) world, displacement
     (B, 3) in the frame before, valid (B,), invalid_reason (B,) int32, contact_fraction (B, 6) share of the second
-    each foot was down, leg_travel (B, 6) rad, qpos (B, F, 25) or None."""
+    each foot was down, leg_travel (B, 6) rad each leg's joints moved, qpos (B, F, 25) or None, leg_commanded (B, 6)
+    rad its joint targets moved (what its controller commanded, after the tilt reflex) or None (not reported)."""
 
     state: SimState | None
     pose: jax.Array
@@ -42,6 +43,7 @@ class Second:
     contact_fraction: jax.Array
     leg_travel: jax.Array
     qpos: jax.Array | None = None
+    leg_commanded: jax.Array | None = None
 
 
 @struct.dataclass
@@ -86,7 +88,8 @@ class SimulatedRobots:
         result = run_elite(self.robot, hbr, state, self.damage, elite, found, ONLINE_LIMITS, self.record_every)
         return Second(state=result.state, pose=state_pose(result.state), displacement=result.displacement,
                       valid=result.valid, invalid_reason=result.invalid_reason,
-                      contact_fraction=result.contact_fraction, leg_travel=result.leg_travel, qpos=result.qpos)
+                      contact_fraction=result.contact_fraction, leg_travel=result.leg_travel, qpos=result.qpos,
+                      leg_commanded=result.leg_commanded)
 
     def neutral(self, state: SimState) -> Second:
         spec = RolloutSpec(num_steps=STEP_CONTROL_STEPS, record_contacts=False, limits=ONLINE_LIMITS,
@@ -144,7 +147,8 @@ def choose_step(skills: Skills, rules: RuleBatch, here: jax.Array, target: jax.A
 def learn_step(skills: Skills, rules: RuleBatch, elite: jax.Array, second: Second) -> tuple[RuleBatch, jax.Array]:
     """The rules after learning from the step of middle elites `elite` (B,), and its relative errors (B, 3)."""
     observation = StepObservation(hbr=skills.hbr, elite=elite, observed=skills.hbr.middle_task.normalise(second.displacement),
-                                  contact_fraction=second.contact_fraction, leg_travel=second.leg_travel)
+                                  contact_fraction=second.contact_fraction, leg_travel=second.leg_travel,
+                                  leg_commanded=second.leg_commanded)
     return learn_rules(rules, observation), relative_error_of(observation)
 
 

@@ -31,12 +31,15 @@ from hte_jax.sim.rollout import RolloutSpec, SimState, ValidityLimits, check_sta
 class Seconds:
     """What a robot reports after S one-second controllers: poses (S, 3) float32 world (x, y, heading) after each,
     contacts (S, 6) float32 share each foot was down, invalid_reason int `InvalidReason` bits (later seconds repeat
-    the last valid pose, no contact), leg_travel (S, 6) float32 rad each leg's joints moved, or None."""
+    the last valid pose, no contact), leg_travel (S, 6) float32 rad each leg's joints moved, or None (no leg is
+    judged stuck), leg_commanded (S, 6) float32 rad its joint targets moved (what its controller commanded, after
+    the tilt reflex: `rollout.RolloutResult.target_travel`), or None (judged against the controllers' periods)."""
 
     poses: np.ndarray
     contacts: np.ndarray
     invalid_reason: int = 0
     leg_travel: np.ndarray | None = None
+    leg_commanded: np.ndarray | None = None
 
 
 class Executor(Protocol):
@@ -77,8 +80,9 @@ class ExecutorRobot:
         count = params.shape[0]
         if self.reason:
             pose = np.asarray(self.executor.pose(), np.float32)
-            return Seconds(poses=np.repeat(pose[None], count, axis=0), contacts=np.zeros((count, NUM_LEGS), np.float32),
-                           invalid_reason=self.reason)
+            still = np.zeros((count, NUM_LEGS), np.float32)
+            return Seconds(poses=np.repeat(pose[None], count, axis=0), contacts=still, invalid_reason=self.reason,
+                           leg_travel=still, leg_commanded=still)
         seconds = self.executor.run(params)
         self.reason = int(seconds.invalid_reason)
         return seconds
@@ -87,10 +91,11 @@ class ExecutorRobot:
         """The last of the reported `seconds` as a `Second`, its displacement from the pose `before` (1, 3)."""
         after = jnp.asarray(seconds.poses[-1:], jnp.float32)
         travel = np.zeros((1, NUM_LEGS), np.float32) if seconds.leg_travel is None else seconds.leg_travel[-1:]
+        commanded = None if seconds.leg_commanded is None else jnp.asarray(seconds.leg_commanded[-1:], jnp.float32)
         reason = jnp.asarray([int(seconds.invalid_reason)], jnp.int32)
         return Second(state=None, pose=after, displacement=relative_pose(before, after), valid=reason == 0,
                       invalid_reason=reason, contact_fraction=jnp.asarray(seconds.contacts[-1:], jnp.float32),
-                      leg_travel=jnp.asarray(travel, jnp.float32))
+                      leg_travel=jnp.asarray(travel, jnp.float32), leg_commanded=commanded)
 
     def second(self, state, hbr, elite, found, alive) -> Second:
         return self._last(self.pose(), self._run(np.asarray(hbr.middle_params[elite], np.float32)))
@@ -182,26 +187,32 @@ class MujocoExecutor:
     def run(self, params: np.ndarray) -> Seconds:
         params = np.asarray(params, np.float32).reshape(-1, NUM_PARAMS)
         tables = np.asarray(_target_tables(jnp.asarray(params)), np.float64)  # (S, 100, 18)
-        poses, contacts, travel = (np.zeros((tables.shape[0], size), np.float32) for size in (3, NUM_LEGS, NUM_LEGS))
+        poses, contacts, travel, asked = (np.zeros((tables.shape[0], size), np.float32)
+                                          for size in (3, NUM_LEGS, NUM_LEGS, NUM_LEGS))
         reason = 0
         for second, table in enumerate(tables):
             if not reason:
-                reason, contacts[second], travel[second] = self._second(table)
+                reason, contacts[second], travel[second], asked[second] = self._second(table)
             poses[second] = self.pose()
-        return Seconds(poses=poses, contacts=contacts, invalid_reason=reason, leg_travel=travel)
+        return Seconds(poses=poses, contacts=contacts, invalid_reason=reason, leg_travel=travel, leg_commanded=asked)
 
-    def _second(self, table: np.ndarray) -> tuple[int, np.ndarray, np.ndarray]:
-        """One second of joint targets `table` (100, 18): (invalid reason, contact fractions (6,), leg travel (6,))."""
+    def _second(self, table: np.ndarray) -> tuple[int, np.ndarray, np.ndarray, np.ndarray]:
+        """One second of joint targets `table` (100, 18): (invalid reason, contact fractions (6,), leg travel (6,),
+        commanded leg travel (6,): the gait's target moves on the control steps the tilt reflex did not hold)."""
         model, data = self.model, self.data
         steps, substeps = STEP_CONTROL_STEPS, self.config.substeps
         qpos, qvel, warm = (np.zeros((steps + 1, size)) for size in (model.nq, model.nv, model.nv))
         qpos[0], qvel[0], warm[0] = data.qpos, data.qvel, data.qacc_warmstart  # row k + 1: after control step k
         touching = np.zeros((steps, NUM_LEGS), bool)
         braced = np.False_
+        gait_moves = np.abs(table - np.roll(table, 1, axis=0))  # (100, 18) row k: |target(k) - target(k - 1)|
+        asked = np.zeros((steps, table.shape[1]))  # the gait's moves on the steps it ran, as in `rollout`
         for k in range(steps):
             if self.config.reflex_tilt > 0.0:  # the tilt reflex, as `rollout` runs it
                 braced = reflex_braced(braced, np.False_, data.qpos, data.qvel, self.config)
             row = self.neutral[k % SAMPLES_PER_PERIOD] if braced else table[k % SAMPLES_PER_PERIOD]
+            if not braced:
+                asked[k] = gait_moves[k % SAMPLES_PER_PERIOD]
             target = np.where(self.damaged, self.damaged_pose, row)
             error = target - data.qpos[self.joints]
             data.ctrl[:] = np.clip(error / SERVO_TIME_CONSTANT, -self.config.max_joint_velocity,
@@ -218,5 +229,9 @@ class MujocoExecutor:
         if bad.size:  # back to the last valid state
             self._set(qpos[valid], qvel[valid], warm[valid])
         moved = np.abs(np.diff(qpos[: valid + 1, self.joints], axis=0))  # (valid, 18) per control step
-        return (int(reasons[valid]) if bad.size else 0, touching[:valid].sum(axis=0) / steps,
-                moved.sum(axis=0).reshape(NUM_LEGS, -1).sum(axis=-1))
+
+        def per_leg(travel):  # (valid, 18) -> (6,)
+            return travel.sum(axis=0).reshape(NUM_LEGS, -1).sum(axis=-1)
+
+        return (int(reasons[valid]) if bad.size else 0, touching[:valid].sum(axis=0) / steps, per_leg(moved),
+                per_leg(asked[:valid]))

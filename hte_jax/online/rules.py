@@ -43,13 +43,16 @@ class StepContext:
 class StepObservation:
     """What B robots observed in one executed step. hbr: the HBR. elite: (B,) int32 middle elite executed.
     observed: (B, 3) normalised primary descriptor of the step made. contact_fraction: (B, 6) share of the
-    second each foot was sensed down. leg_travel: (B, 6) rad each leg's joints moved."""
+    second each foot was sensed down. leg_travel: (B, 6) rad each leg's joints moved. leg_commanded: (B, 6) rad its
+    joint targets moved (what the controller commanded, after the tilt reflex), or None (a robot that does not
+    report it: the elite's whole period, `controller.commanded_travel`)."""
 
     hbr: HBR
     elite: jax.Array
     observed: jax.Array
     contact_fraction: jax.Array
     leg_travel: jax.Array
+    leg_commanded: jax.Array | None = None
 
 
 @struct.dataclass
@@ -164,7 +167,8 @@ class RandomPattern(PatternRule):
 class LegSense:
     """What the robot sensed of its legs, summed over the episode (`sensing`). contacts: (B, 2, 6) seconds
     each leg was sensed down (row 0) and expected down by the executed elites (row 1). motion: (B, 2, 6)
-    rad each leg's joints moved (row 0) and were commanded to move (row 1)."""
+    rad each leg's joints moved (row 0) and were commanded to move (row 1; none while the tilt reflex held the
+    neutral pose)."""
 
     contacts: jax.Array
     motion: jax.Array
@@ -189,7 +193,9 @@ class SensedLegs(PatternRule):
     def learn(self, state, observation):
         hbr, elite = observation.hbr, observation.elite
         expected = hbr.middle.extras["contact_fraction"][elite]  # (B, 6)
-        commanded = commanded_travel(hbr.middle_params[elite])
+        commanded = observation.leg_commanded
+        if commanded is None:  # a robot that does not report its commands: the elite's whole period
+            commanded = commanded_travel(hbr.middle_params[elite])
         return LegSense(contacts=state.contacts + jnp.stack([observation.contact_fraction, expected], axis=1),
                         motion=state.motion + jnp.stack([observation.leg_travel, commanded], axis=1))
 

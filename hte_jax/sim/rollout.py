@@ -84,7 +84,10 @@ class RolloutResult:
     `InvalidReason` bits (0 if valid); base_pos (B, P, 3), base_quat (B, P, 4) at `pose_steps`; command_abs_sum
     (B, 18) sum of |commanded joint velocity| * control_dt (rad); if recorded (else None), at each step's start:
     foot_contacts (B, T, 6) bool, foot_pos (B, T, 6, 3), joint_pos (B, T, 18), qpos (B, ceil(T / k), 25) every
-    k = record_qpos_every steps, and joint_travel (B, 18) the valid steps' summed |joint angle change| (rad)."""
+    k = record_qpos_every steps, joint_travel (B, 18) the valid steps' summed |joint angle change| (rad), and
+    target_travel (B, 18) the valid steps' summed |gait target change| around the controller's period, none on
+    the steps the tilt reflex held the neutral pose (what the controller commanded; without the reflex one
+    period gives `controller.commanded_travel`, whatever the damage holds)."""
 
     final_state: SimState
     valid: jax.Array
@@ -98,6 +101,7 @@ class RolloutResult:
     joint_pos: jax.Array | None = None
     qpos: jax.Array | None = None
     joint_travel: jax.Array | None = None
+    target_travel: jax.Array | None = None
 
 
 def initial_state(robot: Robot, damage: jax.Array | None = None) -> SimState:
@@ -190,13 +194,15 @@ def _rollout_one(robot: Robot, spec: RolloutSpec, template: mjx.Data, tables: ja
     neutral = target_table(jnp.zeros(NUM_PARAMS, jnp.float32))  # (100, 18) the all-zero controller
 
     def control_step(carry, step):
-        data, reason, invalid_step, poses, command_sum, travel, braced = carry
+        data, reason, invalid_step, poses, command_sum, travel, braced, asked = carry
         poses = record_pose(poses, data.qpos, step)
         row = (step % segment_steps) % SAMPLES_PER_PERIOD
         gait = tables[step // segment_steps, row]
+        gait_move = jnp.abs(gait - tables[step // segment_steps, (row - 1) % SAMPLES_PER_PERIOD])
         if config.reflex_tilt > 0.0:  # past the reflex tilt: the neutral pose (until the segment ends or release)
             braced = reflex_braced(braced, step % segment_steps == 0, data.qpos, data.qvel, config)
             gait = jnp.where(braced, neutral[row], gait)
+            gait_move = jnp.where(braced, 0.0, gait_move)
         target = apply_damage(gait, damage, damaged_pose(config.damage_model))
         command = servo_command(target, data.qpos[joint_qpos], config.max_joint_velocity)
         stepped = data.replace(ctrl=command)
@@ -215,6 +221,7 @@ def _rollout_one(robot: Robot, spec: RolloutSpec, template: mjx.Data, tables: ja
         command_sum = command_sum + jnp.where(ok, jnp.abs(command), 0.0) * config.control_dt
         if spec.record_joint_travel:
             travel = travel + jnp.where(ok, jnp.abs(stepped.qpos[joint_qpos] - data.qpos[joint_qpos]), 0.0)
+            asked = asked + jnp.where(ok, gait_move, 0.0)
         # geom_xpos was computed by the step's forward pass, i.e. at the start of this step.
         foot_pos = jnp.where(ok, stepped.geom_xpos[feet], data.geom_xpos[feet])
         outputs = {}
@@ -226,15 +233,15 @@ def _rollout_one(robot: Robot, spec: RolloutSpec, template: mjx.Data, tables: ja
             outputs["joints"] = data.qpos[joint_qpos]
         if spec.record_qpos_every:
             outputs["qpos"] = data.qpos
-        return (stepped, new_reason, invalid_step, poses, command_sum, travel, braced), outputs
+        return (stepped, new_reason, invalid_step, poses, command_sum, travel, braced, asked), outputs
 
     data = template.replace(qpos=init.qpos, qvel=init.qvel, qacc_warmstart=init.qacc_warmstart)
     data = mjx.kinematics(robot.model, data)  # geom_xpos of the initial state
     zeros = jnp.zeros(NUM_JOINTS, jnp.float32)
     carry = (data, check_state(init.qpos, init.qvel, spec.limits), jnp.int32(spec.num_steps),
-             jnp.zeros((num_poses, 7), jnp.float32), zeros, zeros, jnp.bool_(False))
+             jnp.zeros((num_poses, 7), jnp.float32), zeros, zeros, jnp.bool_(False), zeros)
     scanned = jax.lax.scan(control_step, carry, jnp.arange(spec.num_steps))
-    (data, reason, invalid_step, poses, command_sum, travel, _), outputs = scanned
+    (data, reason, invalid_step, poses, command_sum, travel, _, asked), outputs = scanned
     poses = record_pose(poses, data.qpos, spec.num_steps)
     invalid_step = jnp.where((reason != 0) & (invalid_step == spec.num_steps), 0, invalid_step)
     return RolloutResult(
@@ -242,6 +249,7 @@ def _rollout_one(robot: Robot, spec: RolloutSpec, template: mjx.Data, tables: ja
         invalid_step=invalid_step, invalid_reason=reason, base_pos=poses[:, :3], base_quat=poses[:, 3:],
         foot_contacts=outputs.get("contacts"), foot_pos=outputs.get("feet"), command_abs_sum=command_sum,
         joint_pos=outputs.get("joints"), joint_travel=travel if spec.record_joint_travel else None,
+        target_travel=asked if spec.record_joint_travel else None,
         qpos=outputs["qpos"][:: spec.record_qpos_every] if spec.record_qpos_every else None)
 
 
