@@ -93,3 +93,37 @@ def test_failure_reduction():
     assert list(every) == ["hte", "none"]
     assert every["hte"] == pytest.approx(100 * (1 - 3 / 7)) and every["none"] == pytest.approx(100.0)
     assert failure_reductions(statistics, "none") == {"hte": None, "2d-rte": None}
+
+
+def test_pool_statistics_script_pools_runs_with_a_seed_subset_under_labels(tmp_path):
+    """benchmarks/pool_statistics.py: the chosen variant and seeds of each run, relabelled; a
+    replication's median covers the kept seeds only, paired by position across runs."""
+    import gzip
+    import json
+
+    from tests.benchmark_runner import run_benchmark
+
+    def run(folder, rows, packed=False):
+        folder.mkdir()
+        data = json.dumps({"episodes": [dict(zip(("variant", "seed", "replicate", "actions"), row),
+                                              damage="leg1", reached=row[3] < 80) for row in rows]})
+        if packed:
+            (folder / "episodes.json.gz").write_bytes(gzip.compress(data.encode()))
+        else:
+            (folder / "episodes.json").write_text(data)
+
+    # four seeds; seeds 1 and 3 of 'x' take 10 + r and 20 + r actions, the others 80 (failures)
+    run(tmp_path / "four", [("x", s, r, {1: 10 + r, 3: 20 + r}.get(s, 80)) for s in range(4) for r in range(3)]
+        + [("y", s, r, 5) for s in range(4) for r in range(3)])
+    run(tmp_path / "two", [("z", s, r, 40 + 10 * s) for s in range(2) for r in range(3)], packed=True)
+    out = tmp_path / "pooled.json"
+    printed = run_benchmark("pool_statistics.py", "--out", str(out), "--key", "k",
+                            "--run", f"x on 1,3={tmp_path / 'four'}:x@1,3", "--run", f"z={tmp_path / 'two'}")
+    stats = json.loads(out.read_text())["k"]
+    assert set(stats["variants"]) == {"x on 1,3", "z"}  # 'y' and seeds 0, 2 left out
+    x, z = stats["variants"]["x on 1,3"], stats["variants"]["z"]
+    assert (x["p25"], x["p50"], x["p75"]) == (15, 16, 16)  # medians 15 16 17: positions 0.5, 1, 1.5 round down and x["failures"] == 0 and x["episodes"] == 6
+    assert (z["p25"], z["p50"], z["p75"]) == (45, 45, 45) and z["episodes"] == 6
+    (test,) = stats["tests"]
+    assert test["a"] == "x on 1,3" and test["median_a"] == 16 and test["median_b"] == 45
+    assert "x on 1,3" in printed and "p = " in printed
