@@ -48,6 +48,7 @@ def test_flat_and_aprol_episodes_on_two_seeds_and_protocol_outputs(tmp_path):
     assert set(statistics["variants"]) == {"2d-rte", "aprol"}
     # 2 damages x 2 replicates, each the median over the 2 seeds
     assert statistics["variants"]["aprol"]["replications"] == 4 and statistics["variants"]["aprol"]["episodes"] == 8
+    assert statistics["variants"]["aprol"]["seeds_per_median"] == 2
     assert len(statistics["tests"]) == 1
     for name in ("fig6_actions", "fig7_failures", "maze_variants", "maze_aprol"):
         image = matplotlib.image.imread(out / "plots" / f"{name}.png")

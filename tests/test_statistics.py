@@ -63,7 +63,9 @@ def test_protocol_statistics_on_hand_made_records():
     assert (a["p25"], a["p50"], a["p75"]) == (12, 13, 14)  # sorted 12 12 13 13 14 14: positions 1.25, 2.5, 3.75
     assert (b["p25"], b["p50"], b["p75"]) == (42, 43, 80)
     assert a["failure_percent"] == 0 and b["failures"] == 4 and b["failure_percent"] == pytest.approx(100 * 4 / 12)
-    assert b["replications"] == 6 and b["episodes"] == 12
+    assert b["replications"] == 6 and b["episodes"] == 12 and a["seeds_per_median"] == b["seeds_per_median"] == 2
+    dropped = protocol_statistics(records[1:])  # one (damage, replicate) of 'a' keeps one seed
+    assert dropped["variants"]["a"]["seeds_per_median"] == 1 and dropped["variants"]["b"]["seeds_per_median"] == 2
     (test,) = result["tests"]
     expected = stats.mannwhitneyu(medians["a"], medians["b"], alternative="two-sided")
     assert test["a"] == "a" and test["b"] == "b"

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import itertools
 import math
-from collections import defaultdict
+from collections import Counter, defaultdict
 
 import numpy as np
 from scipy import stats as scipy_stats
@@ -74,15 +74,17 @@ def pairwise_tests(samples: dict[str, np.ndarray]) -> list[dict]:
 
 
 def protocol_statistics(records: list[dict]) -> dict:
-    """Per variant: the quartiles of its replication medians, the failure rate over all episodes,
-    and the pairwise tests between variants."""
+    """Per variant: the quartiles of its replication medians, how many seeds the fewest of those
+    medians cover, the failure rate over all episodes, and the pairwise tests between variants."""
     medians = replication_medians(records)
+    episodes_per_cell = Counter((r["variant"], r["damage"], r["replicate"]) for r in records)
     variants = {}
     for variant, values in medians.items():
         rows = [r for r in records if r["variant"] == variant]
         failures = sum(not r["reached"] for r in rows)
         variants[variant] = {
             "replications": int(values.size),
+            "seeds_per_median": min(n for (v, _, _), n in episodes_per_cell.items() if v == variant),
             "episodes": len(rows),
             **{f"p{q}": nearest_percentile(values, q) for q in QUARTILES},
             "failures": failures,
