@@ -1,4 +1,5 @@
-"""Session-wide settings: a persistent XLA compilation cache shared by all tests of a session (and
+"""Session-wide settings: XLA's cheapest CPU code generation outside the golden-output files
+(`FAST_COMPILE`), a persistent XLA compilation cache shared by all tests of a session (and
 by pytest-xdist workers), in-memory compiled programs released after each test module, the
 controllers of an HBR's middle elites computed once per test process, the files in the order
 that balances two xdist workers (`SLOWEST_FIRST`), the OpenGL backend of the tests that draw frames (`gl_env`), and the fixtures
@@ -28,7 +29,61 @@ os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0"
 os.environ["JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES"] = "0"
 
 
+# Compiling MJX programs is most of the suite's time. Tests compile them with XLA's CPU code generator
+# at its cheapest: the older elemental fusion emitters and LLVM without optimisation (about a third of
+# the compile time, measured on 2 cores: a 300-step rollout 23 -> 5 CPU s, test_flat_aprol 204 -> 124
+# CPU s; the code runs up to ~4x slower, which tests at tiny sizes barely feel). It changes the bits of
+# floating-point results, so the files that compare runs with golden outputs (`DEFAULT_COMPILE`),
+# and their subprocesses, compile with XLA's defaults, as `python -m tests.golden` records them.
+# In-process the options go through the compile options of every program (`_compile_options`, so
+# the persistent cache keys them); subprocesses read them from XLA_FLAGS.
+FAST_COMPILE = {"xla_cpu_use_fusion_emitters": False, "xla_backend_optimization_level": 0}
+XLA_DEFAULTS = {"xla_cpu_use_fusion_emitters": True, "xla_backend_optimization_level": 3}
+FAST_FLAGS = [f"--{name}={str(value).lower()}" for name, value in FAST_COMPILE.items()]
+DEFAULT_COMPILE = ("test_hbr_training.py", "test_flat.py", "test_episode.py", "test_interrupts.py",
+                   "test_benchmarks_hbr.py")  # golden runs (test_benchmarks_hbr re-runs the tiny HBR's programs)
+os.environ["XLA_FLAGS"] = " ".join([*os.environ.get("XLA_FLAGS", "").split(), *FAST_FLAGS])
+_compile_with = [FAST_COMPILE]  # what `_compile_options` adds: the running module's choice
+
+
+def _with_compile_options(get_compile_options):
+    def compile_options(*args, **kwargs):
+        options = get_compile_options(*args, **kwargs)
+        options.env_option_overrides = [*options.env_option_overrides, *_compile_with[0].items()]
+        return options
+
+    return compile_options
+
+
+def without_fast_flags(flags: str) -> str:
+    """XLA_FLAGS less the session's `FAST_FLAGS`."""
+    return " ".join(flag for flag in flags.split() if flag not in FAST_FLAGS)
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _compile_mode(request):
+    """Per test module: XLA's default code generation for the `DEFAULT_COMPILE` files (in this
+    process and in the subprocesses they start), the fast one for every other file. Compiled
+    programs held in memory are dropped between modules (`_free_compiled_programs`), so none
+    crosses from one mode to the other."""
+    if request.path.name not in DEFAULT_COMPILE:
+        yield
+        return
+    flags = os.environ["XLA_FLAGS"]
+    os.environ["XLA_FLAGS"] = without_fast_flags(flags)
+    _compile_with[0] = XLA_DEFAULTS
+    try:
+        yield
+    finally:
+        _compile_with[0] = FAST_COMPILE
+        os.environ["XLA_FLAGS"] = flags
+
+
 def pytest_configure(config):
+    from jax._src import compiler
+
+    compiler.get_compile_options = _with_compile_options(compiler.get_compile_options)
+
     jax.config.update("jax_compilation_cache_dir", _CACHE)
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
@@ -146,7 +201,7 @@ def _leg_controllers_once_per_process():
         inputs = (bottom.descriptors, bottom.filled, bottom.genotypes, genotypes, filled)
         if any(isinstance(x, jax.core.Tracer) for x in inputs):
             return compute(bottom, genotypes, filled)
-        digest = hashlib.sha256()
+        digest = hashlib.sha256(repr(sorted(_compile_with[0].items())).encode())  # bits differ by compile mode
         for x in inputs:
             x = np.asarray(x)
             digest.update(f"{x.dtype}{x.shape}".encode())

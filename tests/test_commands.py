@@ -62,7 +62,8 @@ def gl_backend() -> str | None:
 def commands(tmp_path_factory):
     out = tmp_path_factory.mktemp("commands")
     backend = gl_backend()
-    env = dict(os.environ, XLA_FLAGS=f"--xla_force_host_platform_device_count={DEVICES}", JAX_PLATFORMS="cpu",
+    flags = f"{os.environ.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count={DEVICES}"  # + conftest's
+    env = dict(os.environ, XLA_FLAGS=flags, JAX_PLATFORMS="cpu",
                PYTHONPATH=os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")])))
     if backend is not None:
         env["MUJOCO_GL"] = backend

@@ -24,8 +24,9 @@ ROOT = Path(__file__).resolve().parents[1]
 PROMPTLY_S = 10.0  # "within a few seconds", with room for a loaded CI machine
 
 
-# XLA's own C++ log lines (such as its slow-compile alarm on a loaded machine) would share stderr
-QUIET_XLA = {**os.environ, "TF_CPP_MIN_LOG_LEVEL": "3"}
+# XLA's own C++ log lines (such as its slow-compile alarm on a loaded machine) would share stderr; added to
+# the environment as it is when a command starts (conftest's XLA_FLAGS for golden runs: `DEFAULT_COMPILE`)
+QUIET_XLA = {"TF_CPP_MIN_LOG_LEVEL": "3"}
 
 
 @pytest.fixture
@@ -35,7 +36,7 @@ def start():
 
     def run(module: str, *args: str) -> subprocess.Popen:
         started.append(subprocess.Popen([sys.executable, "-m", module, *args], cwd=ROOT, stdout=subprocess.PIPE,
-                                        stderr=subprocess.PIPE, text=True, env=QUIET_XLA))
+                                        stderr=subprocess.PIPE, text=True, env={**os.environ, **QUIET_XLA}))
         return started[-1]
 
     yield run
@@ -88,7 +89,7 @@ def test_ctrl_c_while_training_keeps_the_checkpoint_and_its_resume_command_finis
     command = shlex.split(stderr.partition("resume with: ")[2])
     assert command[:3] == ["python", "-m", "experiments.train_hbr"]
     resumed = subprocess.run([sys.executable, *command[1:]], cwd=ROOT, capture_output=True, text=True, timeout=1800,
-                             env=QUIET_XLA)
+                             env={**os.environ, **QUIET_XLA})
     assert resumed.returncode == 0, resumed.stderr
     assert resumed.stdout.startswith(f"{out}: bottom ")
     check("hbr_tiny", out)

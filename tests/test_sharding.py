@@ -47,7 +47,8 @@ full_only = pytest.mark.skipif(not FULL, reason="HTE_SHARDING_FULL=1 runs it (ab
 @pytest.fixture(scope="module")
 def results(tmp_path_factory):
     out = tmp_path_factory.mktemp("sharding") / "sharding.npz"
-    env = dict(os.environ, XLA_FLAGS=f"--xla_force_host_platform_device_count={max(DEVICES)}", JAX_PLATFORMS="cpu",
+    flags = f"{os.environ.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count={max(DEVICES)}"  # + conftest's
+    env = dict(os.environ, XLA_FLAGS=flags, JAX_PLATFORMS="cpu",
                PYTHONPATH=os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")])))
     done = subprocess.run([sys.executable, "-m", "tests.sharding_script", str(out), "--devices",
                            ",".join(map(str, DEVICES)), "--parts", ",".join(PARTS)],
