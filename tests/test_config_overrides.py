@@ -205,7 +205,7 @@ def test_configurations_stored_flat_read_as_the_nested_ones():
         assert cls.from_dict(old) == config == cls.from_dict(dataclasses.asdict(config))
         assert cls.from_dict(config.to_dict()) == config
         added = {evaluation.EvalConfig: {"collision_reward": -1000.0, "goal_reward": 100.0, "reflex_release": 0.0,
-                                         "reflex_rate": 0.0, "maze": ""},
+                                         "maze": ""},
                  hbr_training.HBRConfig: HBR_ADDED}.get(cls, {})  # settings added since, at their defaults
         retired = evaluation.RETIRED if cls is evaluation.EvalConfig else {}  # settings of levers that left
         now = HBR_NOW if cls is hbr_training.HBRConfig else old
@@ -216,3 +216,6 @@ def test_configurations_stored_flat_read_as_the_nested_ones():
     assert flat_training.normalised_config(OLD_FLAT) == {**OLD_FLAT, "impl": "jax"}
     with pytest.raises(ConfigError, match="left hte-jax"):
         evaluation.EvalConfig.from_dict({**OLD_EVAL, "optimism": 1.0})
+    assert evaluation.EvalConfig.from_dict({**OLD_EVAL, "reflex_rate": 0.0}) == evaluation_config  # the gate, off
+    with pytest.raises(ConfigError, match="'reflex_rate' belongs to a lever that left hte-jax"):
+        evaluation.EvalConfig.from_dict({**OLD_EVAL, "reflex_rate": 0.5})
