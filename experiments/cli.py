@@ -74,7 +74,7 @@ def add_setting_flags(parser: argparse.ArgumentParser, metavars: dict[str, str],
         parser.add_argument(flag, dest=key, default=None, metavar=metavar, help=f"override {key}")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="override a setting by its key, dotted through nested configurations "
-                             "(planner.iterations=50, solver.ls_iterations=8, top.parents.selection=density); repeatable")
+                             "(planner.iterations=50, solver.ls_iterations=8, middle.eta_m=20); repeatable")
 
 
 def setting_overrides(args: argparse.Namespace, keys) -> dict[str, str]:

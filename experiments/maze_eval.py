@@ -54,8 +54,8 @@ from hte_jax.errors import ConfigError, require_int
 from hte_jax.online.evaluation import (PRESETS, PROTOCOLS, EvalConfig, batch_labels, batches, episode_numbers,
                                       episode_records, prediction_errors, preset, protocol_overrides, rows_to_record,
                                       run_batch, summarise, with_overrides)
-from hte_jax.online.plots import (episode_track, plot_actions, plot_episodes, plot_failures, plot_prediction_error,
-                                  plot_protocol_box, plot_variant_mazes)
+from hte_jax.online.plots import (episode_track, plot_episodes, plot_failures, plot_prediction_error, plot_protocol_box,
+                                  plot_variant_mazes)
 from hte_jax.online.recording import replay_path, save_replay
 from hte_jax.online.statistics import (PAPER_FAILURE_REDUCTION, PAPER_QUARTILES, failure_reduction, failure_reductions,
                                        protocol_statistics)
@@ -162,7 +162,6 @@ def main(argv=None) -> int:
         write_json(out / "summary.json", summary)
         write_json(out / "statistics.json", statistics)
         plot_prediction_error(out / "plots" / "prediction_error.png", curves)
-        plot_actions(out / "plots" / "actions.png", records, config.max_actions)
         plot_protocol_box(out / "plots" / "fig6_actions.png", statistics, config.max_actions, PAPER_QUARTILES)
         plot_failures(out / "plots" / "fig7_failures.png", statistics)
         plot_variant_mazes(out / "plots" / "maze_variants.png", maze, tracks)

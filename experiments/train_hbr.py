@@ -7,7 +7,7 @@
     python -m experiments.train_hbr --out runs/hbr --resume          # continue a killed run
     python -m experiments.train_hbr --middle-generations 100 --seed 3   # override any value
     python -m experiments.train_hbr --solver-iterations 4 --ls-iterations 8   # the physics' solver
-    python -m experiments.train_hbr --set middle.parents.selection=density    # any setting, dotted
+    python -m experiments.train_hbr --set middle.eta_m=20 --set top.block_size=5   # any setting, dotted
 
 Writes config.json, per-layer checkpoints and metrics CSVs, hbr.npz, summary.json and plots/ under
 --out (default runs/hbr-<preset>); `--show-config` prints the resolved configuration. A resumed run

@@ -6,7 +6,7 @@
 Each command's `main(argv)` runs in turn (so programs compiled for one, the tiny HBR's rollouts
 say, serve the next) on the outputs of the ones before: the tiny HBR, its sparing archive and
 the flat repertoires make the repertoire seed folder that `maze_eval` runs on (in a maze whose
-goal its episodes reach at once), whose episodes `fit_gp` fits. After every command OUT/commands.json records each command's exit status (an
+goal its episodes reach at once). After every command OUT/commands.json records each command's exit status (an
 exception is recorded as its traceback's last line, and the next command still runs), wall and
 CPU time; the test checks them and the files under OUT/<command>/.
 """
@@ -59,7 +59,6 @@ def commands(out: Path, render: bool) -> list[tuple[str, str, list[str]]]:
         ("repertoire_stats", "repertoire_stats", ["--hbr", str(hbr), "--flat8d", str(out / "train_flat_8d"),
                                                   "--flat2d", str(out / "train_flat_2d"),
                                                   "--out", str(out / "repertoire_stats")]),
-        ("fit_gp", "fit_gp", ["--run", str(out / "maze_eval"), "--steps", "5"]),
         ("inspect_checkpoint", "inspect_checkpoint", [str(hbr / "middle" / "checkpoint.npz")]),
     ]
     if render:

@@ -125,7 +125,6 @@ SLOWEST_FIRST = (
     "test_executor.py",  # ~100
     "test_execute.py",  # ~95
     "test_mcts.py",  # ~90
-    "test_fit_gp.py",  # ~80
     "test_qd_loop.py",  # ~80
 )
 

@@ -54,8 +54,8 @@ def test_set_overrides_any_setting_by_its_dotted_key(capsys):
         assert maze_main([*args, "--show-config"]) == 0
         printed.append(json.loads(capsys.readouterr().out))
     assert printed[0] == printed[1] and printed[0]["iterations"] == 50 and printed[0]["solver_iterations"] == 2
-    assert hbr_main(["--preset", "tiny", "--show-config", "--set", "top.parents.selection=density"]) == 0
-    assert json.loads(capsys.readouterr().out)["top"]["selection"] == "density"
+    assert hbr_main(["--preset", "tiny", "--show-config", "--set", "top.eta_m=20"]) == 0
+    assert json.loads(capsys.readouterr().out)["top"]["eta_m"] == 20.0
     assert maze_main(["--show-config", "--set", "planner.colour=1"]) == EXIT_BAD_INPUT
     assert capsys.readouterr().err == "error: unknown setting 'planner.colour'\n"
 

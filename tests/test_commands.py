@@ -40,7 +40,6 @@ FILES = {
     "modulation": [f"modulation/{f}" for f in ("modulation.json", "modulation.npz", "modulation_map.png",
                                                "modulation_grid.png")],
     "repertoire_stats": ["repertoire_stats/table2.json", "repertoire_stats/table2.md"],
-    "fit_gp": ["maze_eval/fit.json"],
     "inspect_checkpoint": [],  # prints only
 }
 

@@ -12,7 +12,6 @@ from hte_jax.hbr import training as hbr_training
 from hte_jax.hbr.training import PRESETS, LayerSchedule
 from hte_jax.online import evaluation
 from hte_jax.online.mcts import PlannerConfig
-from hte_jax.qd.selection import SelectionConfig
 
 
 @dataclasses.dataclass(frozen=True)
@@ -125,13 +124,13 @@ def test_every_post_init_check_runs_with_the_inner_path_named():
 def test_hbr_overrides_as_before():
     gpu = PRESETS["gpu"]
     config = with_overrides(gpu, {"middle.generations": "7", "seed": "3", "contact_threshold": 0.25,
-                                  "top.selection": "density", "top.density_bins": "8"})
+                                  "top.eta_m": "20"})
     assert config == dataclasses.replace(
         gpu, seed=3, contact_threshold=0.25, middle=dataclasses.replace(gpu.middle, generations=7),
-        top=dataclasses.replace(gpu.top, parents=SelectionConfig(selection="density", density_bins=8)))
+        top=dataclasses.replace(gpu.top, eta_m=20.0))
     assert config.to_dict() == {**gpu.to_dict(), "seed": 3, "contact_threshold": 0.25,
                                 "middle": {**gpu.to_dict()["middle"], "generations": 7},
-                                "top": {**gpu.to_dict()["top"], "selection": "density", "density_bins": 8}}
+                                "top": {**gpu.to_dict()["top"], "eta_m": 20.0}}
     tiny = with_overrides(PRESETS["tiny"], {"bottom.batch_size": "8", "bottom.init_size": "16",
                                             "solver_iterations": "6"})
     assert tiny.bottom == LayerSchedule(batch_size=8, init_size=16, generations=2, block_size=1, mutation_rate=0.17,
@@ -144,8 +143,7 @@ def test_hbr_overrides_as_before():
     ({"middle": 1}, "unknown setting 'middle'"),
     ({"seed.x": 1}, "unknown setting 'seed.x'"),
     ({"middle.generations": "x"}, "setting 'middle.generations': cannot read 'x' as int"),
-    ({"middle.frontier_fraction": "2"}, "middle.frontier_fraction must be a finite number in [0.0, 1.0], got 2.0"),
-    ({"top.selection": "best"}, "top.selection must be one of ('uniform', 'density', 'frontier'), got 'best'"),
+    ({"middle.mutation_rate": "2"}, "middle.mutation_rate must be a finite number in [0.0, 1.0], got 2.0"),
     ({"bottom.generations": "-1", "seed": "-1"}, "bottom.generations must be an integer >= 0, got -1"),
     ({"bottom_fitness": "energy"}, "bottom_fitness must be one of ('commands', 'genes'), got 'energy'"),
 ])
@@ -181,11 +179,14 @@ OLD_LAYER = {"batch_size": 16, "init_size": 32, "generations": 2, "block_size": 
              "capacity": 256, "selection": "uniform", "density_bins": 16, "density_dims": 3, "frontier_fraction": 0.5,
              "frontier_angle_bins": 16, "frontier_level_bins": 16}
 OLD_HBR = {"bottom": OLD_LAYER, "middle": {**OLD_LAYER, "mutation_rate": 0.11},
-           "top": {**OLD_LAYER, "mutation_rate": 0.14, "capacity": 1, "selection": "density", "density_bins": 8},
+           "top": {**OLD_LAYER, "mutation_rate": 0.14, "capacity": 1, "density_bins": 8},
            "seed": 0, "middle_samples": 2, "contact_threshold": 0.3, "contact_purity": 0.0, "bottom_l": 0.01,
            "middle_l": 0.05, "top_bins": 100, "bottom_fitness": "commands", "solver_iterations": 6, "ls_iterations": 4,
            "solver_tolerance": 1e-08, "step_starts": 2}
 HBR_ADDED = {"step_chunk": 8192}  # HBR settings added since, at their defaults
+# OLD_HBR as stored today: the layers without the parent selections' settings (levers E, F left)
+HBR_NOW = {**OLD_HBR, **{layer: {k: v for k, v in OLD_HBR[layer].items() if k not in hbr_training.RETIRED_SELECTION}
+                         for layer in ("bottom", "middle", "top")}}
 OLD_FLAT = {"variant": "8d", "batch_size": 16, "init_size": 32, "generations": 2, "block_size": 1, "mutation_rate": 0.14,
             "eta_m": 10.0, "seed": 0, "bins": 20, "contact_threshold": 0.3, "solver_iterations": 3, "ls_iterations": 4,
             "solver_tolerance": 1e-08}
@@ -197,18 +198,24 @@ def test_configurations_stored_flat_read_as_the_nested_ones():
     rewards, the tilt reflex's release and rate, the maze, MJX's implementation)."""
     evaluation_config = with_overrides(evaluation.preset("gpu"), {"planner.iterations": 50, "solver.solver_iterations": 2,
                                                                   "reflex_tilt": 0.3})
-    hbr = with_overrides(PRESETS["tiny"], {"top.selection": "density", "top.density_bins": 8, "solver_iterations": 6})
+    hbr = with_overrides(PRESETS["tiny"], {"solver_iterations": 6})
     flat = with_overrides(flat_training.preset("tiny", "8d"), {"solver_iterations": 3})
     for cls, old, config in ((evaluation.EvalConfig, OLD_EVAL, evaluation_config), (hbr_training.HBRConfig, OLD_HBR, hbr),
                              (flat_training.FlatConfig, OLD_FLAT, flat)):
         assert cls.from_dict(old) == config == cls.from_dict(dataclasses.asdict(config))
         assert cls.from_dict(config.to_dict()) == config
         added = {evaluation.EvalConfig: {"collision_reward": -1000.0, "goal_reward": 100.0, "reflex_release": 0.0,
-                                         "reflex_rate": 0.0, "maze": ""},
+                                         "maze": ""},
                  hbr_training.HBRConfig: HBR_ADDED}.get(cls, {})  # settings added since, at their defaults
         retired = evaluation.RETIRED if cls is evaluation.EvalConfig else {}  # settings of levers that left
-        assert config.to_dict() == {**{k: v for k, v in old.items() if k not in retired}, **added, "impl": "jax"}
-    assert hbr_training.normalised_config(OLD_HBR) == {**OLD_HBR, **HBR_ADDED, "impl": "jax"}
+        now = HBR_NOW if cls is hbr_training.HBRConfig else old
+        assert config.to_dict() == {**{k: v for k, v in now.items() if k not in retired}, **added, "impl": "jax"}
+    assert hbr_training.normalised_config(OLD_HBR) == {**HBR_NOW, **HBR_ADDED, "impl": "jax"}
+    with pytest.raises(ConfigError, match="top.selection 'density' left hte-jax"):
+        hbr_training.HBRConfig.from_dict({**OLD_HBR, "top": {**OLD_HBR["top"], "selection": "density"}})
     assert flat_training.normalised_config(OLD_FLAT) == {**OLD_FLAT, "impl": "jax"}
     with pytest.raises(ConfigError, match="left hte-jax"):
         evaluation.EvalConfig.from_dict({**OLD_EVAL, "optimism": 1.0})
+    assert evaluation.EvalConfig.from_dict({**OLD_EVAL, "reflex_rate": 0.0}) == evaluation_config  # the gate, off
+    with pytest.raises(ConfigError, match="'reflex_rate' belongs to a lever that left hte-jax"):
+        evaluation.EvalConfig.from_dict({**OLD_EVAL, "reflex_rate": 0.5})

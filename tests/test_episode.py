@@ -79,7 +79,7 @@ def test_records_agree_with_the_simulated_trajectory(run):
 def test_outputs_and_plots(run):
     config = json.loads((run / "config.json").read_text())
     assert config["variants"] == "hte,rte" and config["max_actions"] == MAX_ACTIONS and config["preset"] == "cpu"
-    for name in ("maze_hte", "maze_rte", "prediction_error", "actions"):
+    for name in ("maze_hte", "maze_rte", "prediction_error", "fig6_actions"):
         image = matplotlib.image.imread(run / "plots" / f"{name}.png")
         assert image.ndim == 3 and image.std() > 0
 

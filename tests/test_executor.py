@@ -197,12 +197,9 @@ def test_native_mujoco_runs_the_tilt_reflex_as_the_rollout_does():
     np.testing.assert_array_equal(fired.poses, reference.poses)
     np.testing.assert_array_equal(reflexive.state().qpos, plain.state().qpos)
     assert np.abs(fired.leg_travel[1]).sum() > np.abs(fired.leg_travel[0]).sum()  # the gait came back
-    # reflex_rate far above any fall: never fires, so the same as no reflex at all
-    gated = tilted(MujocoExecutor.in_maze(PAPER_MAZE, np.zeros(NUM_LEGS, bool),
-                                          dataclasses.replace(base, reflex_tilt=0.1, reflex_rate=1e3)))
     free = tilted(MujocoExecutor.in_maze(PAPER_MAZE, np.zeros(NUM_LEGS, bool), base))
-    np.testing.assert_array_equal(gated.run(walk).poses, free.run(walk).poses)
-    assert np.abs(gated.state().qpos - reflexive.state().qpos).max() > 0.01  # (the reflex did change the walk)
+    free.run(walk)
+    assert np.abs(free.state().qpos - reflexive.state().qpos).max() > 0.01  # the reflex changed the walk
     # reflex_release: the gait resumes within the first second, once the robot is back upright
     releasing = tilted(MujocoExecutor.in_maze(PAPER_MAZE, np.zeros(NUM_LEGS, bool),
                                               dataclasses.replace(base, reflex_tilt=0.1, reflex_release=0.05)))

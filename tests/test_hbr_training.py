@@ -153,15 +153,10 @@ def test_every_preset_value_can_be_overridden():
     assert genes.bottom_task.fitness == "genes" and config.bottom_task.fitness == "commands"
     with pytest.raises(ConfigError, match="bottom_fitness must be one of"):
         with_overrides(config, {"bottom_fitness": "energy"})
-    density = with_overrides(config, {"middle.selection": "density", "middle.density_bins": "8"})
-    assert density.middle.map_elites_config(0.0).parents.selection == "density"
-    assert density.middle.map_elites_config(0.0).parents.density_bins == 8 and config.middle.parents.selection == "uniform"
-    with pytest.raises(ConfigError, match="selection must be one of"):
-        with_overrides(config, {"top.selection": "best"})
-    frontier = with_overrides(config, {"middle.selection": "frontier", "middle.frontier_fraction": "0.25"})
-    assert frontier.middle.map_elites_config(0.0).parents.frontier_fraction == 0.25
-    with pytest.raises(ConfigError, match="middle.frontier_fraction"):
-        with_overrides(config, {"middle.frontier_fraction": "2"})
+    eta = with_overrides(config, {"middle.eta_m": "20"})
+    assert eta.middle.map_elites_config(0.0).eta_m == 20.0 and config.middle.eta_m == 10.0
+    with pytest.raises(ConfigError, match="middle.mutation_rate"):
+        with_overrides(config, {"middle.mutation_rate": "2"})
     for name in ("cpu", "gpu", "paper"):
         schedule = PRESETS[name]
         assert (schedule.bottom.mutation_rate, schedule.middle.mutation_rate, schedule.top.mutation_rate) == (0.17, 0.11, 0.14)

@@ -11,7 +11,6 @@ import matplotlib.image
 import numpy as np
 import pytest
 
-from hte_jax.config import with_overrides
 from hte_jax.errors import ConfigError
 from hte_jax.qd import (
     Archive,
@@ -29,8 +28,7 @@ from hte_jax.qd import (
 from hte_jax.qd import io as qd_io
 from hte_jax.qd.plots import grid_projection, plot_metrics
 from hte_jax.qd.tasks import planar_arm, planar_arm_evaluate
-from hte_jax.hbr.selection import frontier_elites, frontier_selection
-from hte_jax.qd.selection import SelectionConfig, UniformSelection, density_selection
+from hte_jax.qd.selection import UniformSelection
 from hte_jax.qd.variation import polynomial_mutation, sbx_crossover
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -124,127 +122,6 @@ def test_uniform_selection_only_picks_elites_uniformly():
     assert np.all(np.abs(counts[[1, 4, 5, 9]] - 10_000) < 500)
 
 
-def test_density_selection_makes_every_occupied_coarse_cell_equally_likely():
-    """5 elites share one cell of a 4 x 4 grid, 1 elite is alone in another: each cell gets half."""
-    rep = Grid(bins=(8,), low=(0.0,), high=(1.0,)).empty(1)
-    descriptors = jnp.asarray([[0.1, 0.1]] * 5 + [[0.9, 0.95]] + [[0.0, 0.0]] * 2)
-    rep = rep.replace(descriptors=descriptors, filled=jnp.asarray([1, 1, 1, 1, 1, 1, 0, 0], bool))
-    picks = np.asarray(density_selection(jax.random.PRNGKey(0), rep, 40_000, (0.0, 0.0), (1.0, 1.0), 4, 2))
-    counts = np.bincount(picks, minlength=8)
-    assert counts[6:].sum() == 0  # empty slots never
-    assert abs(counts[5] - 20_000) < 600 and np.all(np.abs(counts[:5] - 4000) < 400)
-    # Coarse cells over the first dimension only: all six elites share [0, 0.25) or [0.75, 1).
-    picks = np.asarray(density_selection(jax.random.PRNGKey(1), rep, 40_000, (0.0, 0.0), (1.0, 1.0), 4, 1))
-    assert abs(np.bincount(picks, minlength=8)[5] - 20_000) < 600
-    # Filled slots need not be a prefix (grids): only slots 3 and 7 are elites, in two cells.
-    sparse = rep.replace(filled=jnp.zeros(8, bool).at[jnp.asarray([3, 7])].set(True))
-    sparse = sparse.replace(descriptors=sparse.descriptors.at[7].set(jnp.asarray([0.9, 0.9])))
-    picks = np.asarray(density_selection(jax.random.PRNGKey(3), sparse, 20_000, (0.0, 0.0), (1.0, 1.0), 4, 2))
-    counts = np.bincount(picks, minlength=8)
-    assert counts.sum() == counts[3] + counts[7] and abs(counts[7] - 10_000) < 500
-    # One coarse cell: the same as uniform selection.
-    picks = np.asarray(density_selection(jax.random.PRNGKey(2), rep, 60_000, (0.0, 0.0), (1.0, 1.0), 1, 2))
-    assert np.all(np.abs(np.bincount(picks, minlength=8)[:6] - 10_000) < 500)
-
-
-def test_density_selection_in_the_loop():
-    """Same seed, same budget: density selection runs, differs from uniform, and is recorded in
-    checkpoints (uniform runs keep the metadata they had before selection was a setting)."""
-    grid = Grid(bins=(16, 16), low=(0.0, 0.0), high=(1.0, 1.0))
-    algos = {
-        kind: MapElites(
-            grid, planar_arm_evaluate, 6,
-            MapElitesConfig(batch_size=32, init_size=32,
-                            parents=SelectionConfig(selection=kind, density_bins=4, density_dims=2)),
-        )
-        for kind in ("uniform", "density")
-    }
-    states = {kind: algo.run_block(algo.init(jax.random.PRNGKey(5)), 5)[0] for kind, algo in algos.items()}
-    assert int(states["density"].repertoire.filled.sum()) > 32
-    assert not np.array_equal(np.asarray(states["uniform"].repertoire.filled), np.asarray(states["density"].repertoire.filled))
-    assert "selection" not in algos["uniform"].checkpoint_metadata()["config"]
-    assert algos["density"].checkpoint_metadata()["config"]["selection"] == "density"
-
-
-def _frontier_by_hand(descriptors, filled, low, high, angle_bins, level_bins):
-    """NumPy reference: per (sector, level) cell, the lowest slot among the farthest elites."""
-    scaled = (descriptors - np.asarray(low)) / (np.asarray(high) - np.asarray(low))
-    marked = np.zeros(len(filled), bool)
-    best = {}
-    for slot in np.flatnonzero(filled):
-        dx, dy = scaled[slot, 0] - 0.5, scaled[slot, 1] - 0.5
-        sector = min(int(np.floor((np.arctan2(dy, dx) + np.pi) / (2 * np.pi) * angle_bins)), angle_bins - 1)
-        level = min(int(np.floor(scaled[slot, 2] * level_bins)), level_bins - 1) if scaled.shape[1] > 2 else 0
-        radius = np.hypot(dx, dy)
-        if (sector, level) not in best or radius > best[(sector, level)][0]:
-            best[(sector, level)] = (radius, slot)
-    for _, slot in best.values():
-        marked[slot] = True
-    return marked
-
-
-def test_frontier_elites_are_the_farthest_per_sector_and_level_against_numpy():
-    rng = np.random.default_rng(0)
-    capacity = 400
-    descriptors = rng.uniform(-1.0, 2.0, (capacity, 4)).astype(np.float32)
-    descriptors[:, 3] = rng.integers(0, 2, capacity)  # a binary secondary dimension plays no part
-    filled = rng.uniform(size=capacity) < 0.6
-    filled[:5] = False  # empty slots (not a prefix, as in grids) are never marked
-    rep = Archive(capacity, (-1.0,) * 4, (2.0,) * 4, 0.05).empty(3)
-    rep = rep.replace(descriptors=jnp.asarray(descriptors), filled=jnp.asarray(filled))
-    for angle_bins, level_bins in ((8, 4), (16, 1), (3, 7)):
-        got = np.asarray(frontier_elites(rep, (-1.0,) * 4, (2.0,) * 4, angle_bins, level_bins))
-        want = _frontier_by_hand(descriptors.astype(np.float64), filled, (-1.0,) * 4, (2.0,) * 4, angle_bins, level_bins)
-        np.testing.assert_array_equal(got, want)
-    # Two elites at the same distance in one cell: the lower slot wins.
-    tie = rep.replace(
-        descriptors=jnp.asarray([[2.0, 0.5, 0.0, 0.0], [2.0, 0.5, 0.0, 0.0]] + [[0.5, 0.5, 0.0, 0.0]] * (capacity - 2)),
-        filled=jnp.zeros(capacity, bool).at[jnp.asarray([0, 1])].set(True),
-    )
-    assert np.flatnonzero(np.asarray(frontier_elites(tie, (-1.0,) * 4, (2.0,) * 4, 4, 1))).tolist() == [0]
-
-
-def test_frontier_selection_spends_its_share_on_the_edge():
-    """Elites on two rings around the centre of a 2-D space: 8 sectors, the outer ring is the edge."""
-    angles = np.arange(8) * 2 * np.pi / 8 + np.pi / 8  # one elite per sector on each ring
-    inner = 0.5 + 0.1 * np.stack([np.cos(angles), np.sin(angles)], -1)
-    outer = 0.5 + 0.4 * np.stack([np.cos(angles), np.sin(angles)], -1)
-    descriptors = np.concatenate([inner, np.full((4, 2), 0.5), outer]).astype(np.float32)  # slots 8-11 empty
-    filled = np.ones(20, bool)
-    filled[8:12] = False
-    rep = Grid(bins=(20,), low=(0.0,), high=(1.0,)).empty(1)
-    rep = rep.replace(descriptors=jnp.asarray(descriptors), filled=jnp.asarray(filled))
-    picks = np.asarray(frontier_selection(jax.random.PRNGKey(0), rep, 40_000, (0.0, 0.0), (1.0, 1.0), 8, 1, 0.75))
-    counts = np.bincount(picks, minlength=20)
-    assert counts[8:12].sum() == 0
-    # 30 000 draws among the 8 outer elites, 10 000 among all 16: 3750 + 625 each for the outer ones.
-    assert np.all(np.abs(counts[12:] - 4375) < 300) and np.all(np.abs(counts[:8] - 625) < 120)
-    assert np.all(np.isin(picks[:30_000], np.arange(12, 20)))
-    # fraction 0: uniform over the elites.
-    picks = np.asarray(frontier_selection(jax.random.PRNGKey(1), rep, 32_000, (0.0, 0.0), (1.0, 1.0), 8, 1, 0.0))
-    assert np.all(np.abs(np.bincount(picks, minlength=20)[filled] - 2000) < 200)
-
-
-def test_frontier_selection_in_the_loop_and_its_checkpoint_metadata():
-    grid = Grid(bins=(16, 16), low=(0.0, 0.0), high=(1.0, 1.0))
-    config = MapElitesConfig(batch_size=32, init_size=32,
-                             parents=SelectionConfig(selection="frontier", frontier_angle_bins=8, frontier_level_bins=1))
-    algo = MapElites(grid, planar_arm_evaluate, 6, config)
-    uniform = MapElites(grid, planar_arm_evaluate, 6, with_overrides(config, {"selection": "uniform"}))
-    state = algo.run_block(algo.init(jax.random.PRNGKey(5)), 5)[0]
-    other = uniform.run_block(uniform.init(jax.random.PRNGKey(5)), 5)[0]
-    assert int(state.repertoire.filled.sum()) > 32
-    assert not np.array_equal(np.asarray(state.repertoire.filled), np.asarray(other.repertoire.filled))
-    meta = algo.checkpoint_metadata()["config"]
-    assert meta["selection"] == "frontier" and meta["frontier_angle_bins"] == 8 and "density_bins" not in meta
-    density = with_overrides(config, {"selection": "density"})
-    meta = MapElites(grid, planar_arm_evaluate, 6, density).checkpoint_metadata()["config"]
-    assert meta["selection"] == "density" and "frontier_fraction" not in meta  # older density checkpoints resume
-    one_dim = MapElites(Grid(bins=(8,), low=(0.0,), high=(1.0,)), planar_arm_evaluate, 6, config)
-    with pytest.raises(ConfigError, match="frontier.*2 descriptor dimensions"):
-        one_dim.active_emitter.select(one_dim.empty_state(jax.random.PRNGKey(0)).repertoire, jax.random.PRNGKey(0))
-
-
 def test_sbx_crossover_stays_between_bounds_and_keeps_equal_parents():
     a = jax.random.uniform(jax.random.PRNGKey(0), (200, 5))
     child = np.asarray(sbx_crossover(jax.random.PRNGKey(1), a, a, 10.0))
@@ -261,14 +138,6 @@ def test_config_errors():
         MapElitesConfig(mutation_rate=1.5)
     with pytest.raises(ConfigError, match="batch_size"):
         MapElitesConfig(batch_size=0)
-    with pytest.raises(ConfigError, match="selection must be one of"):
-        MapElitesConfig(parents=SelectionConfig(selection="tournament"))
-    with pytest.raises(ConfigError, match="density_bins\\^density_dims"):
-        MapElitesConfig(parents=SelectionConfig(selection="density", density_bins=100, density_dims=9))
-    with pytest.raises(ConfigError, match="frontier_fraction"):
-        MapElitesConfig(parents=SelectionConfig(selection="frontier", frontier_fraction=1.5))
-    with pytest.raises(ConfigError, match="frontier_angle_bins"):
-        MapElitesConfig(parents=SelectionConfig(frontier_angle_bins=0))
 
 
 # --- checkpoints -------------------------------------------------------------------------

@@ -16,7 +16,7 @@ from jax.sharding import Mesh
 
 from hte_jax.config import config_dict, config_from_dict, inline
 from hte_jax.config import with_overrides as _with_overrides
-from hte_jax.errors import check_fields, choice, integer, lookup, number
+from hte_jax.errors import ConfigError, check_fields, choice, integer, lookup, number
 from hte_jax.hbr import bottom as bottom_layer
 from hte_jax.hbr import middle as middle_layer
 from hte_jax.hbr.analysis import hbr_statistics
@@ -30,13 +30,15 @@ from hte_jax.hbr.store import LAYERS, SPARE_FILE, bottom_fingerprint, save_hbr, 
 from hte_jax.hbr.top import TopTask, evaluate_top, top_spec
 from hte_jax.qd import io
 from hte_jax.qd.loop import MapElites, MapElitesConfig, QDState, run_to_end
-from hte_jax.qd.selection import SelectionConfig
 from hte_jax.sharding import mesh_size
 from hte_jax.sim.mjx_import import require_impl
 from hte_jax.sim.robot import Robot, RobotConfig, SolverConfig, load_robot, stored_solver
 from hte_jax.sim.rollout import standing_state
 
 with_overrides = _with_overrides  # the configurations' one override rule, re-exported
+# A layer's settings of the density and frontier parent selections (levers E, F in docs/levers.md)
+RETIRED_SELECTION = ("selection", "density_bins", "density_dims", "frontier_fraction", "frontier_angle_bins",
+                     "frontier_level_bins")
 
 
 class StoredConfig:
@@ -68,7 +70,6 @@ class LayerSchedule:
     mutation_rate: float
     eta_m: float = 10.0
     capacity: int = integer(1)
-    parents: SelectionConfig = inline(SelectionConfig())
 
     def __post_init__(self):
         check_fields(self)
@@ -80,7 +81,7 @@ class LayerSchedule:
 
     def map_elites_config(self, qd_offset: float) -> MapElitesConfig:
         return MapElitesConfig(batch_size=self.batch_size, init_size=self.init_size, mutation_rate=self.mutation_rate,
-                               eta_m=self.eta_m, qd_offset=qd_offset, parents=self.parents)
+                               eta_m=self.eta_m, qd_offset=qd_offset)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -107,6 +108,18 @@ class HBRConfig(StoredConfig):
 
     def __post_init__(self):
         check_fields(self)
+
+    @classmethod
+    def from_dict(cls, data: dict) -> HBRConfig:
+        """`StoredConfig.from_dict`, a layer's settings of the parent selections that left (`RETIRED_SELECTION`)
+        dropped where it selected uniformly."""
+        data = dict(data)
+        for layer in LAYERS:
+            if isinstance(data.get(layer), dict):
+                if data[layer].get("selection", "uniform") != "uniform":
+                    raise ConfigError(f"{layer}.selection {data[layer]['selection']!r} left hte-jax (docs/levers.md)")
+                data[layer] = {k: v for k, v in data[layer].items() if k not in RETIRED_SELECTION}
+        return super().from_dict(data)
 
     @property
     def bottom_task(self) -> BottomTask:

@@ -43,7 +43,8 @@ from hte_jax.sim.robot import RobotConfig, SolverConfig
 
 with_overrides = _with_overrides  # the configurations' one override rule, re-exported
 
-RETIRED = {"optimism": 0.0, "pattern_ends": ""}  # settings of levers that left (docs/levers.md), at their neutral values
+# settings of levers that left (docs/levers.md), at their neutral values
+RETIRED = {"optimism": 0.0, "pattern_ends": "", "reflex_rate": 0.0}
 SEED_FILES = {"hbr": "hbr.npz", "2d": "flat2d.npz", "8d": "flat8d.npz", "aprol": "aprol.npz"}  # in a seed folder
 # Named protocols: the EvalConfig values each fixes. paper: the paper's Fig. 6 variants, in its order,
 # on the paper's robot; hte-jax: our HTE against the baselines, on the robot with the tilt reflex that
@@ -76,8 +77,8 @@ class EvalConfig:
     solver: the physics' Newton solver (`SolverConfig`, inlined: settings solver_iterations,
     ls_iterations, solver_tolerance). reflex_tilt: the robot's tilt reflex (`RobotConfig.reflex_tilt`,
     rad): past this tilt a skill's gait gives way to the neutral pose for the rest of its second; 0
-    (default, the paper's robot): off. reflex_release, reflex_rate: when the reflex lets go and
-    when it fires (`RobotConfig.reflex_release`, `reflex_rate`; 0: as above). maze: the world, a
+    (default, the paper's robot): off. reflex_release: the tilt below which the reflex lets go
+    (`RobotConfig.reflex_release`; 0: at the end of the second). maze: the world, a
     shipped maze's name (assets/mazes/: "paper", "two_rooms") or a JSON file of `Maze`'s fields
     (`maze.load_maze`); "" (default): the paper's maze.
     """
@@ -96,7 +97,6 @@ class EvalConfig:
     solver: SolverConfig = inline(SolverConfig())
     reflex_tilt: float = RobotConfig.reflex_tilt
     reflex_release: float = RobotConfig.reflex_release
-    reflex_rate: float = RobotConfig.reflex_rate
     maze: str = ""
 
     def __post_init__(self):
@@ -150,7 +150,7 @@ class EvalConfig:
     def robot(self) -> RobotConfig:
         """The simulated robot's options (before the maze's walls are added)."""
         return self.solver.robot(damage_model=self.damage_model, reflex_tilt=self.reflex_tilt,
-                                 reflex_release=self.reflex_release, reflex_rate=self.reflex_rate)
+                                 reflex_release=self.reflex_release)
 
     def to_dict(self) -> dict:
         """The stored layout (`config.config_dict`: inlined settings among the others)."""
@@ -164,7 +164,7 @@ class EvalConfig:
         data = dict(data)
         for key, neutral in RETIRED.items():
             if key in data and data.pop(key) != neutral:
-                raise ConfigError(f"setting {key!r} belongs to a variant that left hte-jax (docs/levers.md)")
+                raise ConfigError(f"setting {key!r} belongs to a lever that left hte-jax (docs/levers.md)")
         return config_from_dict(cls, data)
 
 

@@ -209,7 +209,7 @@ class MujocoExecutor:
         asked = np.zeros((steps, table.shape[1]))  # the gait's moves on the steps it ran, as in `rollout`
         for k in range(steps):
             if self.config.reflex_tilt > 0.0:  # the tilt reflex, as `rollout` runs it
-                braced = reflex_braced(braced, np.False_, data.qpos, data.qvel, self.config)
+                braced = reflex_braced(braced, np.False_, data.qpos, self.config)
             row = self.neutral[k % SAMPLES_PER_PERIOD] if braced else table[k % SAMPLES_PER_PERIOD]
             if not braced:
                 asked[k] = gait_moves[k % SAMPLES_PER_PERIOD]

@@ -32,18 +32,13 @@ class Kernel:
 
     def __call__(self, a: jax.Array, b: jax.Array) -> jax.Array:
         """(A, D), (B, D) -> (A, B) covariances."""
-        return covariance(self.kind, self.length_scale, self.variance, a, b)
-
-
-def covariance(kind: str, length_scale, variance, a: jax.Array, b: jax.Array) -> jax.Array:
-    """(A, D), (B, D) -> (A, B) covariances; length_scale and variance may be traced (`gp_fit.py`)."""
-    diff = a[:, None, :] - b[None, :, :]
-    r2 = jnp.sum(diff * diff, axis=-1) / length_scale**2
-    if kind == "squared_exponential":
-        return variance * jnp.exp(-0.5 * r2)
-    r = jnp.sqrt(jnp.maximum(r2, 1e-30)) * (r2 > 0)
-    s5r = jnp.sqrt(5.0) * r
-    return variance * (1.0 + s5r + 5.0 * r2 / 3.0) * jnp.exp(-s5r)
+        diff = a[:, None, :] - b[None, :, :]
+        r2 = jnp.sum(diff * diff, axis=-1) / self.length_scale**2
+        if self.kind == "squared_exponential":
+            return self.variance * jnp.exp(-0.5 * r2)
+        r = jnp.sqrt(jnp.maximum(r2, 1e-30)) * (r2 > 0)
+        s5r = jnp.sqrt(5.0) * r
+        return self.variance * (1.0 + s5r + 5.0 * r2 / 3.0) * jnp.exp(-s5r)
 
 
 # The two GPs of the paper (`docs/original_code.md` §7.1, §7.3).

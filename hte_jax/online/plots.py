@@ -76,18 +76,6 @@ def plot_prediction_error(path, curves: dict[str, np.ndarray]) -> None:
     save_figure(fig, path)
 
 
-def plot_actions(path, records: list[dict], max_actions: int) -> None:
-    """Box plot of the actions to reach the goal per variant (failures count as the cap)."""
-    variants = list(dict.fromkeys(r["variant"] for r in records))
-    data = [[r["actions"] for r in records if r["variant"] == v] for v in variants]
-    fig, ax = plt.subplots(figsize=(1.4 * len(variants) + 2, 3.5))
-    ax.boxplot(data, whis=(0, 100))
-    ax.set_xticks(range(1, len(variants) + 1), variants)
-    ax.axhline(max_actions, color="tab:red", ls=":", lw=1)
-    ax.set_ylabel("actions to reach the goal")
-    save_figure(fig, path)
-
-
 def plot_protocol_box(path, statistics: dict, max_actions: int, paper: dict | None = None) -> None:
     """The paper's Fig. 6: per variant, a box of its replication medians with the nearest-data-point
     quartiles (whiskers: the extreme values), and the paper's quartiles as markers."""

@@ -75,22 +75,6 @@ def predict(model: GPData, actions: ActionSet, kernel: Kernel = RTE_KERNEL) -> t
     return posterior(kernel, model, actions.inputs, actions.prior)
 
 
-@jax.jit
-def replayed_models(actions: ActionSet, executed: jax.Array, displacements: jax.Array) -> GPData:
-    """The RTE GPs (B, L) of B episodes on one repertoire that executed `executed` (B, L) (-1: none) and
-    measured `displacements` (B, L, 3) (`History.action`, `.observed`); non-finite ones are left out."""
-    executed, displacements = jnp.asarray(executed), jnp.asarray(displacements, jnp.float32)
-    mask = (executed >= 0) & jnp.all(jnp.isfinite(displacements), axis=-1)
-    index = jnp.maximum(executed, 0)
-
-    def filled(values):
-        return jnp.where(mask[..., None], values, 0.0).astype(jnp.float32)
-
-    return GPData(inputs=filled(actions.inputs[index]),
-                  targets=filled(outcome(jnp.where(mask[..., None], displacements, 0.0))),
-                  prior=filled(actions.prior[index]), mask=mask, count=mask.sum(axis=-1).astype(jnp.int32))
-
-
 @struct.dataclass
 class Skills:
     """The A actions an episode batch plans with: actions ActionSet (A,) or (K, A) for K repertoires, genotypes

@@ -12,7 +12,7 @@ import jax
 from flax import struct
 
 from hte_jax.qd.repertoire import Evaluation, Insertion, Repertoire
-from hte_jax.qd.selection import selection_from_config
+from hte_jax.qd.selection import UniformSelection
 from hte_jax.qd.variation import SbxPolynomial
 
 
@@ -54,6 +54,5 @@ class VariationEmitter(Emitter):
 
 
 def config_emitter(config, container) -> VariationEmitter:
-    """The emitter `MapElitesConfig` describes: its selection, SBX crossover and polynomial mutation."""
-    return VariationEmitter(selection_from_config(config.parents, container), SbxPolynomial.from_config(config),
-                            config.batch_size)
+    """The emitter `MapElitesConfig` describes: uniform selection, SBX crossover and polynomial mutation."""
+    return VariationEmitter(UniformSelection(), SbxPolynomial.from_config(config), config.batch_size)

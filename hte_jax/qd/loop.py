@@ -16,13 +16,12 @@ from jax.sharding import Mesh
 from tqdm.auto import tqdm
 
 from hte_jax import sharding
-from hte_jax.config import config_dict, inline
+from hte_jax.config import config_dict
 from hte_jax.errors import ConfigError, check_fields, integer, number, require_int
 from hte_jax.qd import io
 from hte_jax.qd.emitters import Emitter, config_emitter
 from hte_jax.qd.metrics import MetricsLog, RepertoireMetrics, repertoire_metrics
 from hte_jax.qd.repertoire import Evaluation, Repertoire
-from hte_jax.qd.selection import SELECTIONS, SelectionConfig
 from hte_jax.qd.task_spec import TaskSpec, container_metadata
 
 # evaluate(key, genotypes (B, G)) -> Evaluation with B rows; must be jittable.
@@ -41,7 +40,6 @@ class MapElitesConfig:
     crossover_rate: float = number(0.0, 0.0, 1.0)  # share of offspring made by SBX crossover
     eta_c: float = number(10.0, 0.0)
     qd_offset: float = number(0.0)  # fitness lower bound of the QD score
-    parents: SelectionConfig = inline(SelectionConfig())
 
     def __post_init__(self):
         check_fields(self)
@@ -171,11 +169,8 @@ class MapElites(OnMesh):
         return repertoire_metrics(state.repertoire, self.config.qd_offset)
 
     def checkpoint_metadata(self) -> dict:
-        """What a resumed checkpoint must match (the config without other selections' fields, `SELECTIONS`)."""
-        read = SELECTIONS[self.config.parents.selection][1]
-        unread = {name for _, fields in SELECTIONS.values() for name in fields} - set(read)
-        config = {key: value for key, value in config_dict(self.config).items() if key not in unread}
-        metadata = {"container": container_metadata(self.container), "config": config,
+        """What a resumed checkpoint must match."""
+        metadata = {"container": container_metadata(self.container), "config": config_dict(self.config),
                     "genotype_dim": self.genotype_dim}
         if self.emitter is not None:
             metadata["emitter"] = repr(self.emitter)

@@ -67,15 +67,14 @@ class RobotConfig:
     damage_model: str = choice("raised", DAMAGE_MODELS)  # a damaged leg's pose, "raised" (the paper's) or "locked"
     reflex_tilt: float = number(0.0, 0.0, math.pi)  # rad; 0: no reflex (the paper's robot)
     reflex_release: float = number(0.0, 0.0)  # rad; 0: held until the segment ends
-    reflex_rate: float = number(0.0, 0.0)  # rad/s; > 0: fires only while the tilt also grows faster than this (a fall)
 
     def __post_init__(self):
         check_fields(self)
         ratio = self.control_dt / self.timestep
         if abs(ratio - round(ratio)) > 1e-6:
             raise ConfigError(f"control_dt={self.control_dt} must be a whole multiple of timestep={self.timestep}")
-        if (self.reflex_release or self.reflex_rate) and not self.reflex_tilt:
-            raise ConfigError("reflex_release and reflex_rate shape the tilt reflex: set reflex_tilt > 0 too")
+        if self.reflex_release and not self.reflex_tilt:
+            raise ConfigError("reflex_release shapes the tilt reflex: set reflex_tilt > 0 too")
         if self.reflex_release >= self.reflex_tilt > 0.0:
             raise ConfigError(f"reflex_release={self.reflex_release} must be below reflex_tilt={self.reflex_tilt}")
         for wall in self.walls:

@@ -132,26 +132,14 @@ def up_z(qpos):
     return 1.0 - 2.0 * (qpos[4] ** 2 + qpos[5] ** 2)
 
 
-def up_z_drop_rate(qpos, qvel):
-    """How fast `up_z` falls (1/s; > 0 while tilting further): the world z of omega x z_body, omega = qvel[3:6]
-    in the body frame; d(tilt)/dt = this / sin(tilt). Jax or NumPy."""
-    w, x, y, z = qpos[3], qpos[4], qpos[5], qpos[6]
-    r20, r21 = 2.0 * (x * z - w * y), 2.0 * (y * z + w * x)  # world z of the body's x and y axes
-    return r21 * qvel[3] - r20 * qvel[4]
-
-
-def reflex_braced(braced, fresh, qpos, qvel, config):
+def reflex_braced(braced, fresh, qpos, config):
     """Whether the tilt reflex (`RobotConfig.reflex_*`) holds the neutral pose after this step's check: `braced`
     whether it held it, `fresh` whether a controller segment starts now (it lets go). Jax or NumPy (np.bool_)."""
     cos_tilt = up_z(qpos)
     braced = braced & ~fresh
     if config.reflex_release > 0.0:  # back below the release angle: the gait resumes
         braced = braced & (cos_tilt < math.cos(config.reflex_release))
-    fires = cos_tilt < math.cos(config.reflex_tilt)
-    if config.reflex_rate > 0.0:  # only while tilting further faster than the rate: rate * sin(tilt) < drop
-        drop = up_z_drop_rate(qpos, qvel)
-        fires = fires & (drop > 0.0) & (drop * drop > config.reflex_rate**2 * (1.0 - cos_tilt * cos_tilt))
-    return braced | fires
+    return braced | (cos_tilt < math.cos(config.reflex_tilt))
 
 
 def check_state(qpos: jax.Array, qvel: jax.Array, limits: ValidityLimits) -> jax.Array:
@@ -200,7 +188,7 @@ def _rollout_one(robot: Robot, spec: RolloutSpec, template: mjx.Data, tables: ja
         gait = tables[step // segment_steps, row]
         gait_move = jnp.abs(gait - tables[step // segment_steps, (row - 1) % SAMPLES_PER_PERIOD])
         if config.reflex_tilt > 0.0:  # past the reflex tilt: the neutral pose (until the segment ends or release)
-            braced = reflex_braced(braced, step % segment_steps == 0, data.qpos, data.qvel, config)
+            braced = reflex_braced(braced, step % segment_steps == 0, data.qpos, config)
             gait = jnp.where(braced, neutral[row], gait)
             gait_move = jnp.where(braced, 0.0, gait_move)
         target = apply_damage(gait, damage, damaged_pose(config.damage_model))

@@ -11,7 +11,8 @@ from hte_jax.hbr.hierarchy import STEPS_PER_SKILL
 from hte_jax.online.action import SECONDS_PER_ACTION
 from hte_jax.online.recording import Replay
 from hte_jax.sim.robot import RobotConfig
-from hte_jax.viz.render import CAMERAS, Camera, label, open_renderer, render_frames, render_spec
+from hte_jax.viz.camera import CAMERAS, Camera
+from hte_jax.viz.render import label, open_renderer, render_frames, render_spec
 
 GOAL_RGBA = (0.1, 0.75, 0.25, 0.7)
 TRAIL_RGBA = (0.1, 0.3, 0.95, 1.0)

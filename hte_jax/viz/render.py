@@ -13,7 +13,7 @@ import numpy as np
 from hte_jax.errors import ConfigError, require_int
 from hte_jax.sim.robot import NUM_LEGS, RobotConfig, build_spec
 from hte_jax.viz import gl
-from hte_jax.viz.camera import CAMERAS, Camera  # noqa: F401 (re-exported)
+from hte_jax.viz.camera import Camera
 from hte_jax.viz.gl import RenderError  # noqa: F401 (re-exported)
 
 DAMAGED_RGBA = (0.85, 0.1, 0.1, 1.0)
