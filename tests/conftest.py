@@ -14,6 +14,8 @@ import gc
 import hashlib
 import os
 import shutil
+import subprocess
+import sys
 import tempfile
 
 import jax
@@ -42,7 +44,27 @@ XLA_DEFAULTS = {"xla_cpu_use_fusion_emitters": True, "xla_backend_optimization_l
 FAST_FLAGS = [f"--{name}={str(value).lower()}" for name, value in FAST_COMPILE.items()]
 DEFAULT_COMPILE = ("test_hbr_training.py", "test_flat.py", "test_episode.py", "test_interrupts.py",
                    "test_benchmarks_hbr.py")  # golden runs (test_benchmarks_hbr re-runs the tiny HBR's programs)
-os.environ["XLA_FLAGS"] = " ".join([*os.environ.get("XLA_FLAGS", "").split(), *FAST_FLAGS])
+
+
+def _fast_compile_works() -> bool:
+    """Whether this jax has the compile-options hook and its XLA knows the flags (an unknown flag
+    in XLA_FLAGS aborts every process): probed once per session in a subprocess, else the suite
+    compiles with XLA's defaults throughout."""
+    from jax._src import compiler
+
+    if not hasattr(compiler, "get_compile_options"):
+        return False
+    probe = "import jax, jax.numpy as jnp; jax.jit(lambda x: x + 1)(jnp.ones(2)).block_until_ready()"
+    env = {**os.environ, "XLA_FLAGS": " ".join([*os.environ.get("XLA_FLAGS", "").split(), *FAST_FLAGS]),
+           "JAX_PLATFORMS": "cpu"}
+    return subprocess.run([sys.executable, "-c", probe], env=env, capture_output=True).returncode == 0
+
+
+# The controller process probes; xdist workers inherit the answer through the environment.
+if os.environ.setdefault("HTE_JAX_TEST_FAST_COMPILE", "1" if _fast_compile_works() else "0") == "1":
+    os.environ["XLA_FLAGS"] = " ".join([*os.environ.get("XLA_FLAGS", "").split(), *FAST_FLAGS])
+else:
+    FAST_COMPILE = XLA_DEFAULTS = {}
 _compile_with = [FAST_COMPILE]  # what `_compile_options` adds: the running module's choice
 
 
@@ -82,7 +104,8 @@ def _compile_mode(request):
 def pytest_configure(config):
     from jax._src import compiler
 
-    compiler.get_compile_options = _with_compile_options(compiler.get_compile_options)
+    if FAST_COMPILE:
+        compiler.get_compile_options = _with_compile_options(compiler.get_compile_options)
 
     jax.config.update("jax_compilation_cache_dir", _CACHE)
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
