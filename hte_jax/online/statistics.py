@@ -66,11 +66,8 @@ def pairwise_tests(samples: dict[str, np.ndarray]) -> list[dict]:
         # Identical constant samples give p = nan on some scipy versions: no evidence of a difference.
         raw.append((float(test.statistic), float(test.pvalue) if np.isfinite(test.pvalue) else 1.0))
     corrected = bonferroni([p for _, p in raw]) if raw else np.array([])
-    return [
-        {"a": a, "b": b, "u": u, "p": p, "p_bonferroni": float(c), "median_a": float(np.median(samples[a])),
-         "median_b": float(np.median(samples[b]))}
-        for (a, b), (u, p), c in zip(pairs, raw, corrected)
-    ]
+    return [{"a": a, "b": b, "u": u, "p": p, "p_bonferroni": float(c), "median_a": float(np.median(samples[a])),
+             "median_b": float(np.median(samples[b]))} for (a, b), (u, p), c in zip(pairs, raw, corrected)]
 
 
 def protocol_statistics(records: list[dict]) -> dict:
@@ -81,14 +78,10 @@ def protocol_statistics(records: list[dict]) -> dict:
     for variant, values in medians.items():
         rows = [r for r in records if r["variant"] == variant]
         failures = sum(not r["reached"] for r in rows)
-        variants[variant] = {
-            "replications": int(values.size),
-            "episodes": len(rows),
-            **{f"p{q}": nearest_percentile(values, q) for q in QUARTILES},
-            "failures": failures,
-            "failure_percent": 100.0 * failures / len(rows),
-            "flipped": sum(r.get("broken", False) for r in rows),
-        }
+        variants[variant] = {"replications": int(values.size), "episodes": len(rows),
+                             **{f"p{q}": nearest_percentile(values, q) for q in QUARTILES}, "failures": failures,
+                             "failure_percent": 100.0 * failures / len(rows),
+                             "flipped": sum(r.get("broken", False) for r in rows)}
     return {"variants": variants, "tests": pairwise_tests(medians), "medians": {k: v.tolist() for k, v in medians.items()}}
 
 
