@@ -240,9 +240,8 @@ class RunTimings:
 
 def pad_episodes(episodes: Episodes, size: int) -> Episodes:
     """The batch grown to `size` rows with copies of its last episode marked ended (`broken`)."""
-    batch = episodes.taken.shape[0]
     padded = sharding.pad_rows(episodes, size)
-    return padded.replace(broken=padded.broken | (jnp.arange(size) >= batch))
+    return padded.replace(broken=padded.broken | (jnp.arange(size) >= episodes.taken.shape[0]))
 
 
 @functools.lru_cache(maxsize=32)

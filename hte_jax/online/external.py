@@ -64,9 +64,7 @@ class ExecutorRobot:
         return jnp.asarray(self.executor.pose(), jnp.float32)[None]
 
     def staged(self, fn):
-        if fn not in self._jitted:
-            self._jitted[fn] = jax.jit(fn)
-        return self._jitted[fn]
+        return self._jitted.setdefault(fn, jax.jit(fn))
 
     def steps(self, step, carry, xs):
         records = []
