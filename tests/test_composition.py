@@ -71,7 +71,7 @@ def synthetic():
     patterns = np.array([5, 9, 5, -1, 9, 5, 9, 5, 5, 9, 5, -1])
     steps = rng.uniform(0.3, 0.7, (patterns.size, 3)).astype(np.float32)
     spread = rng.uniform(0.0, 0.1, patterns.size).astype(np.float32)
-    spread[[7, 9]] = np.inf  # no valid measured step: the table leaves them out of every plan
+    spread[[4, 8]] = np.inf  # no valid measured step: left out of every plan (they are the optima otherwise)
     model = StepModel(steps=jnp.asarray(steps), spread=jnp.asarray(spread))
     return patterns, steps, spread, pattern_table(patterns, model)
 
