@@ -217,10 +217,11 @@ def train_hbr(config: HBRConfig, out_dir: str | Path, *, resume_run: bool = Fals
                            progress=progress, on_block=hook, description=layer, write=writer)
         metrics = jax.device_get(algo.metrics(state))
         lower[layer] = state.repertoire
-        summary["layers"][layer] = {"evaluations": algo.evaluations(state), "filled": int(metrics.filled),
-                                    "capacity": state.repertoire.capacity, "mean_fitness": float(metrics.mean_fitness),
-                                    "max_fitness": float(metrics.max_fitness), "qd_score": float(metrics.qd_score),
-                                    "wall_time_s": time.perf_counter() - began}
+        summary["layers"][layer] = {
+            "evaluations": algo.evaluations(state), "filled": int(metrics.filled),
+            "capacity": state.repertoire.capacity, "mean_fitness": float(metrics.mean_fitness),
+            "max_fitness": float(metrics.max_fitness), "qd_score": float(metrics.qd_score),
+            "wall_time_s": time.perf_counter() - began}
     hbr = HBR.build(lower["bottom"], lower["middle"], lower["top"], config.middle_task, top_task=config.top_task)
     if config.step_starts:
         began = time.perf_counter()
@@ -271,12 +272,13 @@ def train_spare(hbr: HBR, base: HBRConfig, out_dir: str | Path, *, threshold: fl
     filled = np.asarray(spare.filled)
     fraction = np.asarray(spare.extras["contact_fraction"])[filled]
     own = np.asarray(hbr.middle.extras["contact_fraction"])[np.asarray(hbr.middle.filled)]
-    summary = {"threshold": threshold, "l": l, "evaluations": algo.evaluations(state), "elites": int(filled.sum()),
-               "patterns": int(np.unique(np.asarray(pattern_code(spare.descriptors[:, PRIMARY:]))[filled]).size),
-               "lifting_each_leg": {"spare": (fraction < threshold).sum(axis=0).tolist(),
-                                    "hbr": (own < threshold).sum(axis=0).tolist()},
-               "wall_time_s": {"training": trained, "steps": time.perf_counter() - began - trained},
-               "devices": [str(d) for d in jax.devices()]}
+    summary = {
+        "threshold": threshold, "l": l, "evaluations": algo.evaluations(state), "elites": int(filled.sum()),
+        "patterns": int(np.unique(np.asarray(pattern_code(spare.descriptors[:, PRIMARY:]))[filled]).size),
+        "lifting_each_leg": {"spare": (fraction < threshold).sum(axis=0).tolist(),
+                             "hbr": (own < threshold).sum(axis=0).tolist()},
+        "wall_time_s": {"training": trained, "steps": time.perf_counter() - began - trained},
+        "devices": [str(d) for d in jax.devices()]}
     save_spare(out / SPARE_FILE, hbr, spare, steps, l, metadata={"training": summary})
     io.write_json(out / "summary.json", summary)
     return summary

@@ -49,9 +49,11 @@ SEED_FILES = {"hbr": "hbr.npz", "2d": "flat2d.npz", "8d": "flat8d.npz", "aprol":
 # Named protocols: the EvalConfig values each fixes. paper: the paper's Fig. 6 variants, in its order,
 # on the paper's robot; hte-jax: our HTE against the baselines, on the robot with the tilt reflex that
 # lets go (docs/results.md, levers 21 and 22).
-PROTOCOLS = {"paper": {"variants": "perfect-hte,hte,2d-rte,8d-rte,aprol,random-hte", "damages": "all"},
-             "hte-jax": {"variants": "perfect-hte,hte-spare,perfect-spare,hte,rte,2d-rte", "damages": "all",
-                         "reflex_tilt": 0.3, "reflex_release": 0.15}}
+PROTOCOLS = {
+    "paper": {"variants": "perfect-hte,hte,2d-rte,8d-rte,aprol,random-hte", "damages": "all"},
+    "hte-jax": {"variants": "perfect-hte,hte-spare,perfect-spare,hte,rte,2d-rte", "damages": "all",
+                "reflex_tilt": 0.3, "reflex_release": 0.15},
+}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -174,8 +176,11 @@ def protocol_overrides(name: str) -> dict:
 
 # cpu: 7 episodes per variant, 154 s on 2 cores (benchmarks/cpu_commands.py); gpu: the paper's 30
 # replicates with RTE's original planner (1000 iterations x 4 trees); paper: HTE's original 6000 iterations x 32 trees.
-PRESETS = {"cpu": EvalConfig(), "gpu": EvalConfig(replicates=30, planner=PlannerConfig(iterations=1000, roots=4)),
-           "paper": EvalConfig(replicates=30, planner=PlannerConfig(iterations=6000, roots=32))}
+PRESETS = {
+    "cpu": EvalConfig(),
+    "gpu": EvalConfig(replicates=30, planner=PlannerConfig(iterations=1000, roots=4)),
+    "paper": EvalConfig(replicates=30, planner=PlannerConfig(iterations=6000, roots=32)),
+}
 
 
 def preset(name: str) -> EvalConfig:

@@ -18,8 +18,13 @@ from scipy import stats as scipy_stats
 
 QUARTILES = (25, 50, 75)
 # The paper's Fig. 6: 25th / 50th / 75th percentiles of the replication medians (actions).
-PAPER_QUARTILES = {"perfect-hte": (16, 19, 24), "hte": (19, 24, 32), "2d-rte": (22, 28, 40), "8d-rte": (26, 32, 39),
-                   "aprol": (34, 39, 48)}
+PAPER_QUARTILES = {
+    "perfect-hte": (16, 19, 24),
+    "hte": (19, 24, 32),
+    "2d-rte": (22, 28, 40),
+    "8d-rte": (26, 32, 39),
+    "aprol": (34, 39, 48),
+}
 PAPER_FAILURE_REDUCTION = ("hte", "2d-rte", 57.0)  # HTE has 57 % fewer failures than 2D-RTE (Fig. 7)
 
 
