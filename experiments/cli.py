@@ -162,9 +162,8 @@ class Interruption:
 
 
 @contextlib.contextmanager
-def interruptible(
-    saved: str | Callable[[], str | None] | None = None, resume: str | None = None
-) -> Iterator[Interruption]:
+def interruptible(saved: str | Callable[[], str | None] | None = None,
+                  resume: str | None = None) -> Iterator[Interruption]:
     """Within the block, Ctrl-C prints `Interruption.line()` on stderr and ends the process with
     `EXIT_INTERRUPTED` at once. A Python signal handler only runs between bytecodes of the main thread,
     so the signal wakes a watcher thread (`signal.set_wakeup_fd`) that calls `os._exit` even while the

@@ -24,8 +24,7 @@ def describe(path: str) -> str:
     lines = [f"{path}: {header['format']} version {header['version']}"]
     if header.get("metadata"):
         lines.append("metadata: " + json.dumps(header["metadata"], sort_keys=True))
-    for name, array in sorted(arrays.items()):
-        lines.append(f"  {name:40} {str(array.dtype):8} {tuple(array.shape)}")
+    lines += [f"  {name:40} {str(array.dtype):8} {tuple(array.shape)}" for name, array in sorted(arrays.items())]
     filled = next((a for n, a in arrays.items() if n.endswith("filled")), None)
     fitness = next((a for n, a in arrays.items() if n.endswith("fitnesses")), None)
     if filled is not None and fitness is not None:

@@ -126,8 +126,7 @@ def main(argv=None) -> int:
         write_json(out / "modulation.json", {
             "summary": summary, "composition": None if args.data is not None else args.composition, "sample": sample,
             "step_model": hbr.step_model is not None, "radius_m": args.radius,
-            "per_skill": {"slot": mod.slots.tolist(), **{k: np.asarray(v).tolist() for k, v in counts.items()}},
-        })
+            "per_skill": {"slot": mod.slots.tolist(), **{k: np.asarray(v).tolist() for k, v in counts.items()}}})
         if args.data is None:
             mod.save(out / "modulation.npz")
         print(json.dumps({k: v for k, v in summary.items() if k != "skills_showing_each_pattern"}, indent=2))

@@ -149,25 +149,21 @@ def skills_video(args) -> Path:
     config = RobotConfig(damage_model=args.damage_model)
     damage = parse_damage(args.damage)
     labels = held = None
+    hbr, genotypes = _elites(args)
     if args.command == "patterns":
         patterns = skills.parse_patterns(args.patterns)
-        hbr, genotypes = _elites(args)
         skill = len(genotypes) // 2 if args.skill is None else args.skill
         picked = np.repeat(skills.chosen(1, len(genotypes), [skill]), patterns.size)
         labels = [skills.pattern_label(int(p)) for p in patterns]
         held = jnp.asarray(np.repeat(patterns[:, None], 3, axis=1))
     else:
-        hbr, genotypes = _elites(args)
         picked = skills.chosen(args.count, len(genotypes), _skill_numbers(args.skills))
     gl.require()  # every input is checked: OpenGL is needed from here on
     robot, every = load_robot(config), CONTROL_HZ // args.fps
     batch = jnp.broadcast_to(jnp.asarray(damage), (picked.size, damage.size))
     clips = jnp.asarray(genotypes[picked])
-    if hbr is None:
-        states = skills.flat_states(robot, clips, batch, every)
-    else:
-        states = skills.hbr_states(robot, hbr, clips, batch, every, held)
-    states = np.asarray(states)
+    states = np.asarray(skills.flat_states(robot, clips, batch, every) if hbr is None
+                        else skills.hbr_states(robot, hbr, clips, batch, every, held))
     camera = Camera(args.camera, distance=1.2 if args.camera == "track" else 2.0)
     with tqdm(total=states.shape[0] * states.shape[1], desc="render", unit="frame", disable=args.no_progress) as bar:
         frames = skills.render_grid(states, damage, config, camera, args.width, args.height, args.columns, labels, bar)

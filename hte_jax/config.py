@@ -84,10 +84,8 @@ def config_from_dict(cls, data: dict, base=None):
             continue  # kept as it is
         try:
             values[field.name] = config_from_dict(kind, inner, inner_base)
-        except ConfigError as error:
-            if _is_inline(field):
-                raise
-            raise ConfigError(f"{field.name}.{error}") from None
+        except ConfigError as error:  # an inlined setting's error names it alone
+            raise (error if _is_inline(field) else ConfigError(f"{field.name}.{error}")) from None
     values.update(data)
     return cls(**values) if base is None else dataclasses.replace(base, **values)
 
@@ -151,8 +149,6 @@ def _rebuilt(config, changes: dict):
             try:
                 value = _rebuilt(current, value)
             except ConfigError as error:
-                if _is_inline(field):
-                    raise
-                raise ConfigError(f"{field.name}.{error}") from None
+                raise (error if _is_inline(field) else ConfigError(f"{field.name}.{error}")) from None
         values[field.name] = value
     return dataclasses.replace(config, **values)

@@ -71,8 +71,9 @@ def synthetic():
     patterns = np.array([5, 9, 5, -1, 9, 5, 9, 5, 5, 9, 5, -1])
     steps = rng.uniform(0.3, 0.7, (patterns.size, 3)).astype(np.float32)
     spread = rng.uniform(0.0, 0.1, patterns.size).astype(np.float32)
+    spread[[4, 8]] = np.inf  # no valid measured step: left out of every plan (they are the optima otherwise)
     model = StepModel(steps=jnp.asarray(steps), spread=jnp.asarray(spread))
-    return patterns, steps, spread, pattern_table(patterns, model, spread_weight=0.5)
+    return patterns, steps, spread, pattern_table(patterns, model)
 
 
 @pytest.mark.parametrize("remaining", [1, 2, 3])
@@ -82,7 +83,8 @@ def test_plan_is_the_brute_force_optimum(synthetic, remaining):
     target = np.array([0.75, 0.1, -0.3], np.float32)
     for pattern in (5, 9):
         members = np.flatnonzero(patterns == pattern)
-        cost, first = _brute_force(steps[members].astype(np.float64), 0.5 * spread[members], here, target, remaining)
+        excluded = np.where(np.isfinite(spread[members]), 0.0, np.inf)
+        cost, first = _brute_force(steps[members].astype(np.float64), excluded, here, target, remaining)
         index, planned = plan_step(table, TASK, jnp.asarray(here), jnp.asarray(target), jnp.int32(pattern), remaining,
                                    beam=(8, 8), yaw_weight=YAW_WEIGHT)
         assert int(index) == members[first]

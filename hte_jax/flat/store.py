@@ -57,9 +57,7 @@ def _prefix(index: int) -> str:
 
 def save_flat(path: str | Path, flat: FlatRepertoires, metadata: dict | None = None) -> None:
     """Atomically write the repertoires (compressed) with their task, damages and JSON-able `metadata`."""
-    arrays = {}
-    for index in range(len(flat)):
-        arrays.update(elite_arrays(flat[index], _prefix(index)))
+    arrays = {key: value for r in range(len(flat)) for key, value in elite_arrays(flat[r], _prefix(r)).items()}
     header = {"kind": KIND, "kind_version": KIND_VERSION, "task": dataclasses.asdict(flat.task),
               "damages": list(flat.damages), **(metadata or {})}
     save_checkpoint(path, arrays, header, compress=True)

@@ -35,8 +35,8 @@ class StepModel:
 
 @struct.dataclass
 class PatternTable:
-    """Middle elites grouped by pattern: index (64, M) int32 (-1 padding; M: the largest group), steps
-    (64, M, 3) their predicted normalised steps, penalty (64, M) per planned use (+inf on padding)."""
+    """Middle elites grouped by pattern: index (64, M) int32 (-1 padding; M: the largest group), steps (64, M, 3)
+    their predicted normalised steps, penalty (64, M): 0, or +inf on padding and on elites of infinite spread."""
 
     index: jax.Array
     steps: jax.Array
@@ -54,21 +54,21 @@ def hbr_steps(hbr) -> StepModel:
     return hbr.step_model if hbr.step_model is not None else descriptor_steps(hbr.middle.descriptors)
 
 
-def member_table(members: np.ndarray, model: StepModel, spread_weight: float = 0.0) -> PatternTable:
+def member_table(members: np.ndarray, model: StepModel) -> PatternTable:
     """The table whose row p holds the elites e of (64, Cm) bool `members[p, e]` (host-side: M is static)."""
     index = np.full((NUM_PATTERNS, max(int(members.sum(axis=1).max()), 1)), -1, np.int32)
     for p in range(NUM_PATTERNS):
         rows = np.flatnonzero(members[p])
         index[p, : rows.size] = rows
     rows = jnp.asarray(np.maximum(index, 0))
-    penalty = spread_weight * jnp.asarray(model.spread)[rows]
-    penalty = jnp.where(jnp.asarray(index >= 0) & jnp.isfinite(penalty), penalty, jnp.inf)
-    return PatternTable(index=jnp.asarray(index), steps=jnp.asarray(model.steps)[rows], penalty=penalty)
+    usable = jnp.asarray(index >= 0) & jnp.isfinite(jnp.asarray(model.spread)[rows])
+    return PatternTable(index=jnp.asarray(index), steps=jnp.asarray(model.steps)[rows],
+                        penalty=jnp.where(usable, 0.0, jnp.inf))
 
 
-def pattern_table(patterns: np.ndarray, model: StepModel, spread_weight: float = 0.0) -> PatternTable:
+def pattern_table(patterns: np.ndarray, model: StepModel) -> PatternTable:
     """Group the elites of (Cm,) `patterns` (-1 where empty) by pattern."""
-    return member_table(np.asarray(patterns)[None, :] == np.arange(NUM_PATTERNS)[:, None], model, spread_weight)
+    return member_table(np.asarray(patterns)[None, :] == np.arange(NUM_PATTERNS)[:, None], model)
 
 
 def planning_table(hbr) -> PatternTable:

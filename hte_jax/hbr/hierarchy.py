@@ -155,8 +155,7 @@ def execute_skill(robot: Robot, hbr: HBR, genotypes: jax.Array, start: SimState,
     (`composition`). limits: when a step is invalid (default: training's)."""
     batch = genotypes.shape[0]
     damage = jnp.zeros((batch, NUM_LEGS), bool) if damage is None else jnp.broadcast_to(damage, (batch, NUM_LEGS))
-    if patterns is None:
-        patterns = jnp.full((batch, STEPS_PER_SKILL), ANY_PATTERN, jnp.int32)
+    patterns = jnp.full((batch, STEPS_PER_SKILL), ANY_PATTERN, jnp.int32) if patterns is None else patterns
     origin = state_pose(start)
     targets = compose_pose(origin[:, None, :], skill_waypoints(hbr.middle_task, genotypes))  # (B, 3, 3)
     goal = None if table is None else compose_pose(origin, ends)

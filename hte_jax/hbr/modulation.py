@@ -53,9 +53,7 @@ class Modulation:
 
     def reaches(self, radius: float | None = None) -> np.ndarray:
         """(N, P) the robot ended in the skill's own cell (radius None) or within `radius` m of its end."""
-        if radius is None:
-            return self.valid & (self.final_cell == self.slots[:, None])
-        return self.valid & (self.error <= radius)
+        return self.valid & ((self.final_cell == self.slots[:, None]) if radius is None else (self.error <= radius))
 
     @property
     def error(self) -> np.ndarray:

@@ -47,9 +47,7 @@ def save_hbr(path: str | Path, hbr: HBR, top_task: TopTask | None = None, metada
     top_task: None writes `hbr.top_task`; a given one must equal it."""
     if top_task is not None and top_task != hbr.top_task:
         raise ConfigError(f"save_hbr: top_task {top_task} is not the HBR's {hbr.top_task}")
-    arrays = {}
-    for layer in LAYERS:
-        arrays.update(elite_arrays(getattr(hbr, layer), f"{layer}_"))
+    arrays = {key: value for layer in LAYERS for key, value in elite_arrays(getattr(hbr, layer), f"{layer}_").items()}
     arrays.update(_step_arrays(hbr.middle, hbr.step_model, "middle_"))
     header = {"kind": KIND, "kind_version": KIND_VERSION,
               "capacity": {layer: getattr(hbr, layer).capacity for layer in LAYERS},

@@ -12,11 +12,9 @@ from hte_jax.online.rules import (AnyPattern, GpUcb, Oracle, PatternRule, Random
 from hte_jax.online.skills import Skills, flat_skills, hbr_skills
 from hte_jax.online.variants import VARIANTS, Variant, add_variant, variant
 
-__all__ = [
-    "HTE_KERNEL", "PAPER_MAZE", "PRESETS", "PROTOCOLS", "RTE_KERNEL", "VARIANTS", "AdaptationConfig", "AnyPattern",
-    "Episodes", "EvalConfig", "Executor", "GPData", "GpUcb", "Kernel", "Maze", "MujocoExecutor", "Oracle",
-    "PatternRule", "PlannerConfig", "RandomPattern", "Seconds", "SensedLegs", "Skills", "StepContext",
-    "StepObservation", "Variant", "add_observation", "add_variant", "empty_gp", "flat_skills", "hbr_skills",
-    "load_maze", "load_skills", "posterior", "preset", "run_batch", "run_episode", "run_episodes", "start_episodes",
-    "summarise", "variant",
-]
+__all__ = ["HTE_KERNEL", "PAPER_MAZE", "PRESETS", "PROTOCOLS", "RTE_KERNEL", "VARIANTS", "AdaptationConfig",
+           "AnyPattern", "Episodes", "EvalConfig", "Executor", "GPData", "GpUcb", "Kernel", "Maze", "MujocoExecutor",
+           "Oracle", "PatternRule", "PlannerConfig", "RandomPattern", "Seconds", "SensedLegs", "Skills", "StepContext",
+           "StepObservation", "Variant", "add_observation", "add_variant", "empty_gp", "flat_skills", "hbr_skills",
+           "load_maze", "load_skills", "posterior", "preset", "run_batch", "run_episode", "run_episodes",
+           "start_episodes", "summarise", "variant"]

@@ -128,18 +128,15 @@ def choose_step(skills: Skills, rules: RuleBatch, here: jax.Array, target: jax.A
     """Before step `step` (0-2), robots at world poses `here` (B, 3) heading for `target` (B, 3), then `goal`
     (B, 3): each rule's pattern (B,) int32 (-1 unless `alive`), the middle elite (B,) and whether it has that
     pattern (B,) bool. taken: (B,) actions so far (GP-UCB's t = 1 + step + 3 taken). keys: (B, 2)."""
-    hbr = skills.hbr
-    task = hbr.middle_task
+    hbr, task = skills.hbr, skills.hbr.middle_task
     desired = task.normalise(relative_pose(here, target))
     context = StepContext(hbr=hbr, desired=desired, t=1 + step + STEPS_PER_SKILL * taken, keys=keys)
     pattern, spare = choose_patterns(rules, context)
     pattern = jnp.where(alive, pattern, ANY_PATTERN)
-    elite = None
-    if skills.table is not None:
-        elite = plan_batch(skills.table, task, here, goal, pattern, STEPS_PER_SKILL - step)
+    left = STEPS_PER_SKILL - step  # steps of the plan towards `goal`
+    elite = None if skills.table is None else plan_batch(skills.table, task, here, goal, pattern, left)
     if skills.spare is not None:
-        spared = plan_batch(skills.spare, task, here, goal, pattern, STEPS_PER_SKILL - step)
-        elite = jnp.where(spare, spared, elite)
+        elite = jnp.where(spare, plan_batch(skills.spare, task, here, goal, pattern, left), elite)
     index, found = step_elite(hbr, here, target, pattern, elite=elite)
     return pattern, index, found
 
@@ -193,10 +190,9 @@ def flat_action(robots, state: SimState | None, params: jax.Array) -> ActionOutc
     """Run flat controllers `params` (B, 36), each for 3 s, then 1 s neutral."""
     last, poses = robots.flat(state, params)
     batch = params.shape[0]
+    still = jnp.zeros((batch, STEPS_PER_SKILL, NUM_LEGS), jnp.float32)  # no contacts or leg travel recorded
     return ActionOutcome(
         state=last.state, valid=last.valid, invalid_reason=last.invalid_reason, poses=poses,
         displacement=last.displacement, patterns=jnp.full((batch, STEPS_PER_SKILL), ANY_PATTERN, jnp.int32),
-        middle_index=jnp.full((batch, STEPS_PER_SKILL), -1, jnp.int32),
-        errors=jnp.zeros((batch, STEPS_PER_SKILL, ERROR_DIM), jnp.float32),
-        contacts=jnp.zeros((batch, STEPS_PER_SKILL, NUM_LEGS), jnp.float32),
-        leg_travel=jnp.zeros((batch, STEPS_PER_SKILL, NUM_LEGS), jnp.float32), rules=None, qpos=last.qpos)
+        middle_index=jnp.full((batch, STEPS_PER_SKILL), -1, jnp.int32), contacts=still, leg_travel=still,
+        errors=jnp.zeros((batch, STEPS_PER_SKILL, ERROR_DIM), jnp.float32), rules=None, qpos=last.qpos)

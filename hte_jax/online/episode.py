@@ -240,9 +240,8 @@ class RunTimings:
 
 def pad_episodes(episodes: Episodes, size: int) -> Episodes:
     """The batch grown to `size` rows with copies of its last episode marked ended (`broken`)."""
-    batch = episodes.taken.shape[0]
     padded = sharding.pad_rows(episodes, size)
-    return padded.replace(broken=padded.broken | (jnp.arange(size) >= batch))
+    return padded.replace(broken=padded.broken | (jnp.arange(size) >= episodes.taken.shape[0]))
 
 
 @functools.lru_cache(maxsize=32)
@@ -282,13 +281,11 @@ def run_episodes(maze: Maze, config: AdaptationConfig, robot: Robot, skills: Ski
         if bool(episodes.done.all()):
             break
         tick = time.perf_counter()
-        decision = plan(skills, field, episodes)
-        jax.block_until_ready(decision)
+        decision = jax.block_until_ready(plan(skills, field, episodes))
         timings.plan.append(time.perf_counter() - tick)
         active = np.asarray(~episodes.done)[:batch]
         tick = time.perf_counter()
-        episodes, states = act(robot, skills, episodes, decision)
-        jax.block_until_ready(episodes)
+        episodes, states = jax.block_until_ready(act(robot, skills, episodes, decision))
         timings.act.append(time.perf_counter() - tick)
         if recorder is not None:
             recorder.add(states, active)

@@ -296,16 +296,8 @@ def run_batch(config: EvalConfig, path: str | None, variants: list[str], maze: M
         "variant": labels[row][0], "damage": labels[row][1], "replicate": labels[row][2], "seed": seed,
         "repertoire": info["path"], "hierarchical": skills.hierarchical, "damage_model": config.damage_model,
         "max_actions": config.max_actions, "maze": maze_to_dict(maze)}) for row in record]
-    return BatchResult(
-        seed=seed,
-        repertoire=info,
-        variants=[v for v, _, _ in labels],
-        damages=[d for _, d, _ in labels],
-        replicates=[r for _, _, r in labels],
-        episodes=episodes,
-        timings=timings,
-        replays=replays,
-    )
+    variants, damages, replicates = (list(column) for column in zip(*labels))
+    return BatchResult(seed, info, variants, damages, replicates, episodes, timings, replays)
 
 
 def episode_numbers(variants: list[str], earlier: dict[str, int]) -> list[int]:
@@ -325,25 +317,14 @@ def rows_to_record(variants: list[str], count: int, earlier: dict[str, int]) -> 
 
 def episode_records(result: BatchResult, max_actions: int) -> list[dict]:
     """One JSON-able record per episode: actions (the cap when failed), success and the prediction errors."""
-    ep = result.episodes
-    taken = np.asarray(ep.taken)
-    reached = np.asarray(ep.reached)
-    broken = np.asarray(ep.broken)
-    error = prediction_errors(ep)
-    records = []
-    for i, (variant, damage, replicate) in enumerate(zip(result.variants, result.damages, result.replicates)):
-        records.append({
-            "variant": variant,
-            "seed": result.seed,
-            "damage": damage,
-            "replicate": replicate,
-            "reached": bool(reached[i]),
-            "broken": bool(broken[i]),
-            "actions": int(taken[i]) if reached[i] else max_actions,
-            "actions_taken": int(taken[i]),
-            "prediction_error": [round(float(e), 4) for e in error[i, : taken[i]]],
-        })
-    return records
+    taken, reached, broken = (np.asarray(x) for x in (result.episodes.taken, result.episodes.reached,
+                                                      result.episodes.broken))
+    error = prediction_errors(result.episodes)
+    return [{"variant": variant, "seed": result.seed, "damage": damage, "replicate": replicate,
+             "reached": bool(reached[i]), "broken": bool(broken[i]),
+             "actions": int(taken[i]) if reached[i] else max_actions, "actions_taken": int(taken[i]),
+             "prediction_error": [round(float(e), 4) for e in error[i, : taken[i]]]}
+            for i, (variant, damage, replicate) in enumerate(zip(result.variants, result.damages, result.replicates))]
 
 
 def prediction_errors(episodes: Episodes) -> np.ndarray:
@@ -356,22 +337,15 @@ def summarise(records: list[dict], max_actions: int) -> dict:
     """Per variant and per (variant, damage): episodes, successes, and the 25/50/75th percentiles of actions."""
 
     def stats(rows):
-        actions = np.array([r["actions"] for r in rows])
-        return {
-            "episodes": len(rows),
-            "reached": int(sum(r["reached"] for r in rows)),
-            "failure_rate": float(np.mean([not r["reached"] for r in rows])),
-            "actions_p25": float(np.percentile(actions, 25, method="nearest")),
-            "actions_median": float(np.percentile(actions, 50, method="nearest")),
-            "actions_p75": float(np.percentile(actions, 75, method="nearest")),
-            "broken": int(sum(r["broken"] for r in rows)),
-        }
+        p25, median, p75 = np.percentile([r["actions"] for r in rows], [25, 50, 75], method="nearest")
+        return {"episodes": len(rows), "reached": int(sum(r["reached"] for r in rows)),
+                "failure_rate": float(np.mean([not r["reached"] for r in rows])), "actions_p25": float(p25),
+                "actions_median": float(median), "actions_p75": float(p75),
+                "broken": int(sum(r["broken"] for r in rows))}
 
     out = {"max_actions": max_actions, "variants": {}}
     for variant in dict.fromkeys(r["variant"] for r in records):
         rows = [r for r in records if r["variant"] == variant]
-        out["variants"][variant] = {
-            **stats(rows),
-            "damages": {d: stats([r for r in rows if r["damage"] == d]) for d in dict.fromkeys(r["damage"] for r in rows)},
-        }
+        damages = {d: stats([r for r in rows if r["damage"] == d]) for d in dict.fromkeys(r["damage"] for r in rows)}
+        out["variants"][variant] = {**stats(rows), "damages": damages}
     return out

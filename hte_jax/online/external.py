@@ -64,9 +64,7 @@ class ExecutorRobot:
         return jnp.asarray(self.executor.pose(), jnp.float32)[None]
 
     def staged(self, fn):
-        if fn not in self._jitted:
-            self._jitted[fn] = jax.jit(fn)
-        return self._jitted[fn]
+        return self._jitted.setdefault(fn, jax.jit(fn))
 
     def steps(self, step, carry, xs):
         records = []
@@ -121,9 +119,7 @@ def run_episode(maze: Maze, config: AdaptationConfig, skills: Skills, executor: 
     robot = ExecutorRobot(executor)
     episodes = start_episodes(config, skills, robot.pose(), damage[None], (chosen.rule,), np.zeros(1, np.int32), key)
     # Committed inputs, as in `episode.run_episodes` (jit keys its cache on committed-ness).
-    device = jax.devices()[0]
-    field = jax.device_put(distance_field(maze, config.grid), device)
-    skills, episodes = jax.device_put((skills, episodes), device)
+    field, skills, episodes = jax.device_put((distance_field(maze, config.grid), skills, episodes), jax.devices()[0])
     while not bool(episodes.done[0]):
         decision = plan_step(maze, config, skills, field, episodes)
         episodes = record_action(maze, config, skills, episodes, decision, execute(robot, skills, episodes, decision))

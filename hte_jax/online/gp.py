@@ -75,13 +75,10 @@ def add_observation(data: GPData, x: jax.Array, y: jax.Array, prior: jax.Array |
     """Add one observation x (D,), y (O,) with prior mean `prior` (O,) at x (default 0)."""
     slot = data.count % data.capacity
     prior = jnp.zeros_like(y) if prior is None else prior
-    return data.replace(
-        inputs=data.inputs.at[slot].set(x.astype(jnp.float32)),
-        targets=data.targets.at[slot].set(y.astype(jnp.float32)),
-        prior=data.prior.at[slot].set(prior.astype(jnp.float32)),
-        mask=data.mask.at[slot].set(True),
-        count=data.count + 1,
-    )
+    return data.replace(inputs=data.inputs.at[slot].set(x.astype(jnp.float32)),
+                        targets=data.targets.at[slot].set(y.astype(jnp.float32)),
+                        prior=data.prior.at[slot].set(prior.astype(jnp.float32)), mask=data.mask.at[slot].set(True),
+                        count=data.count + 1)
 
 
 def _factor_and_solve(gram: jax.Array, rhs: jax.Array) -> jax.Array:

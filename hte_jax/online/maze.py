@@ -139,8 +139,7 @@ def segment_box_distance(a: jax.Array, b: jax.Array, boxes: np.ndarray) -> jax.A
     batch = a.shape[:-1]
     to_corners = _point_segment_distance(jnp.broadcast_to(flat, (*batch, *flat.shape)), a, b)
     to_corners = to_corners.reshape(*batch, boxes.shape[0], 4).min(axis=-1)
-    distance = jnp.minimum(ends, to_corners)
-    return jnp.where(_segment_crosses_box(a, b, boxes), 0.0, distance)
+    return jnp.where(_segment_crosses_box(a, b, boxes), 0.0, jnp.minimum(ends, to_corners))
 
 
 def point_collides(maze: Maze, points: jax.Array, radius: float | None = None) -> jax.Array:

@@ -136,8 +136,7 @@ def evaluate(maze: Maze, config: PlannerConfig, world: World, key: jax.Array, tr
     actions = _sample_actions(key, world, steps)
 
     def move(pose, action):
-        nxt = compose_pose(pose, world.displacement[action])
-        return nxt, pose
+        return compose_pose(pose, world.displacement[action]), pose
 
     _, before = jax.lax.scan(move, state, actions, unroll=True)  # (S, 3) the pose before each step
     _, reward, terminal = transition(maze, config, world, before, actions)
@@ -223,8 +222,7 @@ def backup(config: PlannerConfig, tree: Tree, path: Path, value: jax.Array) -> T
         g = jnp.where(below_root[k], rewards[k] + config.gamma * g, g)
         return g, g
 
-    _, returns = jax.lax.scan(back, value, jnp.arange(depth_limit, -1, -1), unroll=True)
-    returns = returns[::-1]
+    returns = jax.lax.scan(back, value, jnp.arange(depth_limit, -1, -1), unroll=True)[1][::-1]
     target = jnp.where(below_root, path.nodes, capacity)
     return tree.replace(visits=tree.visits.at[target].add(1, mode="drop").at[0].add(1),
                         value=tree.value.at[target].add(returns, mode="drop"))
@@ -247,8 +245,7 @@ def search(maze: Maze, grid: GridSpec, config: PlannerConfig, world: World, key:
         key, key_expand, key_rollout = jax.random.split(key, 3)
         return simulate(maze, grid, config, world, key_expand, key_rollout, tree), key
 
-    tree, _ = jax.lax.fori_loop(0, config.iterations, body, (empty_tree(config, state), key))
-    return tree
+    return jax.lax.fori_loop(0, config.iterations, body, (empty_tree(config, state), key))[0]
 
 @struct.dataclass
 class PlanResult:

@@ -48,8 +48,7 @@ def plot_episodes(path, maze: Maze, episodes: Episodes, indices, labels, title: 
     if plan_of is not None:
         length = int(episodes.history.path_length[plan_of, 0])
         planned = np.asarray(episodes.history.path[plan_of, 0, :length])
-        ax.plot(planned[:, 0], planned[:, 1], "--", color="tab:red", lw=1.5, marker="x", ms=4,
-                label="first plan")
+        ax.plot(planned[:, 0], planned[:, 1], "--", color="tab:red", lw=1.5, marker="x", ms=4, label="first plan")
     ax.set_title(title)
     if len(indices) <= 12:
         ax.legend(fontsize=6, loc="lower left")
@@ -79,12 +78,9 @@ def plot_prediction_error(path, curves: dict[str, np.ndarray]) -> None:
 def plot_protocol_box(path, statistics: dict, max_actions: int, paper: dict | None = None) -> None:
     """The paper's Fig. 6: per variant, a box of its replication medians with the nearest-data-point
     quartiles (whiskers: the extreme values), and the paper's quartiles as markers."""
-    variants = list(statistics["variants"])
-    boxes = []
-    for name in variants:
-        v, values = statistics["variants"][name], np.asarray(statistics["medians"][name])
-        boxes.append({"label": name, "q1": v["p25"], "med": v["p50"], "q3": v["p75"],
-                      "whislo": float(values.min()), "whishi": float(values.max()), "fliers": []})
+    variants, medians = list(statistics["variants"]), statistics["medians"]
+    boxes = [{"label": name, "q1": v["p25"], "med": v["p50"], "q3": v["p75"], "whislo": float(np.min(medians[name])),
+              "whishi": float(np.max(medians[name])), "fliers": []} for name, v in statistics["variants"].items()]
     fig, ax = plt.subplots(figsize=(1.3 * len(variants) + 2, 4))
     ax.bxp(boxes, showfliers=False)
     for i, name in enumerate(variants, start=1):

@@ -103,8 +103,7 @@ def replay_path(run: str | Path, variant: str, episode: int) -> Path:
 
 
 def save_replay(path: str | Path, replay: Replay) -> None:
-    arrays = {name: getattr(replay, name) for name in ARRAYS}
-    save_checkpoint(path, arrays, {"kind": KIND, **replay.info}, compress=True)
+    save_checkpoint(path, {key: getattr(replay, key) for key in ARRAYS}, {"kind": KIND, **replay.info}, compress=True)
 
 
 def load_replay(path: str | Path) -> Replay:
@@ -113,8 +112,7 @@ def load_replay(path: str | Path) -> Replay:
     info = header.get("metadata", {})
     if info.get("kind") != KIND or any(name not in arrays for name in ARRAYS):
         raise CheckpointError(f"{path}: not a replay file")
-    info = {key: value for key, value in info.items() if key != "kind"}
-    replay = Replay(**{name: arrays[name] for name in ARRAYS}, info=info)
+    replay = Replay(**{name: arrays[name] for name in ARRAYS}, info={k: v for k, v in info.items() if k != "kind"})
     if replay.qpos.shape[0] != replay.actions * replay.states_per_action + 1:
         raise CheckpointError(f"{path}: {replay.qpos.shape[0]} states do not match {replay.actions} actions")
     return replay

@@ -121,8 +121,7 @@ class GpUcb(PatternRule):
 
     def learn(self, state, observation):
         executed = observation.hbr.middle.descriptors[observation.elite]  # (B, 9)
-        errors = relative_error_of(observation)
-        return ErrorModel(jax.vmap(add_observation)(state.gp, executed, errors))
+        return ErrorModel(jax.vmap(add_observation)(state.gp, executed, relative_error_of(observation)))
 
 
 def relative_error_of(observation: StepObservation) -> jax.Array:

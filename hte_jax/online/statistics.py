@@ -66,11 +66,8 @@ def pairwise_tests(samples: dict[str, np.ndarray]) -> list[dict]:
         # Identical constant samples give p = nan on some scipy versions: no evidence of a difference.
         raw.append((float(test.statistic), float(test.pvalue) if np.isfinite(test.pvalue) else 1.0))
     corrected = bonferroni([p for _, p in raw]) if raw else np.array([])
-    return [
-        {"a": a, "b": b, "u": u, "p": p, "p_bonferroni": float(c), "median_a": float(np.median(samples[a])),
-         "median_b": float(np.median(samples[b]))}
-        for (a, b), (u, p), c in zip(pairs, raw, corrected)
-    ]
+    return [{"a": a, "b": b, "u": u, "p": p, "p_bonferroni": float(c), "median_a": float(np.median(samples[a])),
+             "median_b": float(np.median(samples[b]))} for (a, b), (u, p), c in zip(pairs, raw, corrected)]
 
 
 def protocol_statistics(records: list[dict]) -> dict:

@@ -13,9 +13,7 @@ from hte_jax.qd.store import load_repertoire, save_repertoire
 from hte_jax.qd.task_spec import TaskSpec
 from hte_jax.qd.variation import SbxPolynomial
 
-__all__ = [
-    "Archive", "BatchedMapElites", "CheckpointError", "Emitter", "EmptyState", "Evaluation", "Grid", "Insertion",
-    "MapElites", "MapElitesConfig", "QDState", "Repertoire", "RepertoireMetrics", "SbxPolynomial", "TaskSpec",
-    "UniformSelection", "VariationEmitter", "load_checkpoint", "load_repertoire", "repertoire_metrics", "resume",
-    "run", "save_checkpoint", "save_repertoire",
-]
+__all__ = ["Archive", "BatchedMapElites", "CheckpointError", "Emitter", "EmptyState", "Evaluation", "Grid",
+           "Insertion", "MapElites", "MapElitesConfig", "QDState", "Repertoire", "RepertoireMetrics", "SbxPolynomial",
+           "TaskSpec", "UniformSelection", "VariationEmitter", "load_checkpoint", "load_repertoire",
+           "repertoire_metrics", "resume", "run", "save_checkpoint", "save_repertoire"]

@@ -15,7 +15,7 @@ from jax.sharding import Mesh
 
 from hte_jax import sharding
 from hte_jax.errors import ConfigError
-from hte_jax.qd.loop import MapElites, MapElitesConfig, OnMesh, QDState, scan_generations, spec_config
+from hte_jax.qd.loop import MapElites, MapElitesConfig, OnMesh, QDState, spec_config
 from hte_jax.qd.metrics import RepertoireMetrics, repertoire_metrics
 from hte_jax.qd.repertoire import Evaluation
 from hte_jax.qd.task_spec import TaskSpec
@@ -92,10 +92,6 @@ class BatchedMapElites(OnMesh):
                        in_axes=(_STATE_AXES, 0), out_axes=(_STATE_AXES, 0))
         new, accepted = one(state, self.conditions)
         return new, accepted.sum()
-
-    @functools.partial(jax.jit, static_argnums=(0, 2))
-    def run_block(self, state: QDState, generations: int) -> tuple[QDState, jax.Array]:
-        return scan_generations(self.generation_step, state, generations, self.active_mesh)
 
     @functools.partial(jax.jit, static_argnums=0)
     def metrics(self, state: QDState) -> RepertoireMetrics:

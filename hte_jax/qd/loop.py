@@ -65,14 +65,9 @@ def spec_config(spec: TaskSpec, config: MapElitesConfig) -> MapElitesConfig:
     return config if spec.qd_offset is None else dataclasses.replace(config, qd_offset=spec.qd_offset)
 
 
-def scan_generations(step: Callable, state: QDState, generations: int, mesh: Mesh) -> tuple[QDState, jax.Array]:
-    """`generations` calls of `step` (state -> (state, accepted)) under lax.scan: (state, total accepted) on `mesh`."""
-    state, accepted = jax.lax.scan(lambda s, _: step(s), state, None, length=generations)
-    return sharding.replicate((state, accepted.sum()), mesh)
-
-
 class OnMesh:
-    """`active_mesh`, the `mesh` field or (None) all visible devices, and `place`, a state replicated on it."""
+    """`active_mesh`, the `mesh` field or (None) all visible devices; `place`, a state replicated on it; and
+    `run_block`, `generations` calls of `generation_step` (state -> (state, accepted)) under lax.scan."""
 
     @functools.cached_property
     def active_mesh(self) -> Mesh:
@@ -80,6 +75,12 @@ class OnMesh:
 
     def place(self, state: QDState) -> QDState:
         return sharding.put_replicated(state, self.active_mesh)
+
+    @functools.partial(jax.jit, static_argnums=(0, 2))
+    def run_block(self, state: QDState, generations: int) -> tuple[QDState, jax.Array]:
+        """(state, total accepted), replicated on the mesh."""
+        state, accepted = jax.lax.scan(lambda s, _: self.generation_step(s), state, None, length=generations)
+        return sharding.replicate((state, accepted.sum()), self.active_mesh)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -160,10 +161,6 @@ class MapElites(OnMesh):
         new = QDState(repertoire=repertoire, key=key, generation=state.generation + 1, emitter_state=emitter_state)
         return new, insertion.accepted.sum(dtype=jnp.int32)
 
-    @functools.partial(jax.jit, static_argnums=(0, 2))
-    def run_block(self, state: QDState, generations: int) -> tuple[QDState, jax.Array]:
-        return scan_generations(self.generation_step, state, generations, self.active_mesh)
-
     @functools.partial(jax.jit, static_argnums=0)
     def metrics(self, state: QDState) -> RepertoireMetrics:
         return repertoire_metrics(state.repertoire, self.config.qd_offset)
@@ -222,8 +219,7 @@ def run(algo: MapElites, state: QDState, generations: int, *, block_size: int = 
 
 def resume(algo: MapElites, checkpoint_path: str | Path) -> QDState:
     """Load a checkpoint written by `run` for this algorithm (clear error on any mismatch)."""
-    template = algo.empty_state(jax.random.PRNGKey(0))
-    return io.load_checkpoint(checkpoint_path, template, algo.checkpoint_metadata())
+    return io.load_checkpoint(checkpoint_path, algo.empty_state(jax.random.PRNGKey(0)), algo.checkpoint_metadata())
 
 
 def start_or_resume(algo: MapElites, key: jax.Array, checkpoint_path: str | Path, *, progress: bool = True,

@@ -63,13 +63,8 @@ class MetricsLog:
             writer = csv.DictWriter(handle, fieldnames=FIELDS)
             if new_file:
                 writer.writeheader()
-            for row in rows:
-                writer.writerow({k: _plain(row[k]) for k in FIELDS})
-
-
-def _plain(value):
-    """Python scalar for CSV (JAX and NumPy scalars become int or float)."""
-    return value.item() if hasattr(value, "item") else value
+            # JAX and NumPy scalars become Python ints and floats
+            writer.writerows({k: row[k].item() if hasattr(row[k], "item") else row[k] for k in FIELDS} for row in rows)
 
 
 def projected_statistics(descriptors, fitnesses, filled, bins: int) -> dict:

@@ -61,10 +61,8 @@ def rebuild_elites(path, arrays: dict, spec: TaskSpec, prefix: str = "", label: 
     cell of its descriptor, an archive's elites a prefix of its slots. label: names the repertoire
     in errors (default: the prefix, or "repertoire")."""
     container = spec.container
-    repertoire = rebuild_repertoire(
-        path, arrays, prefix, spec.capacity, spec.genotype_dim, spec.descriptor_dim, spec.extras,
-        low=container.low, high=container.high,
-    )
+    repertoire = rebuild_repertoire(path, arrays, prefix, spec.capacity, spec.genotype_dim, spec.descriptor_dim,
+                                    spec.extras, low=container.low, high=container.high)
     label = label or prefix.rstrip("_") or "repertoire"
     slots = arrays[f"{prefix}slots"]
     if isinstance(container, Grid) and not container.cell_matches(arrays[f"{prefix}descriptors"], slots).all():

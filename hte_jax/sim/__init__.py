@@ -6,9 +6,7 @@ from hte_jax.sim.robot import Robot, RobotConfig, load_robot
 from hte_jax.sim.rollout import (InvalidReason, RolloutResult, RolloutSpec, SimState, ValidityLimits, initial_state,
                                  rollout, standing_state)
 
-__all__ = [
-    "DAMAGED_POSE", "PAPER_DAMAGES", "InvalidReason", "Robot", "RobotConfig", "RolloutResult", "RolloutSpec",
-    "SimState", "ValidityLimits", "damage_mask", "initial_state", "leg_primitive", "load_robot",
-    "paper_damage_masks", "parse_damage", "rollout", "servo_command", "signal_table", "standing_state",
-    "target_table",
-]
+__all__ = ["DAMAGED_POSE", "PAPER_DAMAGES", "InvalidReason", "Robot", "RobotConfig", "RolloutResult", "RolloutSpec",
+           "SimState", "ValidityLimits", "damage_mask", "initial_state", "leg_primitive", "load_robot",
+           "paper_damage_masks", "parse_damage", "rollout", "servo_command", "signal_table", "standing_state",
+           "target_table"]

@@ -92,8 +92,7 @@ def _trail(replay: Replay, states: np.ndarray):
             geom = scene.geoms[scene.ngeom]
             mujoco.mjv_initGeom(geom, mujoco.mjtGeom.mjGEOM_CAPSULE, np.zeros(3), np.zeros(3), np.eye(3).ravel(),
                                 np.asarray(TRAIL_RGBA, np.float32))
-            mujoco.mjv_connector(geom, mujoco.mjtGeom.mjGEOM_CAPSULE, TRAIL_WIDTH, np.append(a, 0.01),
-                                 np.append(b, 0.01))
+            mujoco.mjv_connector(geom, mujoco.mjtGeom.mjGEOM_CAPSULE, TRAIL_WIDTH, np.append(a, 0.01), np.append(b, 0.01))
             scene.ngeom += 1
 
     return decorate
