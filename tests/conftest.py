@@ -37,7 +37,7 @@ os.environ["JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES"] = "0"
 # CPU s; the code runs up to ~4x slower, which tests at tiny sizes barely feel). It changes the bits of
 # floating-point results, so the files that compare runs with golden outputs (`DEFAULT_COMPILE`),
 # and their subprocesses, compile with XLA's defaults, as `python -m tests.golden` records them.
-# In-process the options go through the compile options of every program (`_compile_options`, so
+# In-process the options go through the compile options of every program (`_with_compile_options`, so
 # the persistent cache keys them); subprocesses read them from XLA_FLAGS.
 FAST_COMPILE = {"xla_cpu_use_fusion_emitters": False, "xla_backend_optimization_level": 0}
 XLA_DEFAULTS = {"xla_cpu_use_fusion_emitters": True, "xla_backend_optimization_level": 3}
@@ -49,6 +49,16 @@ DEFAULT_COMPILE = ("test_hbr_training.py", "test_flat.py", "test_episode.py", "t
                    "test_benchmarks_hbr.py", "test_composition.py", "test_rollout.py", "test_execute.py")
 
 
+def with_fast_flags(flags: str) -> str:
+    """XLA_FLAGS plus the session's `FAST_FLAGS`."""
+    return " ".join([*flags.split(), *FAST_FLAGS])
+
+
+def without_fast_flags(flags: str) -> str:
+    """XLA_FLAGS less the session's `FAST_FLAGS`."""
+    return " ".join(flag for flag in flags.split() if flag not in FAST_FLAGS)
+
+
 def _fast_compile_works() -> bool:
     """Whether this jax has the compile-options hook and its XLA knows the flags (an unknown flag
     in XLA_FLAGS aborts every process): probed once per session in a subprocess, else the suite
@@ -58,14 +68,13 @@ def _fast_compile_works() -> bool:
     if not hasattr(compiler, "get_compile_options"):
         return False
     probe = "import jax, jax.numpy as jnp; jax.jit(lambda x: x + 1)(jnp.ones(2)).block_until_ready()"
-    env = {**os.environ, "XLA_FLAGS": " ".join([*os.environ.get("XLA_FLAGS", "").split(), *FAST_FLAGS]),
-           "JAX_PLATFORMS": "cpu"}
+    env = {**os.environ, "XLA_FLAGS": with_fast_flags(os.environ.get("XLA_FLAGS", "")), "JAX_PLATFORMS": "cpu"}
     return subprocess.run([sys.executable, "-c", probe], env=env, capture_output=True).returncode == 0
 
 
 # The controller process probes; xdist workers inherit the answer through the environment.
 if os.environ.setdefault("HTE_JAX_TEST_FAST_COMPILE", "1" if _fast_compile_works() else "0") == "1":
-    os.environ["XLA_FLAGS"] = " ".join([*os.environ.get("XLA_FLAGS", "").split(), *FAST_FLAGS])
+    os.environ["XLA_FLAGS"] = with_fast_flags(os.environ.get("XLA_FLAGS", ""))
 else:
     FAST_COMPILE = XLA_DEFAULTS = {}
 _compile_with = [FAST_COMPILE]  # what `_compile_options` adds: the running module's choice
@@ -78,11 +87,6 @@ def _with_compile_options(get_compile_options):
         return options
 
     return compile_options
-
-
-def without_fast_flags(flags: str) -> str:
-    """XLA_FLAGS less the session's `FAST_FLAGS`."""
-    return " ".join(flag for flag in flags.split() if flag not in FAST_FLAGS)
 
 
 @pytest.fixture(autouse=True, scope="module")
