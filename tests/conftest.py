@@ -37,10 +37,12 @@ os.environ["JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES"] = "0"
 # CPU s; the code runs up to ~4x slower, which tests at tiny sizes barely feel). It changes the bits of
 # floating-point results, so the files that compare runs with golden outputs (`DEFAULT_COMPILE`),
 # and their subprocesses, compile with XLA's defaults, as `python -m tests.golden` records them.
-# In-process the options go through the compile options of every program (`_with_compile_options`, so
-# the persistent cache keys them); subprocesses read them from XLA_FLAGS.
+# In-process the fast options go through the compile options of every program (`_with_compile_options`,
+# so the persistent cache keys them); subprocesses read them from XLA_FLAGS, which holds them only while a
+# fast file runs. This process itself starts with the user's XLA_FLAGS, so a `DEFAULT_COMPILE` file compiles
+# its programs exactly as its subprocesses do (same flags, no overrides: the same persistent-cache keys,
+# and a resumed command finds the programs its test compiled).
 FAST_COMPILE = {"xla_cpu_use_fusion_emitters": False, "xla_backend_optimization_level": 0}
-XLA_DEFAULTS = {"xla_cpu_use_fusion_emitters": True, "xla_backend_optimization_level": 3}
 FAST_FLAGS = [f"--{name}={str(value).lower()}" for name, value in FAST_COMPILE.items()]
 # Golden runs (test_benchmarks_hbr re-runs the tiny HBR's programs), and files that compare two differently
 # compiled paths bit for bit (a measured step against a direct rollout, the reflex's held pose, a flat
@@ -52,11 +54,6 @@ DEFAULT_COMPILE = ("test_hbr_training.py", "test_flat.py", "test_episode.py", "t
 def with_fast_flags(flags: str) -> str:
     """XLA_FLAGS plus the session's `FAST_FLAGS`."""
     return " ".join([*flags.split(), *FAST_FLAGS])
-
-
-def without_fast_flags(flags: str) -> str:
-    """XLA_FLAGS less the session's `FAST_FLAGS`."""
-    return " ".join(flag for flag in flags.split() if flag not in FAST_FLAGS)
 
 
 def _fast_compile_works() -> bool:
@@ -73,11 +70,10 @@ def _fast_compile_works() -> bool:
 
 
 # The controller process probes; xdist workers inherit the answer through the environment.
-if os.environ.setdefault("HTE_JAX_TEST_FAST_COMPILE", "1" if _fast_compile_works() else "0") == "1":
-    os.environ["XLA_FLAGS"] = with_fast_flags(os.environ.get("XLA_FLAGS", ""))
-else:
-    FAST_COMPILE = XLA_DEFAULTS = {}
-_compile_with = [FAST_COMPILE]  # what `_compile_options` adds: the running module's choice
+if os.environ.setdefault("HTE_JAX_TEST_FAST_COMPILE", "1" if _fast_compile_works() else "0") != "1":
+    FAST_COMPILE = {}
+_USER_XLA_FLAGS = os.environ.get("XLA_FLAGS", "")
+_compile_with = [{}]  # what `_compile_options` adds: the running module's choice
 
 
 def _with_compile_options(get_compile_options):
@@ -91,26 +87,34 @@ def _with_compile_options(get_compile_options):
 
 @pytest.fixture(autouse=True, scope="module")
 def _compile_mode(request):
-    """Per test module: XLA's default code generation for the `DEFAULT_COMPILE` files (in this
-    process and in the subprocesses they start), the fast one for every other file. Compiled
-    programs held in memory are dropped between modules (`_free_compiled_programs`), so none
-    crosses from one mode to the other."""
-    if request.path.name not in DEFAULT_COMPILE:
+    """Per test module: the fast code generation for every file but the `DEFAULT_COMPILE` ones (in
+    this process and in the subprocesses they start), XLA's defaults for those. Compiled programs
+    held in memory are dropped between modules (`_free_compiled_programs`), so none crosses from one
+    mode to the other."""
+    if request.path.name in DEFAULT_COMPILE or not FAST_COMPILE:
         yield
         return
-    flags = os.environ["XLA_FLAGS"]
-    os.environ["XLA_FLAGS"] = without_fast_flags(flags)
-    _compile_with[0] = XLA_DEFAULTS
+    os.environ["XLA_FLAGS"] = with_fast_flags(_USER_XLA_FLAGS)
+    _compile_with[0] = FAST_COMPILE
     try:
         yield
     finally:
-        _compile_with[0] = FAST_COMPILE
-        os.environ["XLA_FLAGS"] = flags
+        _compile_with[0] = {}
+        os.environ["XLA_FLAGS"] = _USER_XLA_FLAGS
+
+
+@pytest.fixture
+def xla_defaults(monkeypatch):
+    """The subprocesses this test starts compile with XLA's defaults even in a fast file: for the
+    ones that run real sizes (a benchmark's timed worker), where the fast mode's slower code costs
+    more than it saves (a whole-HBR lookup: 13 s at the defaults, ~290 s at LLVM -O0)."""
+    monkeypatch.setenv("XLA_FLAGS", _USER_XLA_FLAGS)
 
 
 def pytest_configure(config):
     from jax._src import compiler
 
+    jax.devices()  # XLA reads XLA_FLAGS once, when its CPU client starts: here, with the user's flags
     if FAST_COMPILE:
         compiler.get_compile_options = _with_compile_options(compiler.get_compile_options)
 
@@ -220,7 +224,9 @@ def _leg_controllers_once_per_process():
     shipped HBR (23 641 x 6 queries against 11 088 bottom elites) several seconds of CPU, paid again
     by every test that loads it (a `maze_eval` run, a re-execution, ...). Within a test process the
     same inputs give the same controllers, so they are computed once: the result is keyed by the
-    bytes of every input, and traced inputs (inside a jit) are always computed."""
+    bytes of every input, and traced inputs (inside a jit) are always computed. They are computed with
+    XLA's default code generation in every file: the fast mode's code takes ~45 s for the shipped HBR
+    instead of ~4 s (a nearest-elite search, not a tiny test size)."""
     from hte_jax.hbr import hierarchy, middle, store, training
 
     compute = middle.elite_controllers
@@ -230,14 +236,19 @@ def _leg_controllers_once_per_process():
         inputs = (bottom.descriptors, bottom.filled, bottom.genotypes, genotypes, filled)
         if any(isinstance(x, jax.core.Tracer) for x in inputs):
             return compute(bottom, genotypes, filled)
-        digest = hashlib.sha256(repr(sorted(_compile_with[0].items())).encode())  # bits differ by compile mode
+        digest = hashlib.sha256()
         for x in inputs:
             x = np.asarray(x)
             digest.update(f"{x.dtype}{x.shape}".encode())
             digest.update(np.ascontiguousarray(x).tobytes())
         key = digest.hexdigest()
         if key not in known:
-            known[key] = compute(bottom, genotypes, filled)
+            mode, flags = _compile_with[0], os.environ.get("XLA_FLAGS", "")
+            _compile_with[0], os.environ["XLA_FLAGS"] = {}, _USER_XLA_FLAGS  # a DEFAULT_COMPILE file's program
+            try:
+                known[key] = jax.block_until_ready(compute(bottom, genotypes, filled))
+            finally:
+                _compile_with[0], os.environ["XLA_FLAGS"] = mode, flags
         return known[key]
 
     with pytest.MonkeyPatch.context() as patch:

@@ -103,7 +103,7 @@ def test_physics_frontier_benchmark(tmp_path):
     assert "fastest_within_budget" in stdout and "own cell" in stdout
 
 
-def test_load_time_benchmark(tmp_path):
+def test_load_time_benchmark(tmp_path, xla_defaults):
     out = tmp_path / "load.json"
     stdout = run_benchmark("load_time.py", "--repeats", "1", "--whole", "--out", str(out))
     result = json.loads(out.read_text())
