@@ -36,7 +36,7 @@ def commands(out: Path, render: bool) -> list[tuple[str, str, list[str]]]:
     # maze_eval keeps its default action cap (80): several episodes under that cap hung on 2 cores before
     # their first action (issue 40). In the maze of `seed_folder` every episode ends at its goal after
     # its first valid action: the programs of the default cap, compiled and run to the episodes' end.
-    planner = ["--damage", "leg1", "--replicates", "1", "--iterations", "10", "--roots", "1", "--depth", "3",
+    planner = ["--damage", "leg1", "--replicates", "2", "--iterations", "10", "--roots", "1", "--depth", "3",
                "--candidates", "10", "--maze", str(out / NEAR_GOAL)]
     chunk = ["--set", f"step_chunk={STEP_CHUNK}"]
     # Compiling each MJX program for 2 devices is most of the cost: the HBR trains its layers'
@@ -52,7 +52,7 @@ def commands(out: Path, render: bool) -> list[tuple[str, str, list[str]]]:
         ("measure_steps", "measure_steps", ["--hbr", str(hbr), "--out", str(out / "measure_steps" / "hbr.npz"),
                                             "--starts", "2", "--chunk", str(STEP_CHUNK), *quiet]),
         ("seed_folder", "", []),  # not a command: the repertoire seed folder maze_eval reads
-        ("maze_eval", "maze_eval", ["--repertoire-dir", str(seeds.parent), "--variant", "hte-spare,rte,2d-rte",
+        ("maze_eval", "maze_eval", ["--repertoire-dir", str(seeds.parent), "--variant", "hte-spare,2d-rte",
                                     *planner, "--out", str(out / "maze_eval"), *quiet]),
         ("modulation", "modulation", ["--hbr", str(hbr), "--skills", "2", "--patterns", "candidates",
                                       "--chunk", "16", "--out", str(out / "modulation"), *quiet]),

@@ -130,36 +130,36 @@ def pytest_unconfigure(config):
 
 # The order in which files start (pytest-xdist's --dist loadfile hands a free worker the next file,
 # `--no-loadscope-reorder` keeps this order): the slowest first, so the last files to start are
-# short and both workers end together (the CI time is the slower worker's). CPU seconds on a 2-core
-# machine (2026-11-26), heaviest first; files that share compiled programs through the persistent
-# cache (noted) are kept apart, so they run one after the other rather than side by side, and a
-# file that re-runs another's programs comes after it. Files not listed (each under about a
-# minute) follow in their own order. A file that grows past a minute belongs here.
+# short and both workers end together (the CI time is the slower worker's). Seconds per file in the
+# suite on a 2-core machine (2026-11-27, --durations=0 summed), heaviest first; files that share
+# compiled programs through the persistent cache (noted) are kept apart, so they run one after the
+# other rather than side by side, and a file that re-runs another's programs comes after it. Files
+# not listed (each under about a minute) follow in their own order. A file that grows past a minute
+# belongs here.
 SLOWEST_FIRST = (
-    "test_commands.py",  # ~800: every command on 2 devices, its own subprocess
-    "test_hbr_training.py",  # ~700: the tiny HBR (test_benchmarks_hbr.py and test_interrupts.py re-run it)
-    "test_benchmarks.py",  # ~400 (test_replay.py runs its adaptation episode)
-    "test_episode.py",  # ~280
-    "test_sharding.py",  # ~260: its own subprocess on 2 devices
-    "test_composition.py",  # ~260
-    "test_render.py",  # ~260
-    "test_spare.py",  # ~250
-    "test_flat_aprol.py",  # ~250
-    "test_seed_sets.py",  # ~250 (test_protocol.py runs its 2D-RTE episodes)
-    "test_rollout.py",  # ~240 (test_solver.py runs its default robot's rollouts)
-    "test_extending.py",  # ~220
-    "test_benchmarks_hbr.py",  # ~200 (the tiny HBR's programs)
-    "test_flat.py",  # ~180
-    "test_replay.py",  # ~170 (test_benchmarks.py)
-    "test_solver.py",  # ~190 (test_rollout.py)
-    "test_protocol.py",  # ~150 (test_seed_sets.py)
-    "test_readme.py",  # ~130
-    "test_modulation.py",  # ~120
-    "test_interrupts.py",  # ~110 (the tiny HBR's programs)
-    "test_executor.py",  # ~100
-    "test_execute.py",  # ~95
-    "test_mcts.py",  # ~90
-    "test_qd_loop.py",  # ~80
+    "test_commands.py",  # ~450: every command on 2 devices, its own subprocess
+    "test_hbr_training.py",  # ~590: the tiny HBR (test_benchmarks_hbr.py and test_interrupts.py re-run it)
+    "test_benchmarks.py",  # ~390 (test_replay.py runs its adaptation episode)
+    "test_render.py",  # ~215
+    "test_rollout.py",  # ~200 (test_solver.py runs its default robot's rollouts)
+    "test_composition.py",  # ~170
+    "test_seed_sets.py",  # ~165 (test_protocol.py runs its 2D-RTE episodes)
+    "test_extending.py",  # ~165
+    "test_flat.py",  # ~155
+    "test_spare.py",  # ~135
+    "test_episode.py",  # ~135
+    "test_replay.py",  # ~120 (test_benchmarks.py)
+    "test_readme.py",  # ~115
+    "test_sharding.py",  # ~115: its own subprocess on 2 devices
+    "test_flat_aprol.py",  # ~115
+    "test_interrupts.py",  # ~115 (the tiny HBR's programs)
+    "test_sensing.py",  # ~105
+    "test_solver.py",  # ~100 (test_rollout.py)
+    "test_benchmarks_hbr.py",  # ~100 (the tiny HBR's programs)
+    "test_modulation.py",  # ~80
+    "test_execute.py",  # ~80
+    "test_protocol.py",  # ~70 (test_seed_sets.py)
+    "test_backend.py",  # ~60
 )
 
 

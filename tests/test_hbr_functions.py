@@ -1,8 +1,10 @@
-"""Pure pieces of the HBR: geometry, angle error, descriptors, lookups, genotype decoding (acceptance 1)."""
+"""Pure pieces of the HBR: geometry, angle error, descriptors, lookups, genotype decoding (acceptance 1),
+and the leg primitives measured in MJX on hand-made genes."""
 
 import math
 from types import SimpleNamespace
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -13,6 +15,7 @@ from hte_jax.hbr.bottom import (
     BottomTask,
     activation_fitness,
     duty_level,
+    evaluate_bottom,
     gene_fitness,
     leg_params,
     lift_height,
@@ -24,6 +27,7 @@ from hte_jax.geometry import angle_error, compose_pose, heading, medoid_index, p
 from hte_jax.hbr.middle import MiddleTask, decode, elite_controllers, leg_controllers, nearest_index, pattern_bits, pattern_code
 from hte_jax.hbr.top import TopTask
 from hte_jax.qd.repertoire import Repertoire, empty_repertoire
+from hte_jax.sim.rollout import standing_state
 
 
 def _yaw_quat(yaw):
@@ -278,3 +282,26 @@ def test_middle_purity_penalises_contact_on_lifted_legs():
     expected = np.asarray(plain.fitnesses) - 4.0 * (fraction * (1.0 - bits)).sum(axis=-1)
     np.testing.assert_allclose(np.asarray(pure.fitnesses), expected, rtol=1e-6, atol=1e-6)
     np.testing.assert_array_equal(np.asarray(pure.descriptors), np.asarray(plain.descriptors))
+
+
+def test_leg_primitives_hand_cases(robot):
+    """A leg that never lifts has height ~ 0; lifting and stroking legs are measured as such on every leg."""
+    still = [0.0, 0.3, 0.5, 0.0, 0.2, 0.5]  # zero amplitudes
+    lift = [0.0, 0.0, 0.5, 1.0, 0.0, 0.5]  # vertical signal only: the foot goes up and down
+    stroke = [1.0, 0.0, 0.5, 1.0, 0.25, 0.5]  # hip swing with the lift a quarter period later
+    genes = jnp.asarray([still] * 6 + [lift] * 6 + [stroke] * 6 + [[-1.0] * 6], jnp.float32)
+    task = BottomTask()
+    # A fixed key; the leg drawn for each row is recomputed the same way to check every leg is covered.
+    evaluation = jax.jit(lambda k, g: evaluate_bottom(robot, standing_state(robot), task, k, g))(jax.random.PRNGKey(7), genes)
+    legs = np.asarray(evaluation.extras["leg"])
+    desc = np.asarray(evaluation.descriptors)
+    swing = desc[:, 0] * 2 * task.swing_range - task.swing_range
+    height = desc[:, 1] * 2 * task.height_range - task.height_range
+    assert np.asarray(evaluation.valid)[:18].all()
+    assert np.abs(height[:6]).max() < 0.002 and np.abs(swing[:6]).max() < 0.002
+    assert (height[6:12] > 0.02).all()
+    assert np.abs(swing[6:12]).max() < 0.01  # no hip motion: no stroke
+    assert (np.abs(swing[12:18]) > 0.03).all() and np.ptp(swing[12:18]) < 0.02  # same stroke on every leg
+    fitness = np.asarray(evaluation.fitnesses)
+    assert fitness[:6].max() > fitness[6:12].max() > fitness[12:18].max()  # more motion, more activation
+    assert len(set(legs[:18].tolist())) > 1

@@ -10,7 +10,6 @@ import numpy as np
 import pytest
 
 from experiments.train_hbr import main as train_main
-from hte_jax.hbr.bottom import BottomTask, evaluate_bottom
 from hte_jax.hbr.hierarchy import execute_skill, execute_step
 from hte_jax.geometry import compose_pose, planar_pose
 from hte_jax.hbr.middle import PRIMARY, evaluate_controllers
@@ -202,29 +201,6 @@ def test_top_skills_replay_through_hierarchical_execution(tiny_run, robot, start
     np.testing.assert_array_equal(np.asarray(skill.steps.middle_index).T, np.asarray(hbr.top.extras["middle_indices"])[filled])
     np.testing.assert_allclose(np.asarray(top_task.normalise(skill.displacement[:, :2])),
                                np.asarray(hbr.top.descriptors)[filled], atol=1e-4)
-
-
-def test_leg_primitives_hand_cases(robot, start):
-    """A leg that never lifts has height ~ 0; lifting and stroking legs are measured as such on every leg."""
-    still = [0.0, 0.3, 0.5, 0.0, 0.2, 0.5]  # zero amplitudes
-    lift = [0.0, 0.0, 0.5, 1.0, 0.0, 0.5]  # vertical signal only: the foot goes up and down
-    stroke = [1.0, 0.0, 0.5, 1.0, 0.25, 0.5]  # hip swing with the lift a quarter period later
-    genes = jnp.asarray([still] * 6 + [lift] * 6 + [stroke] * 6 + [[-1.0] * 6], jnp.float32)
-    task = BottomTask()
-    # A fixed key; the leg drawn for each row is recomputed the same way to check every leg is covered.
-    evaluation = jax.jit(lambda k, g: evaluate_bottom(robot, start, task, k, g))(jax.random.PRNGKey(7), genes)
-    legs = np.asarray(evaluation.extras["leg"])
-    desc = np.asarray(evaluation.descriptors)
-    swing = desc[:, 0] * 2 * task.swing_range - task.swing_range
-    height = desc[:, 1] * 2 * task.height_range - task.height_range
-    assert np.asarray(evaluation.valid)[:18].all()
-    assert np.abs(height[:6]).max() < 0.002 and np.abs(swing[:6]).max() < 0.002
-    assert (height[6:12] > 0.02).all()
-    assert np.abs(swing[6:12]).max() < 0.01  # no hip motion: no stroke
-    assert (np.abs(swing[12:18]) > 0.03).all() and np.ptp(swing[12:18]) < 0.02  # same stroke on every leg
-    fitness = np.asarray(evaluation.fitnesses)
-    assert fitness[:6].max() > fitness[6:12].max() > fitness[12:18].max()  # more motion, more activation
-    assert len(set(legs[:18].tolist())) > 1
 
 
 def test_hbr_files_are_checked_on_load(tiny_run, tmp_path):

@@ -54,7 +54,7 @@ def test_block_2_runs_and_resumes_map_elites():
         assert path.stat().st_size > 0 and path.stat().st_mtime >= began - 1
 
 
-def test_block_3_executes_the_shipped_skills():
+def test_block_3_executes_the_shipped_skills(xla_defaults):
     out = run_block(2)
     assert re.search(r"skills [1-9]\d* \| displacement \(7, 3\) \| middle elite per second \(3, 7\)", out), out
     intact = re.search(rf"intact robots end a median {NUMBER} m from the stored end", out)

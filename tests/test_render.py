@@ -24,7 +24,8 @@ from hte_jax.sim.rollout import RolloutSpec, rollout, standing_state
 from hte_jax.viz import gl
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-# The render CLI as a user starts it: MUJOCO_GL unset, the backend chosen by the CLI.
+# The render CLI as a user starts it: MUJOCO_GL unset, the backend chosen by the CLI, and the user's
+# XLA_FLAGS as collection found them (XLA's default code: these CLIs load the shipped HBR, tests/conftest.py).
 PLAIN = {k: v for k, v in os.environ.items() if k not in ("MUJOCO_GL", gl.CHECKED)} | {"JAX_PLATFORMS": "cpu"}
 # libglvnd's libEGL with no vendor driver: EGL cannot start, as on a machine without it.
 NO_EGL = {"__EGL_VENDOR_LIBRARY_FILENAMES": "/nonexistent"}

@@ -29,7 +29,8 @@ from hte_jax.viz.episode import episode_model, frame_states, frame_text
 from hte_jax.viz.render import posed
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-# The render CLI as a user starts it: MUJOCO_GL unset, the backend chosen by the CLI.
+# The render CLI as a user starts it: MUJOCO_GL unset, the backend chosen by the CLI, and the user's
+# XLA_FLAGS as collection found them (XLA's default code: these CLIs load the shipped HBR, tests/conftest.py).
 PLAIN = {k: v for k, v in os.environ.items() if k not in ("MUJOCO_GL", gl.CHECKED)} | {"JAX_PLATFORMS": "cpu"}
 # libglvnd's libEGL without a vendor driver and MUJOCO_GL=egl: no backend starts, on any machine.
 NO_GL = {"__EGL_VENDOR_LIBRARY_FILENAMES": "/nonexistent", "MUJOCO_GL": "egl"}

@@ -89,3 +89,27 @@ def test_a_native_robot_held_by_the_reflex_keeps_its_healthy_legs_and_flags_a_lo
         executor = MujocoExecutor(REFLEX, damage, start.replace(qpos=_tilted(start.qpos)))
         sensed.append(_two_seconds(ExecutorRobot(executor), skills, index, None, 1))
     _check(*(np.concatenate(rows) for rows in zip(*sensed)))
+
+
+def test_the_leg_senses_flag_a_raised_leg_within_two_actions_and_no_leg_of_an_intact_robot():
+    """hte-spare's detectors end to end, in MJX: after two actions the robot with leg 1 blocked in the
+    air has sensed it off the floor and not following its joint commands, and nothing else; the
+    intact robot flags no leg (its rule then still takes RTE's any pattern)."""
+    from hte_jax.online.evaluation import preset, run_batch, with_overrides
+    from hte_jax.online.sensing import stuck_legs, unusable_legs
+
+    config = with_overrides(preset("cpu"), {"variants": "hte-spare", "damages": "none,leg1", "max_actions": "2",
+                                            "iterations": "50", "roots": "1"})
+    result = run_batch(config, None, ["hte-spare"], progress=False)
+    episodes = result.episodes
+    assert int(episodes.taken.min()) == 2 and not bool(episodes.broken.any())
+    sense = episodes.rules.states[0]
+    off_floor = np.asarray(unusable_legs(sense.contacts))
+    stuck = np.asarray(stuck_legs(sense.motion))
+    assert result.damages == ["none", "leg1"]
+    assert not off_floor[0].any() and not stuck[0].any()
+    assert off_floor[1].tolist() == [False, True, False, False, False, False]
+    assert stuck[1].tolist() == [False, True, False, False, False, False]
+    patterns = np.asarray(episodes.history.patterns)
+    assert (patterns[0, :2] == -1).all()  # intact: RTE's choice throughout
+    assert patterns[1, 1, -1] == 0b101111  # leg 1 lifted by the last step of the second action
