@@ -10,6 +10,7 @@ resumed training run, a re-simulation, a benchmark script re-running a training 
 load it from the cache instead of recompiling.
 """
 
+import contextlib
 import gc
 import hashlib
 import os
@@ -85,6 +86,18 @@ def _with_compile_options(get_compile_options):
     return compile_options
 
 
+@contextlib.contextmanager
+def _compiling(options: dict, flags: str):
+    """Within it, this process compiles with the override `options` and the processes it starts read
+    XLA_FLAGS `flags`; both are restored after."""
+    saved = _compile_with[0], os.environ.get("XLA_FLAGS", "")
+    _compile_with[0], os.environ["XLA_FLAGS"] = options, flags
+    try:
+        yield
+    finally:
+        _compile_with[0], os.environ["XLA_FLAGS"] = saved
+
+
 @pytest.fixture(autouse=True, scope="module")
 def _compile_mode(request):
     """Per test module: the fast code generation for every file but the `DEFAULT_COMPILE` ones (in
@@ -94,20 +107,16 @@ def _compile_mode(request):
     if request.path.name in DEFAULT_COMPILE or not FAST_COMPILE:
         yield
         return
-    os.environ["XLA_FLAGS"] = with_fast_flags(_USER_XLA_FLAGS)
-    _compile_with[0] = FAST_COMPILE
-    try:
+    with _compiling(FAST_COMPILE, with_fast_flags(_USER_XLA_FLAGS)):
         yield
-    finally:
-        _compile_with[0] = {}
-        os.environ["XLA_FLAGS"] = _USER_XLA_FLAGS
 
 
 @pytest.fixture
 def xla_defaults(monkeypatch):
     """The subprocesses this test starts compile with XLA's defaults even in a fast file: for the
-    ones that run real sizes (a benchmark's timed worker), where the fast mode's slower code costs
-    more than it saves (a whole-HBR lookup: 13 s at the defaults, ~290 s at LLVM -O0)."""
+    ones that run real sizes, where the fast mode's slower code costs more than it saves (a
+    benchmark's whole-HBR lookup: 13 s at the defaults, ~290 s at LLVM -O0; loading the shipped HBR:
+    4 s against ~48 s)."""
     monkeypatch.setenv("XLA_FLAGS", _USER_XLA_FLAGS)
 
 
@@ -243,12 +252,8 @@ def _leg_controllers_once_per_process():
             digest.update(np.ascontiguousarray(x).tobytes())
         key = digest.hexdigest()
         if key not in known:
-            mode, flags = _compile_with[0], os.environ.get("XLA_FLAGS", "")
-            _compile_with[0], os.environ["XLA_FLAGS"] = {}, _USER_XLA_FLAGS  # a DEFAULT_COMPILE file's program
-            try:
+            with _compiling({}, _USER_XLA_FLAGS):  # as a DEFAULT_COMPILE file compiles it
                 known[key] = jax.block_until_ready(compute(bottom, genotypes, filled))
-            finally:
-                _compile_with[0], os.environ["XLA_FLAGS"] = mode, flags
         return known[key]
 
     with pytest.MonkeyPatch.context() as patch:

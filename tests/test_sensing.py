@@ -2,7 +2,9 @@
 the controller commands no gait, so the travel a leg is judged against is the travel of the targets
 the robot commanded (`RolloutResult.target_travel`), not its elite's whole period; a healthy leg the
 reflex held still is not stuck, a locked leg still is. Both robots the online loop drives: B robots
-in MJX (`SimulatedRobots`) and one in native MuJoCo through its executor (`ExecutorRobot`)."""
+in MJX (`SimulatedRobots`) and one in native MuJoCo through its executor (`ExecutorRobot`). And
+(5a) hte-spare's two detectors end to end in an episode batch: a raised leg flagged within two
+actions, no leg of an intact robot."""
 
 import dataclasses
 import math
