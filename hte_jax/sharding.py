@@ -7,6 +7,7 @@ step per rows per device (3, 5, 6, 12 agree), so runs agree bit for bit across d
 from __future__ import annotations
 
 import hashlib
+import os
 from collections.abc import Callable
 from typing import Any
 
@@ -15,6 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
+from hte_jax import cpu_pool
 from hte_jax.errors import ConfigError
 
 BATCH_AXIS = "batch"
@@ -37,7 +39,19 @@ def check_device_count(count: int | None) -> int:
 def batch_mesh(devices: int | None = None) -> Mesh:
     """A 1-D mesh named "batch" over the first `devices` of `jax.devices()` (None: all)."""
     count = check_device_count(devices)
-    return Mesh(np.array(jax.devices()[:count]), (BATCH_AXIS,))
+    chosen = jax.devices()[:count]
+    _require_free_cpu_threads(sum(d.platform == "cpu" and d.process_index == jax.process_index() for d in chosen))
+    return Mesh(np.array(chosen), (BATCH_AXIS,))
+
+
+def _require_free_cpu_threads(cpu_devices: int) -> None:
+    """ConfigError where XLA's CPU pool could deadlock under `cpu_devices` devices of this process
+    (hte_jax/cpu_pool.py): jax started its CPU client before `hte_jax` sized the pool."""
+    threads = cpu_pool.pool_threads()
+    if cpu_devices > 1 and threads is not None and threads <= cpu_devices:
+        needed = cpu_pool.pool_size(os.cpu_count() or 1, cpu_devices)
+        raise ConfigError(f"XLA's CPU pool has {threads} threads for {cpu_devices} CPU devices and can deadlock: "
+                          f"import hte_jax before jax touches a device, or set {cpu_pool.POOL_VARIABLE}={needed}")
 
 
 def mesh_size(mesh: Mesh) -> int:

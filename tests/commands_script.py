@@ -22,9 +22,9 @@ import time
 import traceback
 from pathlib import Path
 
-# The tiny HBR's step model is measured in blocks of STEP_CHUNK samples: several blocks, each of
-# 16 rows per device (44 or more rows per device hang 2 forced devices on 2 cores: docs/design.md,
-# "Which arrays are replicated and which are split").
+# train_hbr measures the tiny HBR's step model in several blocks of STEP_CHUNK samples; measure_steps
+# re-measures it with its default chunk: one block of all 512 samples, 256 rows per device, the shape
+# whose batched Cholesky deadlocked XLA's CPU pool before hte_jax sized it (hte_jax/cpu_pool.py).
 STEP_CHUNK = 32
 NEAR_GOAL = "near_goal_maze.json"  # the maze maze_eval runs in (`near_goal_maze`)
 
@@ -50,7 +50,7 @@ def commands(out: Path, render: bool) -> list[tuple[str, str, list[str]]]:
         ("train_spare", "train_spare", ["--hbr", str(hbr), "--preset", "tiny", *chunk,
                                         "--set", "middle.generations=0", "--out", str(out / "train_spare"), *quiet]),
         ("measure_steps", "measure_steps", ["--hbr", str(hbr), "--out", str(out / "measure_steps" / "hbr.npz"),
-                                            "--starts", "2", "--chunk", str(STEP_CHUNK), *quiet]),
+                                            "--starts", "2", *quiet]),
         ("seed_folder", "", []),  # not a command: the repertoire seed folder maze_eval reads
         ("maze_eval", "maze_eval", ["--repertoire-dir", str(seeds.parent), "--variant", "hte-spare,2d-rte",
                                     *planner, "--out", str(out / "maze_eval"), *quiet]),

@@ -23,6 +23,8 @@ import jax
 import numpy as np
 import pytest
 
+import hte_jax  # noqa: F401  (sizes XLA's CPU pool before jax starts: hte_jax/cpu_pool.py)
+
 # The controller process makes the folder; xdist workers inherit it through the environment.
 _OWNER = "HTE_JAX_TEST_XLA_CACHE" not in os.environ
 _CACHE = os.environ.setdefault("HTE_JAX_TEST_XLA_CACHE", tempfile.mkdtemp(prefix="hte-jax-xla-cache-"))

@@ -17,7 +17,6 @@ import json
 import os
 import subprocess
 import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -25,8 +24,8 @@ import pytest
 from hte_jax.online.evaluation import EvalConfig
 from hte_jax.qd.io import read_checkpoint
 from tests.commands_script import STEP_CHUNK
+from tests.processes import ROOT, cpu_devices_env
 
-ROOT = Path(__file__).resolve().parent.parent
 DEVICES = 2
 # command -> files it writes, under the script's output folder
 FLAT = ["config.json", "checkpoint.npz", "metrics.csv", "repertoires.npz", "summary.json", "plots"]
@@ -62,9 +61,7 @@ def gl_backend() -> str | None:
 def commands(tmp_path_factory):
     out = tmp_path_factory.mktemp("commands")
     backend = gl_backend()
-    flags = f"{os.environ.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count={DEVICES}"  # + conftest's
-    env = dict(os.environ, XLA_FLAGS=flags, JAX_PLATFORMS="cpu",
-               PYTHONPATH=os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")])))
+    env = cpu_devices_env(DEVICES)
     if backend is not None:
         env["MUJOCO_GL"] = backend
     done = subprocess.run([sys.executable, "-m", "tests.commands_script", str(out), *(["--render"] if backend else [])],

@@ -28,12 +28,12 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-ROOT = Path(__file__).resolve().parent.parent
+from tests.processes import ROOT, cpu_devices_env
+
 FULL = os.environ.get("HTE_SHARDING_FULL", "") not in ("", "0")
 DEVICES = (1, 2, 4) if FULL else (1, 2)
 PARTS = ("batched", "hlo", "replica") + (("hbr", "flat", "episodes") if FULL else ())
@@ -47,9 +47,7 @@ full_only = pytest.mark.skipif(not FULL, reason="HTE_SHARDING_FULL=1 runs it (ab
 @pytest.fixture(scope="module")
 def results(tmp_path_factory):
     out = tmp_path_factory.mktemp("sharding") / "sharding.npz"
-    flags = f"{os.environ.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count={max(DEVICES)}"  # + conftest's
-    env = dict(os.environ, XLA_FLAGS=flags, JAX_PLATFORMS="cpu",
-               PYTHONPATH=os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")])))
+    env = cpu_devices_env(max(DEVICES))
     done = subprocess.run([sys.executable, "-m", "tests.sharding_script", str(out), "--devices",
                            ",".join(map(str, DEVICES)), "--parts", ",".join(PARTS)],
                           cwd=ROOT, env=env, capture_output=True, text=True, timeout=3600)
