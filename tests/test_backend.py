@@ -27,7 +27,8 @@ from hte_jax.qd.io import prepare_run_dir
 from hte_jax.sim.damage import paper_damage_masks
 from hte_jax.sim.mjx_import import mjx, require_impl, warp_installed
 from hte_jax.sim.robot import FOOT_RADIUS, RobotConfig, load_robot, mj_model
-from hte_jax.sim.rollout import InvalidReason, RolloutSpec, empty_data, rollout, standing_state
+from hte_jax.sim.env import InvalidReason
+from hte_jax.sim.rollout import RolloutSpec, empty_data, rollout, standing_state
 
 ROOT = Path(__file__).resolve().parents[1]
 needs_warp = pytest.mark.skipif(not warp_installed(), reason="MJX's Warp backend is not installed "

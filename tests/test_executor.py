@@ -24,7 +24,8 @@ from hte_jax.online.mcts import PlannerConfig
 from hte_jax.online.secondary import oracle_pattern
 from hte_jax.sim.damage import parse_damage
 from hte_jax.sim.robot import NUM_LEGS, RobotConfig
-from hte_jax.sim.rollout import InvalidReason, RolloutSpec, rollout
+from hte_jax.sim.env import InvalidReason
+from hte_jax.sim.rollout import RolloutSpec, rollout
 
 LEG1 = parse_damage("leg1")
 # docs/extending.md example 4's settings: with its skills, the programs compiled here are the

@@ -17,7 +17,8 @@ from hte_jax.errors import ConfigError
 from hte_jax.sim.controller import commanded_travel, servo_command, target_table
 from hte_jax.sim.damage import DAMAGED_POSE, paper_damage_masks
 from hte_jax.sim.robot import RobotConfig, build_spec, load_robot, mj_model, without_idle_springs
-from hte_jax.sim.rollout import InvalidReason, RolloutSpec, initial_state, reflex_braced, rollout, standing_state
+from hte_jax.sim.env import InvalidReason, reflex_braced
+from hte_jax.sim.rollout import RolloutSpec, initial_state, rollout, standing_state
 
 
 def _gait(amplitude, hip, lift):

@@ -18,7 +18,8 @@ from hte_jax.qd.repertoire import Evaluation
 from hte_jax.qd.task_spec import EvaluateFn, TaskSpec
 from hte_jax.sim.controller import NUM_PARAMS
 from hte_jax.sim.robot import NUM_LEGS, Robot
-from hte_jax.sim.rollout import RolloutSpec, SimState, rollout
+from hte_jax.sim.env import SimState
+from hte_jax.sim.rollout import RolloutSpec, rollout
 
 GENES = NUM_PARAMS  # 36
 DESCRIPTOR_DIMS = {"2d": 2, "8d": 2 + NUM_LEGS}

@@ -15,7 +15,8 @@ from hte_jax.qd.repertoire import Evaluation
 from hte_jax.qd.task_spec import EvaluateFn, TaskSpec
 from hte_jax.sim.controller import NUM_PARAMS
 from hte_jax.sim.robot import NUM_LEGS, Robot
-from hte_jax.sim.rollout import RolloutSpec, SimState, rollout
+from hte_jax.sim.env import SimState
+from hte_jax.sim.rollout import RolloutSpec, rollout
 
 GENES = 6  # (a, p, d) hip signal, (a, p, d) vertical signal
 DESCRIPTORS = 3  # swing, height, duty

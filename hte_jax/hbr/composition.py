@@ -17,7 +17,8 @@ from hte_jax import sharding
 from hte_jax.geometry import compose_pose, planar_pose, relative_pose
 from hte_jax.hbr.middle import NUM_PATTERNS, PRIMARY, MiddleTask
 from hte_jax.sim.robot import NUM_LEGS, Robot
-from hte_jax.sim.rollout import RolloutSpec, SimState, rollout
+from hte_jax.sim.env import SimState
+from hte_jax.sim.rollout import RolloutSpec, rollout
 
 COMPOSITIONS = ("planned", "waypoints")  # how a step with a chosen pattern picks its elite
 DEFAULT_BEAM = (32, 16)

@@ -15,7 +15,8 @@ from hte_jax.hbr.skill_grid import TopTask
 from hte_jax.qd.archive import map_rows, squared_distance
 from hte_jax.qd.repertoire import Repertoire
 from hte_jax.sim.robot import NUM_JOINTS, NUM_LEGS, Robot
-from hte_jax.sim.rollout import RolloutSpec, SimState, ValidityLimits, rollout
+from hte_jax.sim.env import SimState, ValidityLimits
+from hte_jax.sim.rollout import RolloutSpec, rollout
 
 STEPS_PER_SKILL = 3
 ANY_PATTERN = -1

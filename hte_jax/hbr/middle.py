@@ -17,7 +17,8 @@ from hte_jax.qd.archive import Archive, map_rows, squared_distance
 from hte_jax.qd.repertoire import Evaluation, Repertoire
 from hte_jax.qd.task_spec import EvaluateFn, TaskSpec
 from hte_jax.sim.robot import NUM_LEGS, Robot
-from hte_jax.sim.rollout import RolloutSpec, SimState, rollout
+from hte_jax.sim.env import SimState
+from hte_jax.sim.rollout import RolloutSpec, rollout
 
 GENES = 18
 PRIMARY = 3  # x, y, yaw

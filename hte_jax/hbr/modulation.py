@@ -16,7 +16,7 @@ from hte_jax.hbr.hierarchy import HBR, STEPS_PER_SKILL, SkillResult, execute_ski
 from hte_jax.hbr.middle import NUM_PATTERNS, pattern_code
 from hte_jax.hbr.top import TopTask
 from hte_jax.sim.robot import Robot
-from hte_jax.sim.rollout import SimState
+from hte_jax.sim.env import SimState
 
 
 @dataclasses.dataclass(frozen=True)

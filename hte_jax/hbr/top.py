@@ -15,7 +15,7 @@ from hte_jax.hbr.skill_grid import TopTask as TopTask  # the top layer's grid, r
 from hte_jax.qd.repertoire import Evaluation
 from hte_jax.qd.task_spec import EvaluateFn, TaskSpec
 from hte_jax.sim.robot import Robot
-from hte_jax.sim.rollout import SimState
+from hte_jax.sim.env import SimState
 
 GENES = 9  # three middle-layer primary descriptors (x, y, yaw steps)
 EXTRAS = {"middle_indices": ((STEPS_PER_SKILL,), "int32"), "arrival_yaw": ((), "float32")}

@@ -21,7 +21,8 @@ from hte_jax.online.secondary import ERROR_DIM
 from hte_jax.online.skills import Skills, displacement_of
 from hte_jax.sim.controller import NUM_PARAMS
 from hte_jax.sim.robot import NUM_LEGS, Robot
-from hte_jax.sim.rollout import RolloutSpec, SimState, ValidityLimits, rollout
+from hte_jax.sim.env import SimState, ValidityLimits
+from hte_jax.sim.rollout import RolloutSpec, rollout
 
 STEP_CONTROL_STEPS = 100  # one second
 SECONDS_PER_ACTION = STEPS_PER_SKILL + 1

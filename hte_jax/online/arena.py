@@ -12,7 +12,8 @@ import jax.numpy as jnp
 from hte_jax.geometry import heading
 from hte_jax.online.maze import Maze
 from hte_jax.sim.robot import Robot, RobotConfig, load_robot
-from hte_jax.sim.rollout import SimState, standing_state
+from hte_jax.sim.env import SimState
+from hte_jax.sim.rollout import standing_state
 
 
 def maze_config(maze: Maze, base: RobotConfig = RobotConfig()) -> RobotConfig:

@@ -33,7 +33,7 @@ from hte_jax.online.secondary import ERROR_DIM
 from hte_jax.online.skills import OUTCOME_DIM, Skills, displacement_of, predict
 from hte_jax.online.skills import outcome as outcome_of
 from hte_jax.sim.robot import NUM_LEGS, Robot
-from hte_jax.sim.rollout import SimState
+from hte_jax.sim.env import SimState
 
 
 @dataclasses.dataclass(frozen=True)

@@ -21,10 +21,11 @@ from hte_jax.online.episode import AdaptationConfig, Episodes, execute, plan_ste
 from hte_jax.online.maze import Maze, distance_field
 from hte_jax.online.skills import Skills
 from hte_jax.online.variants import variant as variant_named
-from hte_jax.sim.controller import NUM_PARAMS, SAMPLES_PER_PERIOD, SERVO_TIME_CONSTANT, target_table
-from hte_jax.sim.damage import damaged_pose
-from hte_jax.sim.robot import FOOT_RADIUS, JOINTS_PER_LEG, NUM_LEGS, RobotConfig, mj_model, robot_info
-from hte_jax.sim.rollout import RolloutSpec, SimState, ValidityLimits, check_state, reflex_braced
+from hte_jax.sim.controller import NUM_PARAMS, SAMPLES_PER_PERIOD, target_table
+from hte_jax.sim.damage import apply_damage, damaged_pose
+from hte_jax.sim.robot import FOOT_RADIUS, NUM_LEGS, RobotConfig, mj_model, robot_info
+from hte_jax.sim.env import SimState, ValidityLimits, check_state, control
+from hte_jax.sim.rollout import RolloutSpec
 
 
 @struct.dataclass
@@ -146,8 +147,7 @@ class MujocoExecutor:
         self.data = mujoco.MjData(self.model)
         info = robot_info(self.model, config)
         self.joints, self.feet = np.asarray(info.joint_qpos), np.asarray(info.foot_geoms)
-        self.damaged = np.repeat(np.asarray(damage, bool), JOINTS_PER_LEG)
-        self.damaged_pose = np.tile(np.asarray(damaged_pose(config.damage_model)), NUM_LEGS)
+        self.damage = np.asarray(damage, bool)
         self.neutral = np.asarray(_target_tables(jnp.zeros((1, NUM_PARAMS), jnp.float32)), np.float64)[0]
         self._set(np.asarray(start.qpos), np.asarray(start.qvel), np.asarray(start.qacc_warmstart))
 
@@ -158,8 +158,7 @@ class MujocoExecutor:
         model = mj_model(plain)
         qpos = model.qpos0.copy()
         joints = np.asarray(robot_info(model, plain).joint_qpos)
-        legs = np.repeat(np.asarray(damage, bool), JOINTS_PER_LEG)
-        qpos[joints] = np.where(legs, np.tile(np.asarray(damaged_pose(plain.damage_model)), NUM_LEGS), qpos[joints])
+        qpos[joints] = apply_damage(qpos[joints], np.asarray(damage, bool), damaged_pose(plain.damage_model), np)
         zeros = np.zeros(model.nv)
         settling = cls(plain, damage, SimState(qpos=qpos, qvel=zeros, qacc_warmstart=zeros), ValidityLimits())
         settling.run(np.zeros((1, NUM_PARAMS), np.float32))
@@ -204,15 +203,11 @@ class MujocoExecutor:
         gait_moves = np.abs(table - np.roll(table, 1, axis=0))  # (100, 18) row k: |target(k) - target(k - 1)|
         asked = np.zeros((steps, table.shape[1]))  # the gait's moves on the steps it ran, as in `rollout`
         for k in range(steps):
-            if self.config.reflex_tilt > 0.0:  # the tilt reflex, as `rollout` runs it
-                braced = reflex_braced(braced, np.False_, data.qpos, self.config)
-            row = self.neutral[k % SAMPLES_PER_PERIOD] if braced else table[k % SAMPLES_PER_PERIOD]
+            row = k % SAMPLES_PER_PERIOD
+            data.ctrl[:], braced = control(self.config, self.joints, data.qpos, table[row], self.neutral[row],
+                                           self.damage, braced, np.False_, xp=np)
             if not braced:
-                asked[k] = gait_moves[k % SAMPLES_PER_PERIOD]
-            target = np.where(self.damaged, self.damaged_pose, row)
-            error = target - data.qpos[self.joints]
-            data.ctrl[:] = np.clip(error / SERVO_TIME_CONSTANT, -self.config.max_joint_velocity,
-                                   self.config.max_joint_velocity)
+                asked[k] = gait_moves[row]
             for _ in range(substeps):
                 mujoco.mj_step(model, data)
             # geom_xpos comes from the step's forward pass: the feet at the start of the step, as in MJX.

@@ -3,8 +3,8 @@
 from hte_jax.sim.controller import leg_primitive, servo_command, signal_table, target_table
 from hte_jax.sim.damage import DAMAGED_POSE, PAPER_DAMAGES, damage_mask, paper_damage_masks, parse_damage
 from hte_jax.sim.robot import Robot, RobotConfig, load_robot
-from hte_jax.sim.rollout import (InvalidReason, RolloutResult, RolloutSpec, SimState, ValidityLimits, initial_state,
-                                 rollout, standing_state)
+from hte_jax.sim.env import InvalidReason, SimState, ValidityLimits
+from hte_jax.sim.rollout import RolloutResult, RolloutSpec, initial_state, rollout, standing_state
 
 __all__ = ["DAMAGED_POSE", "PAPER_DAMAGES", "InvalidReason", "Robot", "RobotConfig", "RolloutResult", "RolloutSpec",
            "SimState", "ValidityLimits", "damage_mask", "initial_state", "leg_primitive", "load_robot",

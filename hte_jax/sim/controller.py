@@ -56,9 +56,9 @@ def leg_primitive(leg_params: jax.Array, leg: jax.Array) -> jax.Array:
     return rows.at[leg].set(leg_params).reshape(NUM_PARAMS)
 
 
-def servo_command(target: jax.Array, joint_pos: jax.Array, max_velocity: float) -> jax.Array:
-    """(18,) rad/s command of the original servo: (target - joint_pos) / (pi * 0.01), clipped (rad in)."""
-    return jnp.clip((target - joint_pos) / SERVO_TIME_CONSTANT, -max_velocity, max_velocity)
+def servo_command(target: jax.Array, joint_pos: jax.Array, max_velocity: float, xp=jnp) -> jax.Array:
+    """(18,) rad/s command of the original servo: (target - joint_pos) / (pi * 0.01), clipped (rad in; jax or NumPy)."""
+    return xp.clip((target - joint_pos) / SERVO_TIME_CONSTANT, -max_velocity, max_velocity)
 
 
 def commanded_travel(params: jax.Array) -> jax.Array:

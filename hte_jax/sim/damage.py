@@ -64,9 +64,9 @@ def damage_masks(names: Iterable[str]) -> np.ndarray:
     return np.stack([parse_damage(name) for name in names])
 
 
-def damaged_joint_mask(damage: jax.Array) -> jax.Array:
-    """(6,) leg mask -> (18,) joint mask, leg-major joint order."""
-    return jnp.repeat(damage, JOINTS_PER_LEG, axis=-1)
+def damaged_joint_mask(damage: jax.Array, xp=jnp) -> jax.Array:
+    """(6,) leg mask -> (18,) joint mask, leg-major joint order (jax or NumPy)."""
+    return xp.repeat(damage, JOINTS_PER_LEG, axis=-1)
 
 
 def damaged_pose(model: str) -> tuple[float, float, float]:
@@ -76,7 +76,9 @@ def damaged_pose(model: str) -> tuple[float, float, float]:
     return DAMAGED_POSES[model]
 
 
-def apply_damage(targets: jax.Array, damage: jax.Array, pose: tuple[float, float, float] = DAMAGED_POSE) -> jax.Array:
-    """targets (18,) rad with the legs damaged by `damage` (6,) bool set to `pose` (one leg's three joints)."""
-    pose = jnp.tile(jnp.asarray(pose, targets.dtype), NUM_LEGS)
-    return jnp.where(damaged_joint_mask(damage), pose, targets)
+def apply_damage(targets: jax.Array, damage: jax.Array, pose: tuple[float, float, float] = DAMAGED_POSE,
+                 xp=jnp) -> jax.Array:
+    """targets (18,) rad with the legs damaged by `damage` (6,) bool set to `pose` (one leg's three joints; jax or
+    NumPy)."""
+    pose = xp.tile(xp.asarray(pose, targets.dtype), NUM_LEGS)
+    return xp.where(damaged_joint_mask(damage, xp), pose, targets)

@@ -3,9 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
-import enum
 import functools
-import math
 
 import jax
 import jax.numpy as jnp
@@ -14,32 +12,12 @@ from flax import struct
 
 from hte_jax import sharding
 from hte_jax.errors import ConfigError
-from hte_jax.sim.controller import NUM_PARAMS, SAMPLES_PER_PERIOD, servo_command, target_table
-from hte_jax.sim.damage import apply_damage, damaged_joint_mask, damaged_pose
+from hte_jax.sim import env
+from hte_jax.sim.controller import NUM_PARAMS, SAMPLES_PER_PERIOD, target_table
+from hte_jax.sim.damage import apply_damage, damaged_pose
+from hte_jax.sim.env import SimState, ValidityLimits, check_state
 from hte_jax.sim.mjx_import import mjx
 from hte_jax.sim.robot import FOOT_RADIUS, NUM_JOINTS, NUM_LEGS, Robot, mj_model, warp_capacity
-
-
-class InvalidReason(enum.IntFlag):
-    """Bits of `RolloutResult.invalid_reason`."""
-
-    NON_FINITE = 1  # NaN or inf in qpos / qvel
-    EXPLODED = 2  # some |qvel| above ValidityLimits.max_speed
-    FLIPPED = 4  # body tilted more than ValidityLimits.max_tilt
-    HEIGHT = 8  # base height outside [min_base_height, max_base_height]
-    BODY_ON_FLOOR = 16  # a corner of the body box below the floor (only feet collide with it)
-    WARP_OVERFLOW = 32  # MuJoCo Warp dropped contacts or constraint rows: a buffer too small (impl "warp")
-
-
-@dataclasses.dataclass(frozen=True)
-class ValidityLimits:
-    """When a rollout is invalid."""
-
-    max_tilt: float = math.pi / 4  # rad between the body's and the world's z axes
-    min_base_height: float = 0.04  # m (the belly touches the floor at 0.021; gaits stay above 0.079)
-    max_base_height: float = 1.0  # m
-    max_speed: float = 100.0  # largest |qvel| entry
-    body_on_floor: bool = True  # a body corner below the floor is invalid (off with `RobotConfig.body_floor_contact`)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -64,17 +42,6 @@ class RolloutSpec:
                 raise ConfigError(f"pose step {step!r} outside [0, num_steps={self.num_steps}]")
         if not isinstance(self.record_qpos_every, int) or self.record_qpos_every < 0:
             raise ConfigError(f"record_qpos_every must be an integer >= 0, got {self.record_qpos_every!r}")
-
-
-@struct.dataclass
-class SimState:
-    """Physical state of robots (any leading batch shape): qpos (..., 25) base position, quaternion w-x-y-z, 18
-    joint angles (leg-major); qvel (..., 24) base linear (world) and angular (body) velocity, 18 joint rates;
-    qacc_warmstart (..., 24) the solver's warm start (carried, chained rollouts equal one long rollout)."""
-
-    qpos: jax.Array
-    qvel: jax.Array
-    qacc_warmstart: jax.Array
 
 
 @struct.dataclass
@@ -110,56 +77,9 @@ def initial_state(robot: Robot, damage: jax.Array | None = None) -> SimState:
     qpos = jnp.asarray(model.qpos0, jnp.float32)
     if damage is not None:
         joints = jnp.asarray(robot.info.joint_qpos)
-        pose = jnp.tile(jnp.asarray(damaged_pose(robot.config.damage_model), jnp.float32), NUM_LEGS)
-        qpos = qpos.at[joints].set(jnp.where(damaged_joint_mask(jnp.asarray(damage)), pose, qpos[joints]))
+        qpos = qpos.at[joints].set(apply_damage(qpos[joints], jnp.asarray(damage), damaged_pose(robot.config.damage_model)))
     zeros = jnp.zeros(model.nv, jnp.float32)
     return SimState(qpos=qpos, qvel=zeros, qacc_warmstart=zeros)
-
-
-# Bottom corners of the body box in the body frame (half sizes 0.114 x 0.0905 x 0.021).
-_BODY_BOTTOM = np.array([[sx * 0.114, sy * 0.0905, -0.021] for sx in (-1, 1) for sy in (-1, 1)], np.float32)
-
-
-def _world_z_of(qpos: jax.Array, points: np.ndarray) -> jax.Array:
-    """World height of body-frame points (N, 3) for a base pose qpos[:7] (unit quaternion)."""
-    w, x, y, z = qpos[3], qpos[4], qpos[5], qpos[6]
-    row_z = jnp.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)])
-    return qpos[2] + points @ row_z
-
-
-def up_z(qpos):
-    """World z of the body's z axis (cosine of its tilt) for a base pose qpos[:7] (jax or NumPy)."""
-    return 1.0 - 2.0 * (qpos[4] ** 2 + qpos[5] ** 2)
-
-
-def reflex_braced(braced, fresh, qpos, config):
-    """Whether the tilt reflex (`RobotConfig.reflex_*`) holds the neutral pose after this step's check: `braced`
-    whether it held it, `fresh` whether a controller segment starts now (it lets go). Jax or NumPy (np.bool_)."""
-    cos_tilt = up_z(qpos)
-    braced = braced & ~fresh
-    if config.reflex_release > 0.0:  # back below the release angle: the gait resumes
-        braced = braced & (cos_tilt < math.cos(config.reflex_release))
-    return braced | (cos_tilt < math.cos(config.reflex_tilt))
-
-
-def check_state(qpos: jax.Array, qvel: jax.Array, limits: ValidityLimits) -> jax.Array:
-    """InvalidReason bits (int32 scalar, 0 = valid) of one state: qpos (25,), qvel (24,)."""
-    finite = jnp.isfinite(qpos).all() & jnp.isfinite(qvel).all()
-    exploded = jnp.abs(qvel).max() > limits.max_speed
-    flipped = up_z(qpos) < math.cos(limits.max_tilt)
-    height = (qpos[2] < limits.min_base_height) | (qpos[2] > limits.max_base_height)
-    on_floor = (_world_z_of(qpos, _BODY_BOTTOM).min() < 0.0) & limits.body_on_floor
-    return (jnp.where(finite, 0, InvalidReason.NON_FINITE) | jnp.where(exploded, InvalidReason.EXPLODED, 0)
-            | jnp.where(flipped, InvalidReason.FLIPPED, 0) | jnp.where(height, InvalidReason.HEIGHT, 0)
-            | jnp.where(on_floor, InvalidReason.BODY_ON_FLOOR, 0)).astype(jnp.int32)
-
-
-def warp_overflow(data: mjx.Data) -> jax.Array:
-    """`InvalidReason.WARP_OVERFLOW` (int32 scalar) if MuJoCo Warp dropped contacts or constraint rows, else 0."""
-    from mujoco.mjx.third_party.mujoco_warp import OverflowType
-    lost = (OverflowType.NEFC | OverflowType.NJMAX_NNZ | OverflowType.BROADPHASE | OverflowType.NARROWPHASE
-            | OverflowType.CCD | OverflowType.NVMAX)
-    return jnp.where((data._impl.overflow & int(lost)) != 0, InvalidReason.WARP_OVERFLOW, 0).astype(jnp.int32)
 
 
 def _rollout_one(robot: Robot, spec: RolloutSpec, template: mjx.Data, tables: jax.Array, damage: jax.Array,
@@ -187,24 +107,10 @@ def _rollout_one(robot: Robot, spec: RolloutSpec, template: mjx.Data, tables: ja
         row = (step % segment_steps) % SAMPLES_PER_PERIOD
         gait = tables[step // segment_steps, row]
         gait_move = jnp.abs(gait - tables[step // segment_steps, (row - 1) % SAMPLES_PER_PERIOD])
-        if config.reflex_tilt > 0.0:  # past the reflex tilt: the neutral pose (until the segment ends or release)
-            braced = reflex_braced(braced, step % segment_steps == 0, data.qpos, config)
-            gait = jnp.where(braced, neutral[row], gait)
+        stepped, new_reason, command, braced, ok = env.step(robot, data, reason, gait, neutral[row], damage, braced,
+                                                            step % segment_steps == 0, spec.limits)
+        if config.reflex_tilt > 0.0:
             gait_move = jnp.where(braced, 0.0, gait_move)
-        target = apply_damage(gait, damage, damaged_pose(config.damage_model))
-        command = servo_command(target, data.qpos[joint_qpos], config.max_joint_velocity)
-        stepped = data.replace(ctrl=command)
-        for _ in range(config.substeps):
-            stepped = mjx.step(robot.model, stepped)
-        found = check_state(stepped.qpos, stepped.qvel, spec.limits)
-        if config.impl == "warp":
-            found = found | warp_overflow(stepped)
-        new_reason = jnp.where(reason == 0, found, reason)
-        ok = new_reason == 0
-        # Freeze an invalid individual at its last valid state (no NaN leaks out).
-        stepped = stepped.replace(qpos=jnp.where(ok, stepped.qpos, data.qpos),
-                                  qvel=jnp.where(ok, stepped.qvel, data.qvel),
-                                  qacc_warmstart=jnp.where(ok, stepped.qacc_warmstart, data.qacc_warmstart))
         invalid_step = jnp.where((reason == 0) & ~ok, step, invalid_step)
         command_sum = command_sum + jnp.where(ok, jnp.abs(command), 0.0) * config.control_dt
         if spec.record_joint_travel:
