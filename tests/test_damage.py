@@ -33,10 +33,10 @@ def test_bad_leg_index():
         damage.damage_mask([6])
 
 
-def test_apply_damage_overrides_only_damaged_legs():
+def test_held_targets_override_only_damaged_legs():
     targets = jnp.arange(18, dtype=jnp.float32) / 100
     mask = jnp.asarray([False, True, False, False, True, False])
-    out = np.asarray(damage.apply_damage(targets, mask)).reshape(6, 3)
+    out = np.asarray(damage.held_targets(targets, damage.make_damage(mask))).reshape(6, 3)
     np.testing.assert_allclose(out[[1, 4]], np.tile(damage.DAMAGED_POSE, (2, 1)), rtol=1e-6)
     np.testing.assert_allclose(out[[0, 2, 3, 5]], np.asarray(targets).reshape(6, 3)[[0, 2, 3, 5]])
 
@@ -61,9 +61,13 @@ def test_damage_models_choose_the_damaged_pose():
     assert damage.damaged_pose("locked") == (0.0, 0.0, 0.0)
     targets = jnp.full(18, 0.3, jnp.float32)
     mask = jnp.asarray([False, False, True, False, False, False])
-    out = np.asarray(damage.apply_damage(targets, mask, damage.damaged_pose("locked"))).reshape(6, 3)
+    out = np.asarray(damage.held_targets(targets, damage.make_damage(mask, "locked"))).reshape(6, 3)
     np.testing.assert_allclose(out[2], 0.0)
     np.testing.assert_allclose(np.delete(out, 2, axis=0), 0.3)
+    for model in ("removed", "shortened", "weak"):  # the leg follows the gait's targets
+        assert damage.damaged_pose(model) is None
+        held = damage.held_targets(targets, damage.make_damage(mask, model, xp=np), np)
+        np.testing.assert_array_equal(held, np.asarray(targets))
     with pytest.raises(ConfigError, match="unknown damage model"):
         damage.damaged_pose("floppy")
     with pytest.raises(ConfigError, match="damage_model"):

@@ -15,7 +15,7 @@ import pytest
 
 from hte_jax.errors import ConfigError
 from hte_jax.sim.controller import commanded_travel, servo_command, target_table
-from hte_jax.sim.damage import DAMAGED_POSE, paper_damage_masks
+from hte_jax.sim.damage import DAMAGED_POSE, damage_mask, make_damage, paper_damage_masks
 from hte_jax.sim.robot import RobotConfig, build_spec, load_robot, mj_model, without_idle_springs
 from hte_jax.sim.env import InvalidReason, reflex_braced
 from hte_jax.sim.rollout import RolloutSpec, initial_state, rollout, standing_state
@@ -343,3 +343,16 @@ def test_spring_term_is_off_only_where_it_changes_no_force():
     sprung = mujoco.MjModel.from_xml_string(
         "<mujoco><worldbody><body><joint type='hinge' stiffness='2'/><geom size='0.1'/></body></worldbody></mujoco>")
     assert not without_idle_springs(sprung).opt.disableflags & mujoco.mjtDisableBit.mjDSBL_SPRING
+
+
+def test_raised_and_locked_damages_give_the_leg_mask_bits():
+    params = jax.random.uniform(jax.random.key(4), (3, 36))
+    masks = np.stack([damage_mask(()), damage_mask((1,)), damage_mask((1, 4))])
+    for model in ("raised", "locked"):
+        robot = load_robot(dataclasses.replace(load_robot().config, damage_model=model))
+        start = standing_state(robot, masks)
+        spec = RolloutSpec(num_steps=100, pose_steps=(0, 100))
+        by_mask = rollout(robot, params, masks, start, spec)
+        by_part = rollout(robot, params, make_damage(masks, model), start, spec)
+        for name in ("base_pos", "foot_contacts", "invalid_reason"):
+            np.testing.assert_array_equal(np.asarray(getattr(by_mask, name)), np.asarray(getattr(by_part, name)))

@@ -22,7 +22,8 @@ from hte_jax.online.maze import Maze, distance_field
 from hte_jax.online.skills import Skills
 from hte_jax.online.variants import variant as variant_named
 from hte_jax.sim.controller import NUM_PARAMS, SAMPLES_PER_PERIOD, target_table
-from hte_jax.sim.damage import apply_damage, damaged_pose
+from hte_jax.sim.damage import (Damage, EDITED_FIELDS, as_damage, edited_fields, edits_model, held_targets,
+                                touching_feet)
 from hte_jax.sim.robot import FOOT_RADIUS, NUM_LEGS, RobotConfig, mj_model, robot_info
 from hte_jax.sim.env import SimState, ValidityLimits, check_state, control
 from hte_jax.sim.rollout import RolloutSpec
@@ -136,18 +137,39 @@ def _reasons(qpos: jax.Array, qvel: jax.Array, limits: ValidityLimits) -> jax.Ar
     return jax.vmap(lambda q, v: check_state(q, v, limits))(qpos, qvel)
 
 
-class MujocoExecutor:
-    """One hexapod in native MuJoCo, run second by second as the MJX rollout runs it (damage (6,) bool, start an
-    unbatched SimState); at its first invalid state (`limits`) it is put back to the state before and stops."""
+def _host_damage(damage, config: RobotConfig) -> Damage:
+    """`damage` (a (6,) bool leg mask under `config.damage_model`, or an unbatched `Damage`) in NumPy."""
+    damage = damage if isinstance(damage, Damage) else np.asarray(damage, bool)
+    return jax.tree.map(np.asarray, as_damage(damage, config.damage_model, xp=np))
 
-    def __init__(self, config: RobotConfig, damage: np.ndarray, start: SimState,
+
+def _damaged_model(config: RobotConfig, given, damage: Damage) -> mujoco.MjModel:
+    """The native model of `config` (shared), or a copy with the model values of `damage` (`damage.edited_fields`)
+    where it changes them."""
+    model = mj_model(config)
+    if not (isinstance(given, Damage) or edits_model(config.damage_model)):
+        return model
+    edited = edited_fields({name: getattr(model, name) for name in EDITED_FIELDS}, damage, robot_info(model, config))
+    copy = model.__copy__()
+    for name, values in edited.items():
+        getattr(copy, name)[:] = np.asarray(values, np.float64)
+    return copy
+
+
+class MujocoExecutor:
+    """One hexapod in native MuJoCo, run second by second as the MJX rollout runs it (damage a (6,) bool leg mask or
+    an unbatched `Damage`, start an unbatched SimState); at its first invalid state (`limits`) it is put back to the
+    state before and stops."""
+
+    def __init__(self, config: RobotConfig, damage: np.ndarray | Damage, start: SimState,
                  limits: ValidityLimits = ONLINE_LIMITS):
         self.config, self.limits = config, limits
-        self.model = mj_model(config)
+        self.damage = _host_damage(damage, config)
+        self.touching = np.asarray(touching_feet(self.damage))
+        self.model = _damaged_model(config, damage, self.damage)
         self.data = mujoco.MjData(self.model)
         info = robot_info(self.model, config)
         self.joints, self.feet = np.asarray(info.joint_qpos), np.asarray(info.foot_geoms)
-        self.damage = np.asarray(damage, bool)
         self.neutral = np.asarray(_target_tables(jnp.zeros((1, NUM_PARAMS), jnp.float32)), np.float64)[0]
         self._set(np.asarray(start.qpos), np.asarray(start.qvel), np.asarray(start.qacc_warmstart))
 
@@ -158,7 +180,7 @@ class MujocoExecutor:
         model = mj_model(plain)
         qpos = model.qpos0.copy()
         joints = np.asarray(robot_info(model, plain).joint_qpos)
-        qpos[joints] = apply_damage(qpos[joints], np.asarray(damage, bool), damaged_pose(plain.damage_model), np)
+        qpos[joints] = held_targets(qpos[joints], _host_damage(damage, plain), np)
         zeros = np.zeros(model.nv)
         settling = cls(plain, damage, SimState(qpos=qpos, qvel=zeros, qacc_warmstart=zeros), ValidityLimits())
         settling.run(np.zeros((1, NUM_PARAMS), np.float32))
@@ -211,7 +233,7 @@ class MujocoExecutor:
             for _ in range(substeps):
                 mujoco.mj_step(model, data)
             # geom_xpos comes from the step's forward pass: the feet at the start of the step, as in MJX.
-            touching[k] = data.geom_xpos[self.feet, 2] - FOOT_RADIUS < RolloutSpec.contact_tolerance
+            touching[k] = (data.geom_xpos[self.feet, 2] - FOOT_RADIUS < RolloutSpec.contact_tolerance) & self.touching
             qpos[k + 1], qvel[k + 1], warm[k + 1] = data.qpos, data.qvel, data.qacc_warmstart
         reasons = np.asarray(_reasons(jnp.asarray(qpos[1:], jnp.float32), jnp.asarray(qvel[1:], jnp.float32),
                                       self.limits))

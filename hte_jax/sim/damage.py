@@ -1,24 +1,29 @@
-"""Leg damages: a per-rollout (6,) bool mask; a damaged leg's servos hold a pose (`RobotConfig.damage_model`):
-"raised" (the paper's "blocked in the air": femur and tibia straight up, the foot 0.19 m above the hip, off the
-floor unless the body tilts ~80 degrees) or "locked" (standing, joints at 0: likely what the original simulated,
-`docs/original_code.md` §10). The paper's seven conditions: each single leg and the middle legs 1+4."""
+"""Damages as parts. A `DamageModel` says what a damaged leg suffers: the pose its servos hold (`pose`), and
+what it changes in the robot's model (`edit`): "raised" (the paper's "blocked in the air": femur and tibia
+straight up, the foot 0.19 m above the hip), "locked" (standing, joints at 0: likely what the original simulated,
+`docs/original_code.md` §10), "removed" (no mass, no inertia, no contact, no torque: RTE's damage and the
+original's comment), "shortened" (the tibia at a fraction of its length, RTE's other damage), "weak" (the leg's
+servos at a fraction of their torque). A `Damage` holds, per robot, the damaged legs, their model, its fraction
+and the floor's friction scale (APROL's conditions), as arrays: one compiled program serves a batch that mixes
+damages. A plain (6,) bool mask is the legs alone, under `RobotConfig.damage_model`. The paper's seven
+conditions: each single leg and the middle legs 1+4."""
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Iterable
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+from flax import struct
 
 from hte_jax.errors import ConfigError
-from hte_jax.sim.robot import DAMAGE_MODELS, JOINTS_PER_LEG, NUM_LEGS
+from hte_jax.sim.robot import DAMAGE_MODELS, JOINTS_PER_LEG, NUM_LEGS, RobotInfo
 
 # (hip yaw, femur, tibia) in radians. The femur joint (+y axis) at -pi/2 turns the femur
 # straight up; the tibia joint (-y axis) at +pi/2 turns the tibia up in line with it.
 DAMAGED_POSE = (0.0, -np.pi / 2, np.pi / 2)
-DAMAGED_POSES: dict[str, tuple[float, float, float]] = {"raised": DAMAGED_POSE, "locked": (0.0, 0.0, 0.0)}
-assert tuple(DAMAGED_POSES) == DAMAGE_MODELS
 
 PAPER_DAMAGES: dict[str, tuple[int, ...]] = {**{f"leg{i}": (i,) for i in range(NUM_LEGS)}, "legs1+4": (1, 4)}
 DAMAGE_NAMES = ("none", *PAPER_DAMAGES)
@@ -69,16 +74,158 @@ def damaged_joint_mask(damage: jax.Array, xp=jnp) -> jax.Array:
     return xp.repeat(damage, JOINTS_PER_LEG, axis=-1)
 
 
-def damaged_pose(model: str) -> tuple[float, float, float]:
-    """(hip yaw, femur, tibia) a damaged leg holds under damage model `model` ("raised" or "locked")."""
-    if model not in DAMAGED_POSES:
-        raise ConfigError(f"unknown damage model {model!r}; expected one of {', '.join(DAMAGED_POSES)}")
-    return DAMAGED_POSES[model]
+def damaged_pose(model: str) -> tuple[float, float, float] | None:
+    """(hip yaw, femur, tibia) a damaged leg holds under damage model `model`, None: the gait's targets."""
+    return damage_model(model).pose
 
 
-def apply_damage(targets: jax.Array, damage: jax.Array, pose: tuple[float, float, float] = DAMAGED_POSE,
-                 xp=jnp) -> jax.Array:
-    """targets (18,) rad with the legs damaged by `damage` (6,) bool set to `pose` (one leg's three joints; jax or
-    NumPy)."""
-    pose = xp.tile(xp.asarray(pose, targets.dtype), NUM_LEGS)
-    return xp.where(damaged_joint_mask(damage, xp), pose, targets)
+# Model values a damage can change, per robot (MJX reads each of them in every step).
+EDITED_FIELDS = ("body_mass", "body_inertia", "body_ipos", "geom_margin", "geom_pos", "geom_size", "geom_friction",
+                 "actuator_forcerange")
+NO_CONTACT_MARGIN = -1.0  # m: a geom this far inside another before their contact acts (never, for the hexapod)
+TIBIA, FOOT = 2, 3  # a leg's tibia among its bodies, the tibia link and the foot among its geoms (RobotInfo)
+
+
+def _rows(count: int, ids: np.ndarray, legs: jax.Array) -> jax.Array:
+    """(count,) bool: the ids (6, k) of the legs `legs` (6,) bool."""
+    return jnp.zeros(count, bool).at[ids.reshape(-1)].set(jnp.repeat(legs, ids.shape[1]))
+
+
+@dataclasses.dataclass(frozen=True)
+class DamageModel:
+    """What a damaged leg suffers: `pose` (hip yaw, femur, tibia) its servos hold (None: the gait's targets),
+    `fraction` whether it takes a fraction in (0, 1] (of a length, a torque), `touches` whether its foot can
+    touch the floor, and `edit`, its change to the
+    model values `EDITED_FIELDS` of one robot (none here). A new damage is a subclass registered in
+    `DAMAGE_PARTS` (docs/extending.md)."""
+
+    name: str
+    pose: tuple[float, float, float] | None = None
+    fraction: bool = False
+    touches: bool = True  # whether the leg's foot can touch the floor (its contact is recorded)
+
+    def edit(self, fields: dict[str, jax.Array], legs: jax.Array, fraction: jax.Array,
+             info: RobotInfo) -> dict[str, jax.Array]:
+        """`fields` of one robot with the legs `legs` (6,) bool damaged at `fraction` (a float32 scalar)."""
+        return fields
+
+
+class Removed(DamageModel):
+    """The leg is gone: its bodies weigh nothing, its links and foot touch nothing, its servos give no torque."""
+
+    def edit(self, fields, legs, fraction, info):
+        bodies = _rows(fields["body_mass"].shape[0], np.asarray(info.leg_bodies), legs)
+        geoms = _rows(fields["geom_margin"].shape[0], np.asarray(info.leg_geoms), legs)
+        servos = _rows(fields["actuator_forcerange"].shape[0], np.asarray(info.leg_actuators), legs)
+        return {**fields, "body_mass": jnp.where(bodies, 0.0, fields["body_mass"]),
+                "body_inertia": jnp.where(bodies[:, None], 0.0, fields["body_inertia"]),
+                "geom_margin": jnp.where(geoms, NO_CONTACT_MARGIN, fields["geom_margin"]),
+                "actuator_forcerange": jnp.where(servos[:, None], 0.0, fields["actuator_forcerange"])}
+
+
+class Shortened(DamageModel):
+    """The tibia at `fraction` of its length below the knee: its link, its foot and its centre of mass that much
+    closer to the knee along the tibia (its z axis), its mass and inertia scaled by `fraction`."""
+
+    def edit(self, fields, legs, fraction, info):
+        tibia = _rows(fields["body_mass"].shape[0], np.asarray(info.leg_bodies)[:, TIBIA:TIBIA + 1], legs)
+        link = _rows(fields["geom_pos"].shape[0], np.asarray(info.leg_geoms)[:, TIBIA:TIBIA + 1], legs)
+        lower = _rows(fields["geom_pos"].shape[0], np.asarray(info.leg_geoms)[:, TIBIA:FOOT + 1], legs)
+        along = jnp.stack([jnp.float32(1.0), jnp.float32(1.0), fraction])  # x, y stay; z (down the tibia) scales
+        return {**fields, "body_mass": jnp.where(tibia, fields["body_mass"] * fraction, fields["body_mass"]),
+                "body_inertia": jnp.where(tibia[:, None], fields["body_inertia"] * fraction, fields["body_inertia"]),
+                "body_ipos": jnp.where(tibia[:, None], fields["body_ipos"] * along, fields["body_ipos"]),
+                "geom_pos": jnp.where(lower[:, None], fields["geom_pos"] * along, fields["geom_pos"]),
+                "geom_size": jnp.where(link[:, None], fields["geom_size"] * along, fields["geom_size"])}
+
+
+class Weak(DamageModel):
+    """The leg's servos at `fraction` of their torque."""
+
+    def edit(self, fields, legs, fraction, info):
+        servos = _rows(fields["actuator_forcerange"].shape[0], np.asarray(info.leg_actuators), legs)
+        forces = fields["actuator_forcerange"]
+        return {**fields, "actuator_forcerange": jnp.where(servos[:, None], forces * fraction, forces)}
+
+
+DAMAGE_PARTS: dict[str, DamageModel] = {model.name: model for model in (
+    DamageModel("raised", pose=DAMAGED_POSE), DamageModel("locked", pose=(0.0, 0.0, 0.0)), Removed("removed", touches=False),
+    Shortened("shortened", fraction=True), Weak("weak", fraction=True))}
+assert tuple(DAMAGE_PARTS)[:len(DAMAGE_MODELS)] == DAMAGE_MODELS
+_POSES = np.asarray([model.pose or (0.0, 0.0, 0.0) for model in DAMAGE_PARTS.values()])  # (K, 3)
+_HOLDS_POSE = np.asarray([model.pose is not None for model in DAMAGE_PARTS.values()])  # (K,)
+_TOUCHES = np.asarray([model.touches for model in DAMAGE_PARTS.values()])  # (K,)
+
+
+def damage_model(name: str) -> DamageModel:
+    """The registered damage model `name` (ConfigError if none)."""
+    if name not in DAMAGE_PARTS:
+        raise ConfigError(f"unknown damage model {name!r}; expected one of {', '.join(DAMAGE_PARTS)}")
+    return DAMAGE_PARTS[name]
+
+
+@struct.dataclass
+class Damage:
+    """What is wrong with robots (any leading batch shape ...): legs (..., 6) bool the damaged legs; model (...,)
+    int32 their damage model (index in `DAMAGE_PARTS`); fraction (...,) float32 its fraction (1: none); friction
+    (...,) float32 the floor's friction scale (1: intact)."""
+
+    legs: jax.Array
+    model: jax.Array
+    fraction: jax.Array
+    friction: jax.Array
+
+
+def make_damage(legs, model: str = "raised", fraction: float = 1.0, friction: float = 1.0, xp=jnp) -> Damage:
+    """A `Damage` of legs (..., 6) bool under one model; ConfigError for a fraction or friction out of range."""
+    part = damage_model(model)
+    if not (0.0 < fraction <= 1.0):
+        raise ConfigError(f"damage fraction must be in (0, 1], got {fraction!r}")
+    if fraction != 1.0 and not part.fraction:
+        raise ConfigError(f"damage model {model!r} takes no fraction")
+    if not friction > 0.0:
+        raise ConfigError(f"floor friction scale must be > 0, got {friction!r}")
+    legs = xp.asarray(legs, bool)
+    batch = legs.shape[:-1]
+    return Damage(legs=legs, model=xp.full(batch, list(DAMAGE_PARTS).index(model), xp.int32),
+                  fraction=xp.full(batch, fraction, xp.float32), friction=xp.full(batch, friction, xp.float32))
+
+
+def as_damage(damage, model: str, xp=jnp) -> Damage:
+    """`damage` itself, or a plain (..., 6) bool leg mask as a `Damage` under `model` (`RobotConfig.damage_model`)."""
+    return damage if isinstance(damage, Damage) else make_damage(damage, model, xp=xp)
+
+
+def edits_model(model: str) -> bool:
+    """Whether damage model `model` changes model values (its `edit` is its own), not only the servos' targets."""
+    return type(damage_model(model)).edit is not DamageModel.edit
+
+
+def held_targets(targets, damage: Damage, xp=jnp):
+    """targets (18,) rad with each damaged leg that holds a pose (`DamageModel.pose`) set to it (jax or NumPy)."""
+    holds = damage.legs & xp.asarray(_HOLDS_POSE)[damage.model]
+    pose = xp.tile(xp.asarray(_POSES, targets.dtype)[damage.model], NUM_LEGS)
+    return xp.where(damaged_joint_mask(holds, xp), pose, targets)
+
+
+def touching_feet(damage: Damage) -> jax.Array:
+    """(6,) bool: the feet that can touch the floor (not those of a leg whose damage model removes it)."""
+    return ~(damage.legs & ~jnp.asarray(_TOUCHES)[damage.model])
+
+
+def edited_fields(fields: dict, damage: Damage, info: RobotInfo) -> dict[str, jax.Array]:
+    """One robot's model values `EDITED_FIELDS` with `damage` (unbatched) applied: every damage model's `edit` for
+    its legs, then the floor's and the feet's friction scaled (a contact's is the larger of its two geoms')."""
+    fields = {name: jnp.asarray(fields[name]) for name in EDITED_FIELDS}
+    for index, part in enumerate(DAMAGE_PARTS.values()):
+        fields = part.edit(fields, damage.legs & (damage.model == index), damage.fraction, info)
+    surfaces = np.zeros(fields["geom_friction"].shape[0], bool)
+    surfaces[[info.floor_geom, *info.foot_geoms]] = True
+    fields["geom_friction"] = jnp.where(surfaces[:, None], fields["geom_friction"] * damage.friction,
+                                        fields["geom_friction"])
+    return fields
+
+
+def edited_model(model, damage: Damage, info: RobotInfo):
+    """One robot's MJX `model` with `damage` (unbatched) applied (`edited_fields`)."""
+    return model.replace(**edited_fields({name: getattr(model, name) for name in EDITED_FIELDS}, damage, info))

@@ -16,7 +16,7 @@ import numpy as np
 from flax import struct
 
 from hte_jax.sim.controller import servo_command
-from hte_jax.sim.damage import apply_damage, damaged_pose
+from hte_jax.sim.damage import Damage, held_targets
 from hte_jax.sim.mjx_import import mjx
 from hte_jax.sim.robot import Robot, RobotConfig
 
@@ -80,14 +80,15 @@ def reflex_braced(braced, fresh, qpos, config: RobotConfig):
     return braced | (cos_tilt < math.cos(config.reflex_tilt))
 
 
-def control(config: RobotConfig, joint_qpos, qpos, gait, neutral, damage, braced, fresh, xp=jnp):
+def control(config: RobotConfig, joint_qpos, qpos, gait, neutral, damage: Damage, braced, fresh, xp=jnp):
     """One control step's servo command (18,) rad/s and the reflex's new `braced`: the controller's joint targets
-    `gait` (18,) (the neutral pose's `neutral` while the tilt reflex holds), the damaged legs of `damage` (6,)
-    bool in their pose, a velocity servo towards them from the joints qpos[joint_qpos]. Jax (xp=jnp) or NumPy."""
+    `gait` (18,) (the neutral pose's `neutral` while the tilt reflex holds), the damaged legs of `damage`
+    (unbatched) in the pose their damage model holds, a velocity servo towards them from the joints
+    qpos[joint_qpos]. Jax (xp=jnp) or NumPy."""
     if config.reflex_tilt > 0.0:  # past the reflex tilt: the neutral pose (until the segment ends or release)
         braced = reflex_braced(braced, fresh, qpos, config)
         gait = xp.where(braced, neutral, gait)
-    target = apply_damage(gait, damage, damaged_pose(config.damage_model), xp)
+    target = held_targets(gait, damage, xp)
     return servo_command(target, qpos[np.asarray(joint_qpos)], config.max_joint_velocity, xp), braced
 
 
@@ -111,9 +112,10 @@ def warp_overflow(data: mjx.Data) -> jax.Array:
     return jnp.where((data._impl.overflow & int(lost)) != 0, InvalidReason.WARP_OVERFLOW, 0).astype(jnp.int32)
 
 
-def step(robot: Robot, data: mjx.Data, reason: jax.Array, gait: jax.Array, neutral: jax.Array, damage: jax.Array,
+def step(robot: Robot, data: mjx.Data, reason: jax.Array, gait: jax.Array, neutral: jax.Array, damage: Damage,
          braced: jax.Array, fresh: jax.Array, limits: ValidityLimits):
-    """One control step of one robot (unbatched; vmap for a population): `control`, then the physics' substeps
+    """One control step of one robot (unbatched; vmap for a population; `robot.model` already carries the model
+    values of its `damage`: `damage.edited_model`): `control`, then the physics' substeps
     and the validity check. An invalid robot (`reason` != 0 before, or its new state invalid) stays at its last
     valid state, so no NaN leaves it. Returns (data, reason, command (18,), braced, ok): `reason` the first
     invalid reason (0: valid), `ok` whether this step's state is valid."""

@@ -27,7 +27,9 @@ FLOOR_BIT = 1
 WALL_BIT = 2
 WALL_HEIGHT = 0.9
 WALL_CONTACTS = ("bumper", "links", "feet")
-DAMAGE_MODELS = ("raised", "locked")  # the pose of a damaged leg (poses in hte_jax.sim.damage)
+# The damage models a plain leg mask can name (`RobotConfig.damage_model`; all of them, with their parameters,
+# in hte_jax.sim.damage).
+DAMAGE_MODELS = ("raised", "locked", "removed")
 # The solver settings (`SolverConfig`) of every configuration stored before they were settings.
 LEGACY_SOLVER = (4, 8, 1e-8, "jax")
 
@@ -64,7 +66,7 @@ class RobotConfig:
     wall_contact: str = choice("bumper", WALL_CONTACTS)
     bumper_radius: float = number(0.25, 0.0, open_low=True)  # m, the planner's robot radius
     body_floor_contact: bool = False  # body and links collide with the floor (online: a robot that tips over)
-    damage_model: str = choice("raised", DAMAGE_MODELS)  # a damaged leg's pose, "raised" (the paper's) or "locked"
+    damage_model: str = choice("raised", DAMAGE_MODELS)  # what a leg mask's damaged legs suffer (hte_jax.sim.damage)
     reflex_tilt: float = number(0.0, 0.0, math.pi)  # rad; 0: no reflex (the paper's robot)
     reflex_release: float = number(0.0, 0.0)  # rad; 0: held until the segment ends
 
@@ -118,6 +120,10 @@ class RobotInfo:
     joint_dof: tuple[int, ...]  # their qvel address
     foot_geoms: tuple[int, ...]  # geom id of the six foot spheres
     base_body: int  # body id of base_link
+    leg_bodies: tuple[tuple[int, ...], ...] = ()  # (6, 3) body ids of each leg's hip, femur and tibia
+    leg_geoms: tuple[tuple[int, ...], ...] = ()  # (6, 4) geom ids of each leg's hip, femur, tibia links and foot
+    leg_actuators: tuple[tuple[int, ...], ...] = ()  # (6, 3) actuator ids of each leg's servos
+    floor_geom: int = 0
 
 
 @struct.dataclass
@@ -193,9 +199,17 @@ def robot_info(model: mujoco.MjModel, config: RobotConfig) -> RobotInfo:
     """Index bookkeeping for a compiled model."""
     names = (name for leg in range(NUM_LEGS) for name in (f"body_leg_{leg}", f"leg_{leg}_1_2", f"leg_{leg}_2_3"))
     joints = [model.joint(name) for name in names]
+    links = [[f"leg_{leg}_{link}" for link in (1, 2, 3)] for leg in range(NUM_LEGS)]
+    joint_of = {int(model.actuator_trnid[a, 0]): a for a in range(model.nu)}
     return RobotInfo(config=config, nq=model.nq, nv=model.nv, joint_qpos=tuple(int(j.qposadr[0]) for j in joints),
                      joint_dof=tuple(int(j.dofadr[0]) for j in joints), base_body=model.body("base_link").id,
-                     foot_geoms=tuple(model.geom(f"foot_{leg}").id for leg in range(NUM_LEGS)))
+                     foot_geoms=tuple(model.geom(f"foot_{leg}").id for leg in range(NUM_LEGS)),
+                     leg_bodies=tuple(tuple(model.body(name).id for name in leg) for leg in links),
+                     leg_geoms=tuple(tuple(model.geom(name).id for name in [*leg, f"foot_{i}"])
+                                     for i, leg in enumerate(links)),
+                     leg_actuators=tuple(tuple(joint_of[int(j.id)] for j in joints[3 * leg: 3 * leg + 3])
+                                         for leg in range(NUM_LEGS)),
+                     floor_geom=model.geom("floor").id)
 
 
 def load_robot(config: RobotConfig = RobotConfig()) -> Robot:

@@ -14,7 +14,7 @@ from hte_jax import sharding
 from hte_jax.errors import ConfigError
 from hte_jax.sim import env
 from hte_jax.sim.controller import NUM_PARAMS, SAMPLES_PER_PERIOD, target_table
-from hte_jax.sim.damage import apply_damage, damaged_pose
+from hte_jax.sim.damage import Damage, as_damage, edited_model, edits_model, held_targets, touching_feet
 from hte_jax.sim.env import SimState, ValidityLimits, check_state
 from hte_jax.sim.mjx_import import mjx
 from hte_jax.sim.robot import FOOT_RADIUS, NUM_JOINTS, NUM_LEGS, Robot, mj_model, warp_capacity
@@ -71,20 +71,24 @@ class RolloutResult:
     target_travel: jax.Array | None = None
 
 
-def initial_state(robot: Robot, damage: jax.Array | None = None) -> SimState:
-    """Unbatched SimState of the reference pose (base 0.15 m up, joints at 0), `damage` (6,) bool legs in their pose."""
+def initial_state(robot: Robot, damage: jax.Array | Damage | None = None) -> SimState:
+    """Unbatched SimState of the reference pose (base 0.15 m up, joints at 0), the legs of `damage` (a (6,) bool
+    mask or an unbatched `Damage`) in the pose their damage model holds."""
     model = mj_model(robot.config)
     qpos = jnp.asarray(model.qpos0, jnp.float32)
     if damage is not None:
         joints = jnp.asarray(robot.info.joint_qpos)
-        qpos = qpos.at[joints].set(apply_damage(qpos[joints], jnp.asarray(damage), damaged_pose(robot.config.damage_model)))
+        qpos = qpos.at[joints].set(held_targets(qpos[joints], as_damage(damage, robot.config.damage_model)))
     zeros = jnp.zeros(model.nv, jnp.float32)
     return SimState(qpos=qpos, qvel=zeros, qacc_warmstart=zeros)
 
 
-def _rollout_one(robot: Robot, spec: RolloutSpec, template: mjx.Data, tables: jax.Array, damage: jax.Array,
-                 init: SimState):
-    """One individual: tables (S, 100, 18) joint targets, damage (6,), init unbatched."""
+def _rollout_one(robot: Robot, spec: RolloutSpec, template: mjx.Data, edits: bool, tables: jax.Array,
+                 damage: Damage, init: SimState):
+    """One individual: tables (S, 100, 18) joint targets, damage and init unbatched; `edits`: its damage changes
+    the model's values (`damage.edited_model`)."""
+    if edits:
+        robot = robot.replace(model=edited_model(robot.model, damage, robot.info))
     info, config = robot.info, robot.config
     segment_steps = spec.num_steps // tables.shape[0]
     joint_qpos = np.asarray(info.joint_qpos)
@@ -120,7 +124,7 @@ def _rollout_one(robot: Robot, spec: RolloutSpec, template: mjx.Data, tables: ja
         foot_pos = jnp.where(ok, stepped.geom_xpos[feet], data.geom_xpos[feet])
         outputs = {}
         if spec.record_contacts:
-            outputs["contacts"] = foot_pos[:, 2] - FOOT_RADIUS < spec.contact_tolerance
+            outputs["contacts"] = (foot_pos[:, 2] - FOOT_RADIUS < spec.contact_tolerance) & touching_feet(damage)
         if spec.record_feet:
             outputs["feet"] = foot_pos
         if spec.record_joints:
@@ -150,7 +154,9 @@ def _rollout_one(robot: Robot, spec: RolloutSpec, template: mjx.Data, tables: ja
 @functools.partial(jax.jit, static_argnames=("spec",))
 def rollout(robot: Robot, params: jax.Array, damage: jax.Array, init: SimState, spec: RolloutSpec) -> RolloutResult:
     """B hexapods simulated in one jitted call: params (B, 36) controllers, or (B, S, 36) run back to back for
-    num_steps / S steps each (clock reset); damage (B, 6) or (6,) bool; init SimState batched (B, ...) or not."""
+    num_steps / S steps each (clock reset); damage a (B, 6) or (6,) bool leg mask (its legs under
+    `RobotConfig.damage_model`) or a `Damage` batched (B, ...) or not (one program for any mix of damage models);
+    init SimState batched (B, ...) or not."""
     if params.ndim == 2:
         params = params[:, None, :]
     if params.ndim != 3 or params.shape[-1] != NUM_PARAMS:
@@ -158,18 +164,22 @@ def rollout(robot: Robot, params: jax.Array, damage: jax.Array, init: SimState, 
     batch, num_segments = params.shape[:2]
     if spec.num_steps % num_segments:
         raise ConfigError(f"{num_segments} controller segments do not divide num_steps={spec.num_steps}")
-    damage = jnp.asarray(damage, bool)
-    if damage.shape[-1] != NUM_LEGS or damage.ndim > 2:
-        raise ConfigError(f"damage must have shape (6,) or (B, 6), got {damage.shape}")
-    if damage.ndim == 1:
-        damage = jnp.broadcast_to(damage, (batch, NUM_LEGS))
+    edits = isinstance(damage, Damage) or edits_model(robot.config.damage_model)
+    if edits and robot.config.impl == "warp":
+        raise ConfigError("impl='warp' cannot change model values per robot (damage models removed, shortened, weak, "
+                          "floor friction): use impl='jax' or a raised / locked leg mask")
+    damage = as_damage(damage, robot.config.damage_model)
+    if damage.legs.shape[-1] != NUM_LEGS or damage.legs.ndim > 2:
+        raise ConfigError(f"damage must have shape (6,) or (B, 6), got {damage.legs.shape}")
+    if damage.legs.ndim == 1:
+        damage = jax.tree.map(lambda x: jnp.broadcast_to(x, (batch, *x.shape)), damage)
     if init.qpos.ndim == 1:
         init = jax.tree.map(lambda x: jnp.broadcast_to(x, (batch, *x.shape)), init)
     tables = jax.vmap(jax.vmap(target_table))(params.astype(jnp.float32))  # (B, S, 100, 18)
     template = empty_data(robot, batch)
 
     def run(shared, rows):
-        return jax.vmap(functools.partial(_rollout_one, shared[0], spec, shared[1]))(*rows)
+        return jax.vmap(functools.partial(_rollout_one, shared[0], spec, shared[1], edits))(*rows)
 
     return sharding.map_rows(run, (robot, template), (tables, damage, init))
 
@@ -182,13 +192,16 @@ def empty_data(robot: Robot, rows: int) -> mjx.Data:
     return mjx.make_data(mj_model(robot.config), impl="warp", naconmax=rows * contacts, njmax=constraint_rows)
 
 
-def standing_state(robot: Robot, damage: jax.Array | None = None, settle_steps: int = 100) -> SimState:
-    """A settled standing pose (zero controller, then x = y = 0), batched like `damage` (6,) or (B, 6) bool."""
-    damage = jnp.zeros(NUM_LEGS, bool) if damage is None else jnp.asarray(damage, bool)
-    batched = damage.ndim == 2
-    damage = damage.reshape(-1, NUM_LEGS)
+def standing_state(robot: Robot, damage: jax.Array | Damage | None = None, settle_steps: int = 100) -> SimState:
+    """A settled standing pose (zero controller, then x = y = 0), batched like `damage`: a (6,) or (B, 6) bool leg
+    mask, or a `Damage` unbatched or batched (B, ...)."""
+    damage = jnp.zeros(NUM_LEGS, bool) if damage is None else damage
+    damage = damage if isinstance(damage, Damage) else jnp.asarray(damage, bool)
+    legs = damage.legs if isinstance(damage, Damage) else damage
+    batched = legs.ndim == 2
+    damage = jax.tree.map(lambda x: x.reshape(-1, *x.shape[legs.ndim - 1:]), damage)
     init = jax.vmap(lambda d: initial_state(robot, d))(damage)
-    params = jnp.zeros((damage.shape[0], NUM_PARAMS))
+    params = jnp.zeros((init.qpos.shape[0], NUM_PARAMS))
     spec = RolloutSpec(num_steps=settle_steps, record_contacts=False)
     state = rollout(robot, params, damage, init, spec).final_state
     state = state.replace(qpos=state.qpos.at[:, :2].set(0.0))
