@@ -162,3 +162,24 @@ def test_the_executor_example_drives_native_mujoco_to_the_goal(capsys):
     # Every step took RTE's any pattern until a leg was sensed off the floor, then leg 1's pattern.
     patterns = np.asarray(episode.history.patterns[0, :taken])
     assert set(patterns.ravel().tolist()) <= {-1, 0b101111} and (patterns[-1] == 0b101111).all()
+
+
+def test_the_damage_example_registers_a_heavy_leg_that_the_rollout_runs(capsys):
+    from hte_jax.sim import damage
+
+    namespace: dict = {}
+    try:
+        exec(compile(section_code("Example 5: a new damage"), str(DOC), "exec"), namespace)
+        printed = capsys.readouterr().out.splitlines()
+        assert printed == ["added 0.3644 kg", "True"]  # the doc's comments
+        heavy = namespace["heavy"]
+        assert int(heavy.model) == list(damage.DAMAGE_PARTS).index("heavy")
+        # Its edit changes only leg 0's tibia; the other models' edits leave the robot alone.
+        robot = namespace["robot"]
+        edited = np.asarray(damage.edited_model(robot.model, heavy, robot.info).body_mass)
+        changed = np.flatnonzero(edited != np.asarray(robot.model.body_mass))
+        assert changed.tolist() == [robot.info.leg_bodies[0][2]]
+        with pytest.raises(damage.ConfigError, match="exists"):
+            damage.register_damage(namespace["Heavy"]("heavy"))
+    finally:
+        damage.DAMAGE_PARTS.pop("heavy", None)

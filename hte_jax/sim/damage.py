@@ -86,7 +86,7 @@ NO_CONTACT_MARGIN = -1.0  # m: a geom this far inside another before their conta
 TIBIA, FOOT = 2, 3  # a leg's tibia among its bodies, the tibia link and the foot among its geoms (RobotInfo)
 
 
-def _rows(count: int, ids: np.ndarray, legs: jax.Array) -> jax.Array:
+def leg_rows(count: int, ids: np.ndarray, legs: jax.Array) -> jax.Array:
     """(count,) bool: the ids (6, k) of the legs `legs` (6,) bool."""
     return jnp.zeros(count, bool).at[ids.reshape(-1)].set(jnp.repeat(legs, ids.shape[1]))
 
@@ -96,8 +96,8 @@ class DamageModel:
     """What a damaged leg suffers: `pose` (hip yaw, femur, tibia) its servos hold (None: the gait's targets),
     `fraction` whether it takes a fraction in (0, 1] (of a length, a torque), `touches` whether its foot can
     touch the floor, and `edit`, its change to the
-    model values `EDITED_FIELDS` of one robot (none here). A new damage is a subclass registered in
-    `DAMAGE_PARTS` (docs/extending.md)."""
+    model values `EDITED_FIELDS` of one robot (none here). A new damage is a subclass given to
+    `register_damage` (docs/extending.md)."""
 
     name: str
     pose: tuple[float, float, float] | None = None
@@ -114,9 +114,9 @@ class Removed(DamageModel):
     """The leg is gone: its bodies weigh nothing, its links and foot touch nothing, its servos give no torque."""
 
     def edit(self, fields, legs, fraction, info):
-        bodies = _rows(fields["body_mass"].shape[0], np.asarray(info.leg_bodies), legs)
-        geoms = _rows(fields["geom_margin"].shape[0], np.asarray(info.leg_geoms), legs)
-        servos = _rows(fields["actuator_forcerange"].shape[0], np.asarray(info.leg_actuators), legs)
+        bodies = leg_rows(fields["body_mass"].shape[0], np.asarray(info.leg_bodies), legs)
+        geoms = leg_rows(fields["geom_margin"].shape[0], np.asarray(info.leg_geoms), legs)
+        servos = leg_rows(fields["actuator_forcerange"].shape[0], np.asarray(info.leg_actuators), legs)
         return {**fields, "body_mass": jnp.where(bodies, 0.0, fields["body_mass"]),
                 "body_inertia": jnp.where(bodies[:, None], 0.0, fields["body_inertia"]),
                 "geom_margin": jnp.where(geoms, NO_CONTACT_MARGIN, fields["geom_margin"]),
@@ -128,9 +128,9 @@ class Shortened(DamageModel):
     closer to the knee along the tibia (its z axis), its mass and inertia scaled by `fraction`."""
 
     def edit(self, fields, legs, fraction, info):
-        tibia = _rows(fields["body_mass"].shape[0], np.asarray(info.leg_bodies)[:, TIBIA:TIBIA + 1], legs)
-        link = _rows(fields["geom_pos"].shape[0], np.asarray(info.leg_geoms)[:, TIBIA:TIBIA + 1], legs)
-        lower = _rows(fields["geom_pos"].shape[0], np.asarray(info.leg_geoms)[:, TIBIA:FOOT + 1], legs)
+        tibia = leg_rows(fields["body_mass"].shape[0], np.asarray(info.leg_bodies)[:, TIBIA:TIBIA + 1], legs)
+        link = leg_rows(fields["geom_pos"].shape[0], np.asarray(info.leg_geoms)[:, TIBIA:TIBIA + 1], legs)
+        lower = leg_rows(fields["geom_pos"].shape[0], np.asarray(info.leg_geoms)[:, TIBIA:FOOT + 1], legs)
         along = jnp.stack([jnp.float32(1.0), jnp.float32(1.0), fraction])  # x, y stay; z (down the tibia) scales
         return {**fields, "body_mass": jnp.where(tibia, fields["body_mass"] * fraction, fields["body_mass"]),
                 "body_inertia": jnp.where(tibia[:, None], fields["body_inertia"] * fraction, fields["body_inertia"]),
@@ -143,18 +143,27 @@ class Weak(DamageModel):
     """The leg's servos at `fraction` of their torque."""
 
     def edit(self, fields, legs, fraction, info):
-        servos = _rows(fields["actuator_forcerange"].shape[0], np.asarray(info.leg_actuators), legs)
+        servos = leg_rows(fields["actuator_forcerange"].shape[0], np.asarray(info.leg_actuators), legs)
         forces = fields["actuator_forcerange"]
         return {**fields, "actuator_forcerange": jnp.where(servos[:, None], forces * fraction, forces)}
 
 
 DAMAGE_PARTS: dict[str, DamageModel] = {model.name: model for model in (
-    DamageModel("raised", pose=DAMAGED_POSE), DamageModel("locked", pose=(0.0, 0.0, 0.0)), Removed("removed", touches=False),
-    Shortened("shortened", fraction=True), Weak("weak", fraction=True))}
+    DamageModel("raised", pose=DAMAGED_POSE), DamageModel("locked", pose=(0.0, 0.0, 0.0)),
+    Removed("removed", touches=False), Shortened("shortened", fraction=True), Weak("weak", fraction=True))}
 assert tuple(DAMAGE_PARTS)[:len(DAMAGE_MODELS)] == DAMAGE_MODELS
-_POSES = np.asarray([model.pose or (0.0, 0.0, 0.0) for model in DAMAGE_PARTS.values()])  # (K, 3)
-_HOLDS_POSE = np.asarray([model.pose is not None for model in DAMAGE_PARTS.values()])  # (K,)
-_TOUCHES = np.asarray([model.touches for model in DAMAGE_PARTS.values()])  # (K,)
+
+
+def register_damage(model: DamageModel) -> None:
+    """Add a damage model (before anything simulates with it: compiled programs hold the models they saw)."""
+    if model.name in DAMAGE_PARTS:
+        raise ConfigError(f"a damage model named {model.name!r} exists")
+    DAMAGE_PARTS[model.name] = model
+
+
+def _table(value) -> np.ndarray:
+    """(K, ...) `value(model)` of every registered damage model, in `Damage.model` order."""
+    return np.asarray([value(model) for model in DAMAGE_PARTS.values()])
 
 
 def damage_model(name: str) -> DamageModel:
@@ -203,14 +212,15 @@ def edits_model(model: str) -> bool:
 
 def held_targets(targets, damage: Damage, xp=jnp):
     """targets (18,) rad with each damaged leg that holds a pose (`DamageModel.pose`) set to it (jax or NumPy)."""
-    holds = damage.legs & xp.asarray(_HOLDS_POSE)[damage.model]
-    pose = xp.tile(xp.asarray(_POSES, targets.dtype)[damage.model], NUM_LEGS)
+    holds = damage.legs & xp.asarray(_table(lambda model: model.pose is not None))[damage.model]
+    pose = xp.tile(xp.asarray(_table(lambda model: model.pose or (0.0, 0.0, 0.0)), targets.dtype)[damage.model],
+                   NUM_LEGS)
     return xp.where(damaged_joint_mask(holds, xp), pose, targets)
 
 
 def touching_feet(damage: Damage) -> jax.Array:
     """(6,) bool: the feet that can touch the floor (not those of a leg whose damage model removes it)."""
-    return ~(damage.legs & ~jnp.asarray(_TOUCHES)[damage.model])
+    return ~(damage.legs & ~jnp.asarray(_table(lambda model: model.touches))[damage.model])
 
 
 def edited_fields(fields: dict, damage: Damage, info: RobotInfo) -> dict[str, jax.Array]:
