@@ -17,7 +17,7 @@
 Variants: hte, perfect-hte, random-hte, rte (on an HBR: the shipped one or --repertoire; rte also on a
 flat file), 2d-rte, 8d-rte, aprol (shipped flat repertoires). --protocol paper: the paper's six variants
 on all 7 damages; hte-jax: hte-spare, perfect-spare, perfect-hte, hte, rte, 2d-rte on all 7 with
---reflex-tilt 0.3 --reflex-release 0.15 (docs/results.md, lever 22). Damages: all (the paper's 7) or
+--reflex-tilt 0.3 --reflex-release 0.15 (docs/results.md). Damages: all (the paper's 7) or
 names / indices (none, leg0..leg5 = 0..5, legs1+4 = 6, legs<i>+<j>). --damage-model: raised (default)
 or locked. --repertoire-dir: a subfolder per seed with hbr.npz, flat2d.npz, flat8d.npz, aprol.npz
 (from `experiments.train_set`); a replication's score is the median over seeds. --resume reads the

@@ -11,7 +11,7 @@
 Writes config.json, checkpoint.npz, metrics.csv, repertoires.npz, summary.json and plots/ under
 --out (default runs/flat-<variant>-<preset>); `--show-config` prints the resolved configuration. A
 resumed run keeps its solver settings (4 / 8 if it predates them); another value given is an error.
-Bad values give a one-line error and exit status 2. Times: benchmarks/cpu_commands.py (2026-11-26).
+Bad values give a one-line error and exit status 2. Times: benchmarks/cpu_commands.py.
 """
 
 from __future__ import annotations

@@ -7,7 +7,7 @@ RTE on the shipped flat repertoires; "aprol" is APROL on the shipped 21 damaged 
 HBR variants share one batch (the secondary mode is per episode); each flat variant is its own batch.
 
 The paper's protocol (`PROTOCOLS["paper"]`): its six variants, the seven damages, R repertoire
-seeds and `replicates` episodes each. `PROTOCOLS["hte-jax"]`: the sets issue 17 closed with: our
+seeds and `replicates` episodes each. `PROTOCOLS["hte-jax"]`: our
 HTE (`hte-spare`) beside the paper's rule, RTE on the same HBR, 2D-RTE and both oracles, every
 variant on the robot with the releasing tilt reflex. Seeds come from `repertoire_dir` (one subfolder per seed
 holding `hbr.npz`, `flat2d.npz`, `flat8d.npz`, `aprol.npz`); without it, the shipped repertoires
