@@ -21,7 +21,6 @@ from hte_jax.errors import ConfigError
 from hte_jax.flat.comparison import resolve
 from hte_jax.hbr.composition import measure_steps
 from hte_jax.hbr.store import load_hbr, save_hbr, shipped_hbr_path
-from hte_jax.sharding import mesh_size
 from hte_jax.sim.mjx_import import require_impl
 from hte_jax.sim.robot import RobotConfig, load_robot, stored_solver
 from hte_jax.sim.rollout import standing_state
@@ -52,7 +51,7 @@ def main(argv=None) -> int:
         path = shipped_hbr_path() if args.hbr is None else resolve(args.hbr)
         hbr, top_task, meta = load_hbr(path)
         solver = stored_solver(meta.get("training", {}).get("config", {}))
-        require_impl(solver["impl"], mesh_size(mesh))  # the HBR's backend, here and on these devices
+        require_impl(solver["impl"])  # the HBR's backend, here
         robot = load_robot(RobotConfig(**solver))
     if errors.failed:
         return 2

@@ -122,10 +122,46 @@ def map_rows(fn: Callable[..., Any], shared: Any, rows: Any) -> Any:
     batch = jax.tree.leaves(rows)[0].shape[0]
     count = int(np.prod(mesh.axis_sizes))
     padded = pad_rows(rows, -(-batch // count) * count)
-    split = jax.shard_map(fn, mesh=mesh, in_specs=(PartitionSpec(), PartitionSpec(BATCH_AXIS)),
+    (shared, rebuild_shared), (padded, rebuild_rows) = _without_empty(shared), _without_empty(padded, count)
+    body = _empty_constants_made_inside(lambda s, r: fn(rebuild_shared(s), rebuild_rows(r)))
+    split = jax.shard_map(body, mesh=mesh,
+                          in_specs=(PartitionSpec(), PartitionSpec(BATCH_AXIS)),
                           out_specs=PartitionSpec(BATCH_AXIS), check_vma=False)
     result = jax.tree.map(lambda x: x[:batch], split(shared, padded))
     return jax.tree.map(lambda x: jax.lax.with_sharding_constraint(x, PartitionSpec()), result)
+
+
+# XLA's Shardy partitioner (jax 0.11.2) crashes (SIGSEGV, in its ManualComputationUnusedInputsPattern) compiling a
+# `shard_map` one of whose inputs is a zero-sized array that is used inside (`benchmarks/warp_devices.py`, variant
+# "empty"). Such inputs are the zero-sized leaves of the arguments and the zero-sized constants captured while
+# tracing the body (jax passes those in as inputs too): MJX's models hold many (absent sites, cameras, meshes:
+# numpy arrays that MuJoCo Warp's calls take). Both are made inside the body instead (zeros: no data).
+
+
+def _without_empty(tree: Any, split: int = 1) -> tuple[list, Callable[[list], Any]]:
+    """`tree`'s leaves with the zero-sized ones set to None, and the function that puts them back inside the
+    `shard_map` (zeros, the leading axis divided by `split`)."""
+    leaves, treedef = jax.tree.flatten(tree)
+    empty = {i: (np.shape(x), x.dtype) for i, x in enumerate(leaves) if np.size(x) == 0}
+
+    def rebuild(kept: list) -> Any:
+        local = {i: jnp.zeros((shape[0] // split, *shape[1:]), dtype) for i, (shape, dtype) in empty.items()}
+        return jax.tree.unflatten(treedef, [local.get(i, x) for i, x in enumerate(kept)])
+
+    return [None if i in empty else x for i, x in enumerate(leaves)], rebuild
+
+
+def _empty_constants_made_inside(fn: Callable[..., Any]) -> Callable[..., Any]:
+    """`fn` traced to a jaxpr and run with its zero-sized constants made by zeros inside it, not captured."""
+    from jax.extend.core import ClosedJaxpr, jaxpr_as_fun
+
+    def run(*args):
+        closed, shapes = jax.make_jaxpr(fn, return_shape=True)(*args)
+        consts = [jnp.zeros(np.shape(c), c.dtype) if np.size(c) == 0 else c for c in closed.consts]
+        flat = jaxpr_as_fun(ClosedJaxpr(closed.jaxpr, consts))(*jax.tree.leaves(args))
+        return jax.tree.unflatten(jax.tree.structure(shapes), flat)
+
+    return run
 
 
 def replica_digests(tree: Any) -> dict[str, list[str]]:

@@ -2,7 +2,7 @@
 its largest device count (the rest of the suite keeps one device); `tests/test_sharding.py` starts
 it and reads its output.
 
-python -m tests.sharding_script OUT.npz [--devices 1,2,4] [--parts hbr,flat,batched,episodes,hlo,replica]
+python -m tests.sharding_script OUT.npz [--devices 1,2,4] [--parts hbr,flat,batched,episodes,hlo,replica,empty]
 
 Writes OUT.npz: for every part and device count N, the arrays of its result, named
 "<part>/<N>/<array>"; "hlo/collectives" lists the collectives found inside while loops of the
@@ -28,7 +28,7 @@ import numpy as np
 
 from hte_jax import sharding
 
-PARTS = ("hbr", "flat", "batched", "episodes", "hlo", "replica")
+PARTS = ("hbr", "flat", "batched", "episodes", "hlo", "replica", "empty")
 BATCHED_DAMAGES = ("leg1", "legs1+4")  # an APROL-style BatchedMapElites of two damages
 # Training batches: 12 rows, so 12, 6 or 3 rows per device. XLA's CPU code for a vmapped MJX step
 # rounds differently with the rows it is compiled for (measured on one device: 3, 5, 6 and 12 rows
@@ -176,6 +176,22 @@ def generation_hlo(algo, state) -> dict:
             "hlo/loops": np.array(text.count(" while("))}
 
 
+def run_empty(devices: int) -> dict:
+    """`sharding.map_rows` of a function using zero-sized arrays: a shared leaf, a row leaf and a numpy constant
+    (MJX's Warp models hold many; inputs of a shard_map that crashed jax 0.11.2's partitioner)."""
+    import jax.numpy as jnp
+
+    def fn(shared, rows):
+        return rows[0] * shared[0] + shared[1].sum() + rows[1].sum(axis=1) + jnp.asarray(np.zeros((0, 2))).sum()
+
+    mesh = sharding.batch_mesh(devices)
+    shared = (np.float32(2.0), np.zeros((0, 3), np.float32))
+    rows = (np.arange(BATCH, dtype=np.float32), np.zeros((BATCH, 0), np.float32))
+    with sharding.spread_over(mesh):
+        out = jax.jit(lambda s, r: sharding.map_rows(fn, s, r))(*sharding.put_replicated((shared, rows), mesh))
+    return {f"empty/{devices}/out": np.asarray(out)}
+
+
 def replica_error() -> dict:
     """The replica check on an array whose device copies (one per visible device) differ in one element."""
     mesh = sharding.batch_mesh(jax.device_count())
@@ -220,6 +236,8 @@ def main(args: argparse.Namespace):
             arrays |= timed("hbr", run_hbr, n)
         if "flat" in parts:
             arrays |= timed("flat", run_flat, n)
+        if "empty" in parts:
+            arrays |= timed("empty", run_empty, n)
         if "batched" in parts or "hlo" in parts:
             found, batched = timed("batched", run_batched, n)
             arrays |= found

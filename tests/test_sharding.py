@@ -36,7 +36,7 @@ from tests.processes import ROOT, cpu_devices_env
 
 FULL = os.environ.get("HTE_SHARDING_FULL", "") not in ("", "0")
 DEVICES = (1, 2, 4) if FULL else (1, 2)
-PARTS = ("batched", "hlo", "replica") + (("hbr", "flat", "episodes") if FULL else ())
+PARTS = ("batched", "hlo", "replica", "empty") + (("hbr", "flat", "episodes") if FULL else ())
 # 6 episodes of 2 actions, 4 devices vs 1: measured max |diff| 3.3e-4 on the GP's prediction errors,
 # 5e-6 on poses and trajectories
 EPISODE_TOLERANCE = 2e-3
@@ -108,6 +108,13 @@ def test_the_compiled_generation_has_no_collective_inside_the_rollout(results):
     assert results["hlo/loops"] > 0  # the rollout's scan and the solver's loops are there
     assert list(results["hlo/collectives"]) == []
     assert results["hlo/outside"] > 0  # the results are gathered once the rollouts are done
+
+
+def test_zero_sized_arrays_cross_the_split(results):
+    """Zero-sized arguments and constants inside `map_rows` (MJX's Warp models and data hold many) compile and
+    give one device's result on every count (jax 0.11.2's partitioner crashed on them as shard_map inputs)."""
+    _check_agreement(results, "empty")
+    np.testing.assert_array_equal(_runs(results, "empty")[1]["out"], 2.0 * np.arange(12, dtype=np.float32))
 
 
 def test_a_replica_mismatch_stops_with_a_clear_error(results):

@@ -25,7 +25,6 @@ from hte_jax.qd import io
 from hte_jax.qd.batched import BatchedMapElites
 from hte_jax.qd.loop import MapElitesConfig, QDState, run_to_end
 from hte_jax.qd.metrics import projected_statistics
-from hte_jax.sharding import mesh_size
 from hte_jax.sim.damage import APROL_DAMAGES, damage_masks
 from hte_jax.sim.mjx_import import require_impl
 from hte_jax.sim.robot import SolverConfig, load_robot
@@ -135,7 +134,7 @@ def train_flat(config: FlatConfig, out_dir: str | Path, *, resume_run: bool = Fa
     all devices; the results do not depend on it). In a multi-process run only process 0 writes files."""
     writer = jax.process_index() == 0
     out = Path(out_dir)
-    require_impl(config.robot.impl, jax.device_count() if mesh is None else mesh_size(mesh))  # before the run folder
+    require_impl(config.robot.impl)  # before the run folder is made: a missing extra writes nothing
     if writer:
         out = io.prepare_run_dir(out_dir, config.to_dict(), resume_run, normalise=normalised_config)
     algo = flat_algorithm(config, mesh)

@@ -30,7 +30,6 @@ from hte_jax.hbr.store import LAYERS, SPARE_FILE, bottom_fingerprint, save_hbr, 
 from hte_jax.hbr.top import TopTask, evaluate_top, top_spec
 from hte_jax.qd import io
 from hte_jax.qd.loop import MapElites, MapElitesConfig, QDState, run_to_end
-from hte_jax.sharding import mesh_size
 from hte_jax.sim.mjx_import import require_impl
 from hte_jax.sim.robot import Robot, RobotConfig, SolverConfig, load_robot, stored_solver
 from hte_jax.sim.rollout import standing_state
@@ -200,7 +199,7 @@ def train_hbr(config: HBRConfig, out_dir: str | Path, *, resume_run: bool = Fals
     devices; the results do not depend on it). In a multi-process run only process 0 writes files."""
     out = Path(out_dir)
     writer = jax.process_index() == 0
-    require_impl(config.robot.impl, jax.device_count() if mesh is None else mesh_size(mesh))  # before the run folder
+    require_impl(config.robot.impl)  # before the run folder is made: a missing extra writes nothing
     if writer:
         io.prepare_run_dir(out, config.to_dict(), resume_run, normalise=normalised_config)
     robot = load_robot(config.robot)
@@ -252,7 +251,7 @@ def train_spare(hbr: HBR, base: HBRConfig, out_dir: str | Path, *, threshold: fl
     config.json, middle/, spare.npz and summary.json (resumable); returns the summary."""
     config = dataclasses.replace(base, contact_threshold=threshold, middle_l=l, contact_purity=0.0)
     out = Path(out_dir)
-    require_impl(config.robot.impl, jax.device_count())  # before the run folder is made: a missing extra writes nothing
+    require_impl(config.robot.impl)  # before the run folder is made: a missing extra writes nothing
     io.prepare_run_dir(out, {"hbr_config": config.to_dict(), "bottom": bottom_fingerprint(hbr)}, resume_run,
                        normalise=_normalised_spare)
     robot = load_robot(config.robot)

@@ -176,12 +176,12 @@ def rollout(robot: Robot, params: jax.Array, damage: jax.Array, init: SimState, 
     if init.qpos.ndim == 1:
         init = jax.tree.map(lambda x: jnp.broadcast_to(x, (batch, *x.shape)), init)
     tables = jax.vmap(jax.vmap(target_table))(params.astype(jnp.float32))  # (B, S, 100, 18)
-    template = empty_data(robot, batch)
 
-    def run(shared, rows):
-        return jax.vmap(functools.partial(_rollout_one, shared[0], spec, shared[1], edits))(*rows)
+    def run(robot, rows):  # Warp's buffers sized for the rows of this call (one device's, under a mesh)
+        template = empty_data(robot, rows[0].shape[0])
+        return jax.vmap(functools.partial(_rollout_one, robot, spec, template, edits))(*rows)
 
-    return sharding.map_rows(run, (robot, template), (tables, damage, init))
+    return sharding.map_rows(run, robot, (tables, damage, init))
 
 
 def empty_data(robot: Robot, rows: int) -> mjx.Data:
