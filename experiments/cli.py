@@ -31,7 +31,7 @@ from jax.sharding import Mesh
 
 from hte_jax import sharding
 from hte_jax.errors import ConfigError
-from hte_jax.qd.io import CheckpointError, read_header, stored_config
+from hte_jax.qd.io import CheckpointError, read_header, require_same_run_folder, stored_config
 
 EXIT_BAD_INPUT = 2
 EXIT_INTERRUPTED = 130  # 128 + SIGINT, what a shell reports for a command Ctrl-C ended
@@ -221,7 +221,9 @@ def resume_command(module: str, argv: Sequence[str] | None, out: str | Path) -> 
 
 def resumable_run(out: str | Path, checkpoints: Sequence[str]) -> dict:
     """For `--resume`, before any time is spent starting the run: the configuration of the run in `out`
-    (ConfigError when out holds none); CheckpointError if one of its `checkpoints` is not a checkpoint."""
+    (ConfigError when out holds none, or when another process sees other files there); CheckpointError if one of
+    its `checkpoints` is not a checkpoint."""
+    require_same_run_folder(out)
     stored = stored_config(out)
     if stored is None:
         raise ConfigError(f"--resume: {out} holds no run to resume (no config.json); leave out --resume to start one")

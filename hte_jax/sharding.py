@@ -143,6 +143,15 @@ def replica_digests(tree: Any) -> dict[str, list[str]]:
     return digests
 
 
+def processes_differing(data: bytes) -> list[int]:
+    """The processes whose `data` (the same length everywhere) differs from process 0's; [] in a one-process
+    run. A collective: every process calls it, and none gets past it before all have."""
+    if jax.process_count() == 1:
+        return []
+    everywhere = np.asarray(multihost_utils.process_allgather(np.frombuffer(data, np.uint8)))
+    return [int(i) for i in np.flatnonzero((everywhere != everywhere[0]).any(axis=1))]
+
+
 def check_replicas(tree: Any, what: str = "state") -> None:
     """Raise ReplicaMismatchError unless every device of every process holds the same bytes of `tree`."""
     digests = replica_digests(tree)
