@@ -4,7 +4,7 @@ one process on 2 forced devices (the same rows per device), within the tolerance
 
 Each of the two processes runs in its own working folder with a relative `--out`: a filesystem that is not
 shared. Process 0 writes the run, process 1 writes nothing and shows no progress; a resumed run whose folder
-process 1 does not see is refused on both, one whose folder was copied to process 1 goes on. The two-process
+process 1 does not see is refused on both, one copied to both folders goes on. The two-process
 runs run beside the one-process run: XLA compiling the MJX programs, in each of the three processes, is most
 of the time. The HBR trains the tiny preset with the middle and top layers' initial batches only
 (`*.generations=0`: a generation is one more program to compile per layer; the bottom layer's generations
@@ -117,7 +117,7 @@ def runs(tmp_path_factory):
                                **{f"p{i}": ([*maze, *distributed], envs[i], p[i]) for i in range(2)}},
                               root / "logs" / "maze_eval", PHASE_S)
     ended(evaluation)
-    return SimpleNamespace(root=root, one=one, p=p, train=train, evaluation=evaluation)
+    return SimpleNamespace(root=root, one=one, p=p, train=train, evaluation=evaluation, maze=maze)
 
 
 def assert_same_arrays(got: Path, expected: Path, tolerance: float) -> None:
@@ -178,24 +178,30 @@ def test_only_process_0_writes_and_shows_progress(runs):
 
 
 def test_a_resume_that_a_process_cannot_see_is_refused_on_every_process(runs):
-    """Process 0 holds the run (its folder), process 1's folder has none: both stop before any training, with
-    one line and exit status 2; with the run folder copied to process 1's, the resumed run goes on."""
-    finished = runs.p[0] / "train_hbr"
+    """Process 0 holds the HBR run (its folder), process 1's folder has none: both stop before any training,
+    with one line and exit status 2. The maze_eval run copied to both folders resumes (its batches read, not
+    run): process 0 writes the results again, process 1 leaves its copy as it was."""
     p = [runs.root / "resume0", runs.root / "resume1"]
-    shutil.copytree(finished, p[0] / "train_hbr")
-    resume = [*TRAIN, "--out", "train_hbr", "--resume", "--no-progress", "--distributed",
-              "--distributed-timeout", "120"]
+    shutil.copytree(runs.p[0] / "train_hbr", p[0] / "train_hbr")
+    resume = ["--resume", "--no-progress", "--distributed", "--distributed-timeout", "120"]
     envs = two_processes()
-    refused = run_together({f"p{i}": (resume, envs[i], p[i]) for i in range(2)}, runs.root / "logs" / "refused", 300)
+    refused = run_together({f"p{i}": ([*TRAIN, "--out", "train_hbr", *resume], envs[i], p[i]) for i in range(2)},
+                           runs.root / "logs" / "refused", 300)
     line = "error: process 1 of 2 sees other files in train_hbr than process 0: every process reads the run folder"
     for r in refused.values():
         assert r.status == 2, r.err[-3000:]
         assert len(r.err.strip().splitlines()) == 1 and r.err.startswith(line), r.err
-    shutil.copytree(finished, p[1] / "train_hbr")
+    finished = runs.p[0] / "maze_eval"
+    for folder in p:
+        shutil.copytree(finished, folder / "maze_eval")
     envs = two_processes()
-    ended(run_together({f"p{i}": (resume, envs[i], p[i]) for i in range(2)}, runs.root / "logs" / "resumed", 600))
-    assert_same_arrays(p[0] / "train_hbr" / "hbr.npz", finished / "hbr.npz", 0.0)
-    assert run_files_digest(p[1] / "train_hbr") == run_files_digest(finished)  # process 1 wrote nothing
+    resumed = run_together({f"p{i}": ([*runs.maze, *resume], envs[i], p[i]) for i in range(2)},
+                           runs.root / "logs" / "resumed", 300)
+    ended(resumed)
+    assert "batch 0 (hte on seed 0): read from maze_eval/episodes_0.npz" in resumed["p0"].out
+    assert "read from" not in resumed["p1"].out
+    assert (p[0] / "maze_eval" / "episodes.json").read_text() == (finished / "episodes.json").read_text()
+    assert run_files_digest(p[1] / "maze_eval") == run_files_digest(finished)  # process 1 wrote nothing
 
 
 def test_distributed_without_a_coordinator_is_one_line_and_status_2(tmp_path):
