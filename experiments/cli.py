@@ -31,7 +31,7 @@ from jax.sharding import Mesh
 
 from hte_jax import sharding
 from hte_jax.errors import ConfigError
-from hte_jax.qd.io import CheckpointError, read_header, stored_config
+from hte_jax.qd.io import CheckpointError, read_header, require_same_run_folder, stored_config
 
 EXIT_BAD_INPUT = 2
 EXIT_INTERRUPTED = 130  # 128 + SIGINT, what a shell reports for a command Ctrl-C ended
@@ -83,28 +83,80 @@ def setting_overrides(args: argparse.Namespace, keys) -> dict[str, str]:
     return {**overrides, **set_overrides(args.set)}
 
 
+# The settings of a plain multi-process launch: jax reads JAX_COORDINATOR_ADDRESS (host:port of process 0)
+# itself, and SLURM's or Open MPI's environment when these are not set.
+PROCESS_ENV = ("JAX_NUM_PROCESSES", "JAX_PROCESS_ID")
+JOIN_GRACE_S = 30  # jax's own deadline comes this much after ours: at its deadline it aborts the process
+
+
 def add_device_flags(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--devices", type=int, default=None, metavar="N",
                         help="spread every batch over the first N visible devices (default: all)")
     parser.add_argument("--distributed", action="store_true",
-                        help="multi-host run: jax.distributed.initialize() first (SLURM / Open MPI / cloud "
-                             "TPU settings are read from the environment); only process 0 writes files")
+                        help="one of several processes (jax.distributed): the coordinator and this process's place "
+                             "come from SLURM or Open MPI, else JAX_COORDINATOR_ADDRESS=host:port (of process 0), "
+                             "JAX_NUM_PROCESSES and JAX_PROCESS_ID; only process 0 writes files and shows progress "
+                             "(docs/design.md, \"Several processes\")")
+    parser.add_argument("--distributed-timeout", type=int, default=120, metavar="S",
+                        help="with --distributed: seconds to wait for every process to join (default 120)")
 
 
 def device_mesh(args: argparse.Namespace) -> Mesh:
     """The mesh --devices and --distributed ask for (call it before anything touches jax's devices)."""
     if args.distributed:
-        try:
-            jax.distributed.initialize()
-        except (RuntimeError, ValueError) as error:
-            first = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
-            raise ConfigError(f"--distributed: jax.distributed.initialize() failed: {first}") from None
+        join_processes(args.distributed_timeout)
     return sharding.batch_mesh(sharding.check_device_count(args.devices))
+
+
+def join_processes(timeout: int) -> None:
+    """`jax.distributed.initialize()` with the process count and index of `PROCESS_ENV` if set; ConfigError
+    when the settings are missing or wrong. If not every process has joined after `timeout` seconds, one
+    line on stderr and exit status 2 (a watcher thread: at its own deadline jax aborts the process)."""
+    if isinstance(timeout, bool) or not isinstance(timeout, int) or timeout < 1:
+        raise ConfigError(f"--distributed-timeout must be an integer >= 1 (seconds), got {timeout!r}")
+    count, index = (_env_int(name) for name in PROCESS_ENV)
+    where = os.environ.get("JAX_COORDINATOR_ADDRESS", "the coordinator")
+    joined = threading.Event()
+    late = (f"error: --distributed: not every process joined {where} within {timeout} s (are all "
+            f"{count or 'the'} processes started, each with its own process id?)\n")
+
+    def watch() -> None:
+        if not joined.wait(timeout):
+            with contextlib.suppress(OSError):
+                os.write(2, late.encode())
+            os._exit(EXIT_BAD_INPUT)
+
+    threading.Thread(target=watch, name="distributed-timeout", daemon=True).start()
+    try:
+        jax.distributed.initialize(num_processes=count, process_id=index,
+                                   initialization_timeout=timeout + JOIN_GRACE_S)
+    except (RuntimeError, ValueError, TypeError) as error:
+        first = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
+        raise ConfigError(f"--distributed: {first} (under SLURM or Open MPI jax reads the settings from its "
+                          f"environment; else set JAX_COORDINATOR_ADDRESS=host:port, {' and '.join(PROCESS_ENV)})") \
+            from None
+    finally:
+        joined.set()
+
+
+def _env_int(name: str) -> int | None:
+    text = os.environ.get(name)
+    if text is None:
+        return None
+    try:
+        return int(text)
+    except ValueError:
+        raise ConfigError(f"--distributed: {name} must be an integer, got {text!r}") from None
 
 
 def is_writer() -> bool:
     """Whether this process writes files (process 0 of a multi-host run, or the only one)."""
     return jax.process_index() == 0
+
+
+def show_progress(args: argparse.Namespace) -> bool:
+    """Whether this process draws progress bars: unless --no-progress, process 0 only."""
+    return not args.no_progress and is_writer()
 
 
 def add_training_flags(parser: argparse.ArgumentParser, presets, out_help: str, progress_help: str,
@@ -135,7 +187,7 @@ def train_command(module: str, args, argv, out: str, checkpoints: dict[str, str]
             if args.show_config:
                 print(json.dumps(config.to_dict(), indent=2))
                 return 0
-            outcome = train(config, out, resume_run=args.resume, progress=not args.no_progress, mesh=mesh)
+            outcome = train(config, out, resume_run=args.resume, progress=show_progress(args), mesh=mesh)
         if errors.failed:
             return EXIT_BAD_INPUT
         if is_writer():
@@ -221,7 +273,9 @@ def resume_command(module: str, argv: Sequence[str] | None, out: str | Path) -> 
 
 def resumable_run(out: str | Path, checkpoints: Sequence[str]) -> dict:
     """For `--resume`, before any time is spent starting the run: the configuration of the run in `out`
-    (ConfigError when out holds none); CheckpointError if one of its `checkpoints` is not a checkpoint."""
+    (ConfigError when out holds none, or when another process sees other files there); CheckpointError if one of
+    its `checkpoints` is not a checkpoint."""
+    require_same_run_folder(out)
     stored = stored_config(out)
     if stored is None:
         raise ConfigError(f"--resume: {out} holds no run to resume (no config.json); leave out --resume to start one")

@@ -48,7 +48,8 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from experiments.cli import (add_device_flags, add_setting_flags, device_mesh, input_errors,
-                             interruptible, is_writer, resumable_run, resume_command, setting_overrides)
+                             interruptible, is_writer, resumable_run, resume_command, setting_overrides,
+                             show_progress)
 from hte_jax.config import settings
 from hte_jax.errors import ConfigError, require_int
 from hte_jax.online.evaluation import (PRESETS, PROTOCOLS, EvalConfig, batch_labels, batches, episode_numbers,
@@ -127,9 +128,9 @@ def main(argv=None) -> int:
                     recorded += [(labels[row], numbers[row]) for row in to_record]
                     if writer:
                         _plot_batch(out / "plots", result, curves, tracks, maze)
-                    print(f"batch {k} ({'/'.join(variants)} on seed {seed}): read from {batch_file}")
+                        print(f"batch {k} ({'/'.join(variants)} on seed {seed}): read from {batch_file}")
                     continue
-                result = run_batch(config, path, variants, maze, progress=not args.no_progress, seed=seed,
+                result = run_batch(config, path, variants, maze, progress=show_progress(args), seed=seed,
                                    record=to_record, record_every=RECORD_EVERY, mesh=mesh)
                 rows = episode_records(result, config.max_actions)
                 records += rows

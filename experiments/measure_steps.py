@@ -16,7 +16,7 @@ import time
 
 import jax
 
-from experiments.cli import add_device_flags, device_mesh, input_errors, interruptible, is_writer
+from experiments.cli import add_device_flags, device_mesh, input_errors, interruptible, is_writer, show_progress
 from hte_jax.errors import ConfigError
 from hte_jax.flat.comparison import resolve
 from hte_jax.hbr.composition import measure_steps
@@ -58,7 +58,7 @@ def main(argv=None) -> int:
     began = time.perf_counter()
     model = measure_steps(robot, hbr.middle_params, hbr.middle.filled, hbr.middle_task, standing_state(robot),
                           jax.random.PRNGKey(args.seed), starts=args.starts, chunk=args.chunk, mesh=mesh,
-                          progress=not args.no_progress)
+                          progress=show_progress(args))
     model = jax.device_get(model)
     if not is_writer():
         return 0

@@ -26,7 +26,8 @@ from pathlib import Path
 
 import jax
 
-from experiments.cli import add_device_flags, device_mesh, input_errors, interruptible, is_writer, resume_command
+from experiments.cli import (add_device_flags, device_mesh, input_errors, interruptible, is_writer, resume_command,
+                             show_progress)
 from hte_jax.errors import ConfigError
 from hte_jax.flat import training as flat
 from hte_jax.hbr import training as hbr_training
@@ -81,7 +82,7 @@ def main(argv=None) -> int:
                 if _final(out, part).is_file():
                     continue
                 run_dir = out / "runs" / part
-                resume, progress, began = (run_dir / "config.json").is_file(), not args.no_progress, time.perf_counter()
+                resume, progress, began = (run_dir / "config.json").is_file(), show_progress(args), time.perf_counter()
                 impl = "jax" if part == "aprol" else args.impl
                 if part == "hbr":
                     summary = hbr_training.train_hbr(hbr_config, run_dir, resume_run=resume, progress=progress,

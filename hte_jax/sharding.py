@@ -14,6 +14,7 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.experimental import multihost_utils
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from hte_jax import cpu_pool
@@ -97,6 +98,22 @@ def put_batch(tree: Any, mesh: Mesh) -> Any:
     return jax.tree.map(lambda x: jax.device_put(x, batch_sharding(mesh, np.ndim(x))), tree)
 
 
+def local_device() -> jax.Device:
+    """This process's first device, where MJX's loaders put their arrays (their default, `jax.devices()[0]`,
+    belongs to process 0 in a multi-process run)."""
+    return jax.local_devices()[0]
+
+
+def addressable(tree: Any) -> Any:
+    """`tree` with every array that spans devices of other processes gathered whole into a numpy array
+    on this host (the others as they are): what a host read needs in a multi-process run."""
+    def whole(x):
+        spans_processes = isinstance(x, jax.Array) and not x.is_fully_addressable
+        return multihost_utils.process_allgather(x, tiled=True) if spans_processes else x
+
+    return jax.tree.map(whole, tree)
+
+
 def uncommitted(tree: Any) -> Any:
     """Every array of `tree` as an uncommitted copy on the default device (through the host)."""
     return jax.device_put(jax.device_get(tree))
@@ -176,6 +193,15 @@ def replica_digests(tree: Any) -> dict[str, list[str]]:
     return digests
 
 
+def processes_differing(data: bytes) -> list[int]:
+    """The processes whose `data` (the same length everywhere) differs from process 0's; [] in a one-process
+    run. A collective: every process calls it, and none gets past it before all have."""
+    if jax.process_count() == 1:
+        return []
+    everywhere = np.asarray(multihost_utils.process_allgather(np.frombuffer(data, np.uint8)))
+    return [int(i) for i in np.flatnonzero((everywhere != everywhere[0]).any(axis=1))]
+
+
 def check_replicas(tree: Any, what: str = "state") -> None:
     """Raise ReplicaMismatchError unless every device of every process holds the same bytes of `tree`."""
     digests = replica_digests(tree)
@@ -185,7 +211,6 @@ def check_replicas(tree: Any, what: str = "state") -> None:
                                        f"{len(values)} devices): a non-deterministic kernel or a faulty device; "
                                        "stopping")
     if jax.process_count() > 1:
-        from jax.experimental import multihost_utils
         local = np.array([int(v[0][:15], 16) for v in digests.values()], np.int64)
         everywhere = np.asarray(multihost_utils.process_allgather(local))
         if not (everywhere == everywhere[0]).all():

@@ -135,8 +135,7 @@ def train_flat(config: FlatConfig, out_dir: str | Path, *, resume_run: bool = Fa
     writer = jax.process_index() == 0
     out = Path(out_dir)
     require_impl(config.robot.impl)  # before the run folder is made: a missing extra writes nothing
-    if writer:
-        out = io.prepare_run_dir(out_dir, config.to_dict(), resume_run, normalise=normalised_config)
+    out = io.prepare_run_dir(out, config.to_dict(), resume_run, normalise=normalised_config)
     algo = flat_algorithm(config, mesh)
     began = time.perf_counter()
     state = run_to_end(algo, jax.random.PRNGKey(config.seed), out, config.generations, config.block_size,

@@ -200,8 +200,7 @@ def train_hbr(config: HBRConfig, out_dir: str | Path, *, resume_run: bool = Fals
     out = Path(out_dir)
     writer = jax.process_index() == 0
     require_impl(config.robot.impl)  # before the run folder is made: a missing extra writes nothing
-    if writer:
-        io.prepare_run_dir(out, config.to_dict(), resume_run, normalise=normalised_config)
+    io.prepare_run_dir(out, config.to_dict(), resume_run, normalise=normalised_config)
     robot = load_robot(config.robot)
     start = standing_state(robot)
     keys = dict(zip(LAYERS, jax.random.split(jax.random.PRNGKey(config.seed), len(LAYERS))))

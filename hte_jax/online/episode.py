@@ -283,14 +283,14 @@ def run_episodes(maze: Maze, config: AdaptationConfig, robot: Robot, skills: Ski
         tick = time.perf_counter()
         decision = jax.block_until_ready(plan(skills, field, episodes))
         timings.plan.append(time.perf_counter() - tick)
-        active = np.asarray(~episodes.done)[:batch]
+        active = None if recorder is None else np.asarray(sharding.addressable(~episodes.done))[:batch]
         tick = time.perf_counter()
         episodes, states = jax.block_until_ready(act(robot, skills, episodes, decision))
         timings.act.append(time.perf_counter() - tick)
         if recorder is not None:
-            recorder.add(states, active)
+            recorder.add(sharding.addressable(states), active)
         bar.update(1)
         bar.set_postfix(reached=int(episodes.reached.sum()), running=int((~episodes.done).sum()))
     bar.close()
     timings.total = time.perf_counter() - begin
-    return jax.tree.map(lambda x: x[:batch], episodes), timings
+    return jax.tree.map(lambda x: x[:batch], sharding.addressable(episodes)), timings

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import time
@@ -14,7 +15,9 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.experimental import multihost_utils
 
+from hte_jax import sharding
 from hte_jax.errors import ConfigError
 from hte_jax.qd.repertoire import EMPTY_FITNESS, Repertoire
 
@@ -180,10 +183,33 @@ def _read_config(path: Path) -> dict:
     return config
 
 
+def run_files_digest(out: str | Path) -> bytes:
+    """sha256 of the names and bytes of the JSON and NPZ files under `out` (what a resumed run reads)."""
+    digest = hashlib.sha256()
+    for path in sorted(p for p in Path(out).rglob("*") if p.suffix in (".json", ".npz") and p.is_file()):
+        digest.update(f"{path.relative_to(out)}\0".encode())
+        digest.update(hashlib.sha256(path.read_bytes()).digest())
+    return digest.digest()
+
+
+def require_same_run_folder(out: str | Path) -> None:
+    """In a multi-process run (a collective: every process calls it), ConfigError on every process unless each
+    sees the same JSON and NPZ files under `out` as process 0: the others read it too, on --resume."""
+    if jax.process_count() == 1:
+        return
+    differing = sharding.processes_differing(run_files_digest(out))
+    if differing:
+        raise ConfigError(f"process {differing[0]} of {jax.process_count()} sees other files in {out} than "
+                          "process 0: every process reads the run folder, so it must be on a filesystem they share "
+                          "(or copied to each host)")
+
+
 def prepare_run_dir(out: str | Path, config: dict, resume_run: bool, normalise: Callable[[dict], dict] | None = None) -> Path:
     """Start a run folder holding `config.json`, or check that its run has `config` (the stored one `normalise`d);
-    ConfigError naming the differing top-level keys, or for any run without `resume_run`."""
+    ConfigError naming the differing top-level keys, or for any run without `resume_run`. In a multi-process
+    run every process calls it: all check the same folder (`require_same_run_folder`), then process 0 writes."""
     out = Path(out)
+    require_same_run_folder(out)
     config_path = out / "config.json"
     wanted = jsonable(config)
     if config_path.exists():
@@ -196,8 +222,11 @@ def prepare_run_dir(out: str | Path, config: dict, resume_run: bool, normalise: 
         if changed:
             raise ConfigError(f"{out} was started with a different configuration (differs in: {', '.join(changed)})")
     else:
-        out.mkdir(parents=True, exist_ok=True)
-        write_json(config_path, wanted)
+        if jax.process_count() > 1:
+            multihost_utils.sync_global_devices("run folder checked")  # by every process, before process 0 writes
+        if jax.process_index() == 0:
+            out.mkdir(parents=True, exist_ok=True)
+            write_json(config_path, wanted)
     return out
 
 

@@ -216,7 +216,7 @@ def load_robot(config: RobotConfig = RobotConfig()) -> Robot:
     """The hexapod for `config` in MJX's `config.impl` (ConfigError if it cannot run here), arrays uncommitted."""
     require_impl(config.impl)
     model = mj_model(config)
-    mjx_model = mjx.put_model(model, impl=config.impl)
+    mjx_model = mjx.put_model(model, device=sharding.local_device(), impl=config.impl)
     if config.impl == "warp":
         mjx_model = without_solver_cap_notices(mjx_model)
     return Robot(model=sharding.uncommitted(mjx_model), info=robot_info(model, config))
@@ -236,7 +236,7 @@ def warp_capacity(config: RobotConfig) -> tuple[int, int]:
     robots): the JAX implementation's static layout plus the 4 more contacts (and rows) of a box-box pair in Warp."""
     model = mj_model(config)
     with jax.ensure_compile_time_eval():  # concrete even when first asked while tracing a rollout
-        layout = mjx.make_data(model, impl="jax")._impl
+        layout = mjx.make_data(model, device=sharding.local_device(), impl="jax")._impl
     geoms = np.asarray(layout.contact.geom)
     box_box = (model.geom_type[geoms] == mujoco.mjtGeom.mjGEOM_BOX).all(axis=1)
     dims = np.asarray(layout.contact.dim)[box_box]

@@ -187,9 +187,10 @@ def rollout(robot: Robot, params: jax.Array, damage: jax.Array, init: SimState, 
 def empty_data(robot: Robot, rows: int) -> mjx.Data:
     """The mjx.Data that `rows` robots simulated together start from (Warp: buffers sized by `warp_capacity`)."""
     if robot.config.impl == "jax":
-        return mjx.make_data(robot.model, impl="jax")
+        return mjx.make_data(robot.model, device=sharding.local_device(), impl="jax")
     contacts, constraint_rows = warp_capacity(robot.config)
-    return mjx.make_data(mj_model(robot.config), impl="warp", naconmax=rows * contacts, njmax=constraint_rows)
+    return mjx.make_data(mj_model(robot.config), device=sharding.local_device(), impl="warp", naconmax=rows * contacts,
+                          njmax=constraint_rows)
 
 
 def standing_state(robot: Robot, damage: jax.Array | Damage | None = None, settle_steps: int = 100) -> SimState:
