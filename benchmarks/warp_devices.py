@@ -148,7 +148,6 @@ def _worker(args) -> dict:
 
 def _rollout(args, variant, devices):
     """The project's rollout of random controllers from the standing state (3 s is 300 steps; here --steps)."""
-    import jax
     import jax.numpy as jnp
     import numpy as np
 
