@@ -17,6 +17,9 @@ from hte_jax.online.maze import PAPER_MAZE
 from hte_jax.qd.io import read_checkpoint
 from tests import golden
 
+# Bit for bit: the golden output of the short maze_eval run.
+pytestmark = pytest.mark.exact_numerics
+
 MAX_ACTIONS = 30
 assert golden.MAZE_ARGS[golden.MAZE_ARGS.index("--max-actions") + 1] == str(MAX_ACTIONS)
 

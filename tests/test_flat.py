@@ -27,6 +27,9 @@ from hte_jax.sim import standing_state
 from hte_jax.sim.damage import APROL_DAMAGES, damage_masks, parse_damage
 from tests import golden
 
+# Bit for bit: the golden output of the tiny Flat-8D run and a resumed run against it.
+pytestmark = pytest.mark.exact_numerics
+
 
 flat8d_run = golden.run_fixture("flat8d_tiny")
 

@@ -22,6 +22,9 @@ from hte_jax.sim import standing_state
 from tests.benchmark_runner import run_benchmark_process  # resume_kill.py kills and restarts commands: its own process
 from tests import golden
 
+# Bit for bit: the golden output of the tiny HBR and resumed runs against it.
+pytestmark = pytest.mark.exact_numerics
+
 LAYERS = ("bottom", "middle", "top")
 
 

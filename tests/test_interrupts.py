@@ -20,12 +20,15 @@ from hte_jax.hbr.training import LAYERS
 from hte_jax.qd.io import read_checkpoint
 from tests.golden import HBR_ARGS, check
 
+# Bit for bit: interrupted and resumed commands against the golden outputs.
+pytestmark = pytest.mark.exact_numerics
+
 ROOT = Path(__file__).resolve().parents[1]
 PROMPTLY_S = 10.0  # "within a few seconds", with room for a loaded CI machine
 
 
 # XLA's own C++ log lines (such as its slow-compile alarm on a loaded machine) would share stderr; added to
-# the environment as it is when a command starts (conftest's XLA_FLAGS for golden runs: `DEFAULT_COMPILE`)
+# the environment as it is when a command starts (XLA_FLAGS at XLA's defaults in this `exact_numerics` file)
 QUIET_XLA = {"TF_CPP_MIN_LOG_LEVEL": "3"}
 
 

@@ -19,6 +19,9 @@ from hte_jax.sim.damage import DAMAGED_POSE, paper_damage_masks
 from hte_jax.sim.robot import RobotConfig, build_spec, load_robot, mj_model, without_idle_springs
 from hte_jax.sim.rollout import InvalidReason, RolloutSpec, initial_state, reflex_braced, rollout, standing_state
 
+# Bit for bit: the tilt reflex's held pose and chained rollouts against other compiled paths.
+pytestmark = pytest.mark.exact_numerics
+
 
 def _gait(amplitude, hip, lift):
     """The 36 controller parameters of a gait: per leg (amplitude, phase, duty 0.5) of the hip
