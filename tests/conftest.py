@@ -11,7 +11,6 @@
 - the fixtures several modules share (the default robot, the shipped HBR, the OpenGL environment).
 """
 
-import contextlib
 import faulthandler
 import gc
 import os
@@ -33,37 +32,6 @@ os.environ["JAX_COMPILATION_CACHE_DIR"] = _CACHE
 os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0"
 os.environ["JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES"] = "0"
 
-# This process keeps the user's XLA_FLAGS and compiles with per-program options; the processes a test
-# starts read the fast options from XLA_FLAGS, set only while a fast test runs. So an `exact_numerics`
-# test's programs and those of the commands it starts have the same persistent-cache keys (same flags,
-# no options): a resumed command finds the programs its test compiled.
-_USER_XLA_FLAGS = os.environ.get("XLA_FLAGS", "")
-_fast = [None]  # the code generation of the running test: True (fast), False (XLA's defaults), None (none yet)
-
-
-def _use_fast(fast: bool) -> None:
-    """Compile (here and in the processes tests start) with the fast options or at XLA's defaults. Programs
-    held in memory are dropped on a change, so none compiled one way runs where the other is asked for."""
-    fast = fast and xla_codegen.installed()
-    if _fast[0] == fast:
-        return
-    jax.clear_caches()
-    xla_codegen.set_overrides(xla_codegen.FAST if fast else {})
-    os.environ["XLA_FLAGS"] = xla_codegen.with_flags(_USER_XLA_FLAGS, xla_codegen.FAST if fast else {})
-    _fast[0] = fast
-
-
-@contextlib.contextmanager
-def at_xla_defaults():
-    """Within it, XLA's default code generation whatever the running test's."""
-    saved = _fast[0]
-    _use_fast(False)
-    try:
-        yield
-    finally:
-        if saved is not None:
-            _use_fast(saved)
-
 
 def pytest_configure(config):
     jax.devices()  # XLA reads XLA_FLAGS once, when its CPU client starts: here, with the user's flags
@@ -80,7 +48,12 @@ def pytest_unconfigure(config):
 
 @pytest.hookimpl(tryfirst=True)
 def pytest_runtest_setup(item):
-    _use_fast(item.get_closest_marker("exact_numerics") is None)
+    """Each test, its fixtures included, compiles with the fast options unless marked `exact_numerics`
+    (tests/xla_codegen.py). This process keeps the user's XLA_FLAGS and gives the fast options to each
+    program; the processes a fast test starts read them from XLA_FLAGS. So an `exact_numerics` test's
+    programs and those of the commands it starts have the same persistent-cache keys (same flags, no
+    options): a resumed command finds the programs its test compiled."""
+    xla_codegen.use(fast=item.get_closest_marker("exact_numerics") is None)
 
 
 @pytest.fixture
@@ -88,7 +61,7 @@ def xla_defaults(monkeypatch):
     """The processes this test starts compile at XLA's defaults even in a fast test: for the ones that run
     real sizes, where the fast mode's slower code costs more than it saves (a benchmark's whole-HBR
     lookup: 13 s at the defaults, ~290 s at LLVM -O0; loading the shipped HBR: 4 s against ~48 s)."""
-    monkeypatch.setenv("XLA_FLAGS", _USER_XLA_FLAGS)
+    monkeypatch.setenv("XLA_FLAGS", xla_codegen.USER_FLAGS)
 
 
 def _group(item) -> str:
@@ -165,14 +138,15 @@ def robot():
     return load_robot()
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="session", autouse=True)
 def shipped_hbr():
-    """(HBR, top task) of the shipped repertoire, loaded once per test process at XLA's default code
-    generation: its middle elites' bottom-elite lookup (`hbr.middle.elite_controllers`, which keeps its
-    result for later loads in the process) takes ~7 CPU s there and ~26 s in the fast mode."""
+    """(HBR, top task) of the shipped repertoire, loaded once per test process before its first test, at
+    XLA's default code generation: the middle elites' bottom-elite lookup takes ~7 CPU s there and ~26 s
+    in the fast mode, and `hbr.middle.elite_controllers` keeps its result, so that every later load of the
+    shipped HBR in the process (a test's own `load_hbr()`, a command run in-process) skips it."""
     from hte_jax.hbr.store import load_hbr
 
-    with at_xla_defaults():
+    with xla_codegen.at_defaults():
         hbr, task, _ = load_hbr()
     return hbr, task
 
