@@ -205,7 +205,7 @@ def test_elite_controllers_keep_their_last_results_by_input_digest(monkeypatch):
         lookups.append(args[2].shape)
         return nearest_index(*args, **kwargs)
 
-    rng = np.random.default_rng(11)  # inputs no other test makes: nothing of them is kept yet
+    rng = np.random.default_rng(11)
     cells, capacity = 200, 40
     arrays = dict(genotypes=rng.uniform(size=(cells, 6)).astype(np.float32),
                   descriptors=rng.uniform(size=(cells, 3)).astype(np.float32), filled=rng.uniform(size=cells) < 0.7)
@@ -216,6 +216,7 @@ def test_elite_controllers_keep_their_last_results_by_input_digest(monkeypatch):
     moved[np.flatnonzero(filled)[0]] = 1.0 - moved[np.flatnonzero(filled)[0]]
     expected = np.asarray(jnp.where(jnp.asarray(filled)[:, None], leg_controllers(bottom, decode(jnp.asarray(moved))), 0.0))
     monkeypatch.setattr(middle, "nearest_index", counting)
+    monkeypatch.setattr(middle, "_elite_cache", type(middle._elite_cache)())  # the process's own entries stay
 
     first = np.asarray(elite_controllers(bottom, jnp.asarray(genotypes), jnp.asarray(filled)))
     assert len(lookups) == 1
@@ -311,6 +312,7 @@ def test_fitness_by_distance_hand_case():
     assert rows[4]["mean_fitness"] == pytest.approx(-2.0)
 
 
+@pytest.mark.slow
 def test_middle_purity_penalises_contact_on_lifted_legs():
     """fitness(purity) = fitness(0) - purity * sum of the contact fractions of the legs whose bit is 0."""
     import jax
@@ -329,6 +331,7 @@ def test_middle_purity_penalises_contact_on_lifted_legs():
     np.testing.assert_array_equal(np.asarray(pure.descriptors), np.asarray(plain.descriptors))
 
 
+@pytest.mark.slow
 def test_leg_primitives_hand_cases(robot):
     """A leg that never lifts has height ~ 0; lifting and stroking legs are measured as such on every leg."""
     still = [0.0, 0.3, 0.5, 0.0, 0.2, 0.5]  # zero amplitudes
