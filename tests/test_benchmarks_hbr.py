@@ -8,8 +8,8 @@ import pytest
 
 from tests.benchmark_runner import run_benchmark
 
-# Re-runs the tiny HBR's programs test_hbr_training compiles (the same options: loaded from the persistent cache).
-pytestmark = pytest.mark.exact_numerics
+# Runs the tiny HBR's programs, as test_hbr_training does: the same options and group, so they are compiled once.
+pytestmark = [pytest.mark.exact_numerics, pytest.mark.slow, pytest.mark.xdist_group("hbr_tiny")]
 
 
 def test_hbr_layer_benchmark(tmp_path):

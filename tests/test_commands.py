@@ -26,6 +26,9 @@ from hte_jax.online.evaluation import EvalConfig
 from hte_jax.qd.io import read_checkpoint
 from tests.commands_script import STEP_CHUNK
 
+# Its module fixture runs every command (minutes): the first test has more than the default 600 s.
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(1800)]
+
 ROOT = Path(__file__).resolve().parent.parent
 DEVICES = 2
 # command -> files it writes, under the script's output folder

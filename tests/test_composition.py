@@ -112,6 +112,7 @@ def shipped():
     return hbr, top_task, load_robot()
 
 
+@pytest.mark.slow
 def test_measured_steps_match_a_direct_rollout(shipped, capsys):
     hbr, _, robot = shipped
     rows = np.arange(5)
@@ -141,6 +142,7 @@ def test_measured_steps_match_a_direct_rollout(shipped, capsys):
     assert np.all((np.asarray(several.steps) > 0) & (np.asarray(several.steps) < 1))
 
 
+@pytest.mark.slow
 def test_planned_execution_keeps_the_pattern_and_leaves_any_pattern_steps_alone(shipped):
     hbr, top_task, robot = shipped
     slots = np.flatnonzero(np.asarray(hbr.top.filled))[:3]
@@ -160,6 +162,7 @@ def test_planned_execution_keeps_the_pattern_and_leaves_any_pattern_steps_alone(
     np.testing.assert_allclose(anyway.displacement, paper.displacement, atol=1e-5)  # up to the compiler's fusion
 
 
+@pytest.mark.slow
 def test_step_model_is_stored_and_checked(shipped, tmp_path):
     hbr, top_task, _ = shipped
     count = int(np.asarray(hbr.middle.filled).sum())

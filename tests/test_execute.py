@@ -17,7 +17,7 @@ from hte_jax.sim.robot import load_robot
 from hte_jax.sim.rollout import standing_state
 
 # Bit for bit: a flat action against its trained controller run directly.
-pytestmark = pytest.mark.exact_numerics
+pytestmark = [pytest.mark.exact_numerics, pytest.mark.slow]
 
 
 def _batched(tree, batch):

@@ -24,6 +24,8 @@ from hte_jax.sim.damage import parse_damage
 from hte_jax.sim.robot import NUM_LEGS, RobotConfig, load_robot
 from hte_jax.sim.rollout import initial_state
 
+pytestmark = pytest.mark.slow
+
 # The hte-jax protocol's reflex angle, holding (no release: the neutral pose to the end of the second,
 # the worst case), on a robot whose damaged leg is locked in its standing pose.
 REFLEX = dataclasses.replace(RobotConfig(), reflex_tilt=0.3, damage_model="locked")

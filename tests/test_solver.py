@@ -39,6 +39,7 @@ def _final(config: RobotConfig, params: np.ndarray, damages: np.ndarray):
     return pose, np.asarray(result.valid), depth
 
 
+@pytest.mark.slow
 def test_default_solver_holds_its_fidelity_budget():
     """32 random controllers for 3 s, intact and with the paper's damages in turn, against the
     converged solver: the budget of docs/design.md (final position median <= 1 cm, p90 <= 3 cm,
@@ -58,6 +59,7 @@ def test_default_solver_holds_its_fidelity_budget():
     assert depth[both].max() <= ref_depth[both].max() + 0.001
 
 
+@pytest.mark.slow
 def test_shipped_elites_run_under_the_default_as_under_the_solver_they_were_trained_with():
     """Acceptance 4 of the solver issue: the default's line-search cap (4) never binds where 4 / 8
     stopped earlier, so 16 shipped Flat-2D elites end exactly where they end under 4 / 8."""
