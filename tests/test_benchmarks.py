@@ -124,6 +124,7 @@ def test_load_time_benchmark(tmp_path, xla_defaults):
     assert "whole lookup equal bit for bit: True" in stdout
 
 
+@pytest.mark.slow
 def test_cpu_commands_benchmark(tmp_path):
     """Each chosen command runs in the work folder, in the README's order, and lands in the JSON."""
     out, work = tmp_path / "commands.json", tmp_path / "work"

@@ -62,6 +62,7 @@ def test_figures_of_the_shipped_8d_set(tmp_path):
         assert image.ndim == 3 and image.shape[0] > 100 and image.std() > 0, name
 
 
+@pytest.mark.slow
 def test_shipped_aprol_set_has_one_repertoire_per_damage_with_those_legs_lifted():
     flat, _ = load_flat(shipped_flat_path("aprol"))
     assert flat.damages == tuple(APROL_DAMAGES)

@@ -163,7 +163,7 @@ def test_render_cli_bad_input_is_one_line_and_exit_2_before_opengl_is_needed(arg
 
 @pytest.mark.parametrize("value, fragment", [
     ("vulkan", "MUJOCO_GL='vulkan' is not a renderer"),
-    ("egl", "MUJOCO_GL=egl does not start"),  # with NO_EGL
+    pytest.param("egl", "MUJOCO_GL=egl does not start", marks=pytest.mark.slow),  # with NO_EGL
 ])
 def test_render_cli_reports_a_renderer_that_cannot_start_in_one_line(value, fragment):
     """A MUJOCO_GL the user set is kept: not a renderer, or one that cannot start, is one line
