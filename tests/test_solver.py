@@ -22,7 +22,7 @@ from hte_jax.qd.io import prepare_run_dir
 from hte_jax.sim.damage import paper_damage_masks
 from hte_jax.sim.robot import FOOT_RADIUS, LEGACY_SOLVER, SOLVER_FIELDS, RobotConfig, SolverConfig, load_robot, mj_model
 from hte_jax.sim.rollout import rollout, standing_state
-from tests.test_rollout import SPEC  # with test_rollout's batch shape (16): the default robot's programs are shared
+from tests.test_rollout import SPEC  # test_rollout's 3 s spec at its batch shape (16)
 
 # Converged: doubling both counts changes no final position (benchmarks/physics_frontier.py).
 REFERENCE = RobotConfig(solver_iterations=20, ls_iterations=20)
