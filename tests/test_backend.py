@@ -84,6 +84,7 @@ print([flat(["--variant", "2d", "--preset", "tiny", "--impl", "warp", "--out", o
 """
 
 
+@pytest.mark.slow
 def test_asking_for_warp_without_the_extra_is_a_one_line_error(tmp_path):
     """In a process where warp-lang does not import, every CLI asked for impl=warp exits 2 with one
     line naming the extra, and the training CLIs write no run folder. About 30 s (one process)."""
@@ -113,6 +114,7 @@ def _run(impl: str, params, damages):
     return np.asarray(start.qpos), pose, np.asarray(result.valid), depth
 
 
+@pytest.mark.slow
 @needs_warp
 def test_warp_rollouts_agree_with_jax():
     """16 random controllers, half intact, half under the paper's damages, with the tilt reflex armed
@@ -138,6 +140,7 @@ def _flushed_output(capfd) -> str:
     return captured.out + captured.err
 
 
+@pytest.mark.slow
 @needs_warp
 def test_warp_is_quiet_at_its_iteration_cap_and_flags_lost_contacts(capfd):
     """MuJoCo Warp's per-step "solver iterations limit reached" is off (it prints without the

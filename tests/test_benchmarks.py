@@ -12,9 +12,13 @@ from hte_jax.flat.store import shipped_flat_path
 from hte_jax.sim.robot import RobotConfig
 from tests.benchmark_runner import benchmark_module, run_benchmark, run_benchmark_process
 
+# With test_replay, which runs the adaptation benchmark's episode: one worker compiles its programs once.
+pytestmark = pytest.mark.xdist_group("adaptation_episode")
+
 common = benchmark_module("common")
 
 
+@pytest.mark.slow
 def test_batch_size_benchmark(tmp_path):
     out = tmp_path / "bs.json"
     stdout = run_benchmark("batch_size.py", "--max-batch", "1", "--steps", "20", "--repeats", "1",
@@ -32,6 +36,7 @@ def test_batch_size_benchmark(tmp_path):
     assert "best_mjx_batch" in stdout
 
 
+@pytest.mark.slow
 def test_qd_overhead_benchmark(tmp_path):
     out = tmp_path / "qd.json"
     run_benchmark("qd_overhead.py", "--min-batch", "64", "--max-batch", "64", "--eval-max-batch", "0",
@@ -43,6 +48,7 @@ def test_qd_overhead_benchmark(tmp_path):
         assert row["filled"] >= {"grid_2d_100x100": 5000, "grid_8d_640k": 320_000, "archive_9d_1024": 512}[row["container"]]
 
 
+@pytest.mark.slow
 def test_adaptation_benchmark(tmp_path):
     """One leg-1 HTE episode of 2 actions with a planner of 8 iterations x 1 tree: the episode of
     tests/test_replay.py's run without --video, so the two share their compiled programs."""
@@ -57,6 +63,7 @@ def test_adaptation_benchmark(tmp_path):
     assert "plan med s" in stdout
 
 
+@pytest.mark.slow
 def test_render_speed_benchmark(tmp_path, gl_env, monkeypatch):
     for name, value in gl_env.items():  # the backend that starts here (the test skips where none does)
         monkeypatch.setenv(name, value)
@@ -78,6 +85,7 @@ def test_setting_strings():
             common.parse_setting(bad)
 
 
+@pytest.mark.slow
 def test_physics_frontier_benchmark(tmp_path):
     """One setting against itself (no errors by construction) and the repertoire check on two elites. Its
     speed rollout is test_batch_size_benchmark's (batch 1, 20 steps, the default robot): one compile for both."""
@@ -103,6 +111,7 @@ def test_physics_frontier_benchmark(tmp_path):
     assert "fastest_within_budget" in stdout and "own cell" in stdout
 
 
+@pytest.mark.slow
 def test_load_time_benchmark(tmp_path, xla_defaults):
     out = tmp_path / "load.json"
     stdout = run_benchmark("load_time.py", "--repeats", "1", "--whole", "--out", str(out))
@@ -115,6 +124,7 @@ def test_load_time_benchmark(tmp_path, xla_defaults):
     assert "whole lookup equal bit for bit: True" in stdout
 
 
+@pytest.mark.slow
 def test_cpu_commands_benchmark(tmp_path):
     """Each chosen command runs in the work folder, in the README's order, and lands in the JSON."""
     out, work = tmp_path / "commands.json", tmp_path / "work"

@@ -4,7 +4,12 @@ separate module so that pytest-xdist runs it beside the other benchmark tests).
 
 import json
 
+import pytest
+
 from tests.benchmark_runner import run_benchmark
+
+# Runs the tiny HBR's programs, as test_hbr_training does: the same options and group, so they are compiled once.
+pytestmark = [pytest.mark.exact_numerics, pytest.mark.slow, pytest.mark.xdist_group("hbr_tiny")]
 
 
 def test_hbr_layer_benchmark(tmp_path):

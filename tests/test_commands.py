@@ -5,7 +5,7 @@ device with arrays of the mesh fails here), each command's `main(argv)` in turn 
 the later ones on what the earlier ones wrote; the tests below check each one's exit status and files.
 
 Mostly XLA compiling the commands' MJX programs for 2 devices (in the suite's fast code generation,
-tests/conftest.py): about 6 minutes alone on a 2-core CPU (2026-11-27; train_hbr 1.7, maze_eval 1.2 with
+tests/xla_codegen.py): about 6 minutes alone on a 2-core CPU (2026-11-27; train_hbr 1.7, maze_eval 1.2 with
 its default cap of 80 actions per episode, in a maze built for it whose goal its episodes reach after
 one action, train_flat aprol 0.8, modulation 0.6).
 `render` runs only where a GL context starts (MUJOCO_GL egl, then osmesa); its test skips otherwise.
@@ -26,6 +26,8 @@ from hte_jax.qd.io import read_checkpoint
 from tests.commands_script import STEP_CHUNK
 from tests.processes import ROOT, cpu_devices_env
 
+# Its module fixture runs every command (minutes): the first test has more than the default 600 s.
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(1800)]
 DEVICES = 2
 # command -> files it writes, under the script's output folder
 FLAT = ["config.json", "checkpoint.npz", "metrics.csv", "repertoires.npz", "summary.json", "plots"]

@@ -29,6 +29,9 @@ from hte_jax.qd.io import CheckpointError, read_checkpoint, save_checkpoint
 from hte_jax.sim.robot import load_robot
 from hte_jax.sim.rollout import RolloutSpec, rollout, standing_state
 
+# Bit for bit: measured steps against a direct rollout (two differently compiled paths).
+pytestmark = pytest.mark.exact_numerics
+
 TASK = MiddleTask()
 YAW_WEIGHT = 0.25
 
@@ -109,6 +112,7 @@ def shipped():
     return hbr, top_task, load_robot()
 
 
+@pytest.mark.slow
 def test_measured_steps_match_a_direct_rollout(shipped, capsys):
     hbr, _, robot = shipped
     rows = np.arange(5)
@@ -138,6 +142,7 @@ def test_measured_steps_match_a_direct_rollout(shipped, capsys):
     assert np.all((np.asarray(several.steps) > 0) & (np.asarray(several.steps) < 1))
 
 
+@pytest.mark.slow
 def test_planned_execution_keeps_the_pattern_and_leaves_any_pattern_steps_alone(shipped):
     hbr, top_task, robot = shipped
     slots = np.flatnonzero(np.asarray(hbr.top.filled))[:3]
@@ -157,6 +162,7 @@ def test_planned_execution_keeps_the_pattern_and_leaves_any_pattern_steps_alone(
     np.testing.assert_allclose(anyway.displacement, paper.displacement, atol=1e-5)  # up to the compiler's fusion
 
 
+@pytest.mark.slow
 def test_step_model_is_stored_and_checked(shipped, tmp_path):
     hbr, top_task, _ = shipped
     count = int(np.asarray(hbr.middle.filled).sum())

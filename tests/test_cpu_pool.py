@@ -50,6 +50,7 @@ def test_a_process_that_imports_hte_jax_gets_the_sized_pool():
 
 
 @pytest.mark.parametrize("devices", [1, 2])
+@pytest.mark.slow
 def test_the_batched_factorisation_finishes_on_cpu_devices(devices):
     """The reproduction, looping: without the sizing, 2 devices on 2 cores hang here (measured, docs/design.md)."""
     done = _run(["-m", "tests.cpu_pool_script", "--loops", str(LOOPS)], devices=devices, timeout=300)

@@ -62,6 +62,7 @@ def test_removed_leg_takes_its_mass_and_torque(robot):
     assert (np.asarray(removed.actuator_forcerange)[list(robot.info.leg_actuators[LEG])] == 0).all()
 
 
+@pytest.mark.slow
 def test_removed_legs_touch_nothing(scenarios):
     _, result, _, _ = scenarios
     # No foot left to stand on: every leg removed, the robot falls through the floor; every leg locked, it stands.
@@ -82,6 +83,7 @@ def _hip_heights(qpos: np.ndarray) -> np.ndarray:
     return np.asarray([data.xpos[model.body(f"leg_{leg}_1").id, 2] for leg in range(NUM_LEGS)])
 
 
+@pytest.mark.slow
 def test_shortened_legs_stand_their_hips_lower(scenarios):
     start, _, _, _ = scenarios
     intact = _hip_heights(np.asarray(start.qpos[ROW["intact"]], np.float64))
@@ -93,6 +95,7 @@ def test_shortened_legs_stand_their_hips_lower(scenarios):
     assert short[right].max() < short[left].min() - 0.01, short
 
 
+@pytest.mark.slow
 def test_weak_legs_cannot_hold_the_load_intact_ones_hold(scenarios):
     start, result, _, _ = scenarios
     heights = np.asarray(result.base_pos[:, -1, 2])
@@ -101,6 +104,7 @@ def test_weak_legs_cannot_hold_the_load_intact_ones_hold(scenarios):
     assert heights[weak] < heights[intact] - 5e-3 or not bool(result.valid[weak])  # 0.2 N m servos let it sink
 
 
+@pytest.mark.slow
 def test_slippery_floor_lets_the_feet_slide_further_under_the_same_gait(scenarios):
     _, result, _, _ = scenarios
     rows = [ROW["intact, walking"], ROW["slippery, walking"]]
@@ -110,6 +114,7 @@ def test_slippery_floor_lets_the_feet_slide_further_under_the_same_gait(scenario
     assert slip[1] > 2 * slip[0], slip
 
 
+@pytest.mark.slow
 def test_one_program_serves_every_mix_of_damages(robot, scenarios):
     start, _, damages, params = scenarios
     compiled = rollout._cache_size()

@@ -136,6 +136,8 @@ def checkpoint_files(folder: Path) -> list[Path]:
     return sorted(path.relative_to(folder) for path in folder.rglob("*.npz"))
 
 
+@pytest.mark.slow
+@pytest.mark.timeout(1500)
 def test_train_hbr_on_two_processes_writes_what_one_process_does(runs):
     one, two = runs.one / "train_hbr", runs.p[0] / "train_hbr"
     files = checkpoint_files(one)
@@ -154,6 +156,7 @@ def test_train_hbr_on_two_processes_writes_what_one_process_does(runs):
     assert (two / "plots").is_dir()
 
 
+@pytest.mark.slow
 def test_maze_eval_on_two_processes_writes_what_one_process_does(runs):
     one, two = runs.one / "maze_eval", runs.p[0] / "maze_eval"
     assert checkpoint_files(two) == checkpoint_files(one) == [Path("episodes_0.npz")]
@@ -167,6 +170,7 @@ def test_maze_eval_on_two_processes_writes_what_one_process_does(runs):
     assert (json.loads((two / "summary.json").read_text()) == json.loads((one / "summary.json").read_text()))
 
 
+@pytest.mark.slow
 def test_only_process_0_writes_and_shows_progress(runs):
     """Process 1 runs in a folder of its own: it writes nothing there, draws no progress bar and prints
     no summary; process 0 draws the bars and prints the summaries."""
@@ -177,6 +181,7 @@ def test_only_process_0_writes_and_shows_progress(runs):
         assert summary not in phase["p1"].out
 
 
+@pytest.mark.slow
 def test_a_resume_that_a_process_cannot_see_is_refused_on_every_process(runs):
     """Process 0 holds the HBR run (its folder), process 1's folder has none: both stop before any training,
     with one line and exit status 2. The maze_eval run copied to both folders resumes (its batches read, not

@@ -17,6 +17,9 @@ from hte_jax.online.maze import PAPER_MAZE
 from hte_jax.qd.io import read_checkpoint
 from tests import golden
 
+# Bit for bit: the golden output of the short maze_eval run.
+pytestmark = pytest.mark.exact_numerics
+
 MAX_ACTIONS = 30
 assert golden.MAZE_ARGS[golden.MAZE_ARGS.index("--max-actions") + 1] == str(MAX_ACTIONS)
 
@@ -24,6 +27,7 @@ assert golden.MAZE_ARGS[golden.MAZE_ARGS.index("--max-actions") + 1] == str(MAX_
 run = golden.run_fixture("maze_short")
 
 
+@pytest.mark.slow
 def test_short_run_matches_the_golden_output(run):
     golden.check("maze_short", run)
 
@@ -32,6 +36,7 @@ def _records(run):
     return json.loads((run / "episodes.json").read_text())["episodes"]
 
 
+@pytest.mark.slow
 def test_hte_reaches_the_goal_intact_and_with_leg1_damaged(run):
     records = {(r["variant"], r["damage"]): r for r in _records(run)}
     assert set(records) == {("hte", "none"), ("hte", "leg1"), ("rte", "none"), ("rte", "leg1")}
@@ -43,6 +48,7 @@ def test_hte_reaches_the_goal_intact_and_with_leg1_damaged(run):
     assert summary["variants"]["hte"]["reached"] == 2 and summary["max_actions"] == MAX_ACTIONS
 
 
+@pytest.mark.slow
 def test_records_agree_with_the_simulated_trajectory(run):
     arrays, header = read_checkpoint(run / "episodes_0.npz")
     labels = header["metadata"]
@@ -76,6 +82,7 @@ def test_records_agree_with_the_simulated_trajectory(run):
     assert intact_rte["prediction_error"][0] < 0.15
 
 
+@pytest.mark.slow
 def test_outputs_and_plots(run):
     config = json.loads((run / "config.json").read_text())
     assert config["variants"] == "hte,rte" and config["max_actions"] == MAX_ACTIONS and config["preset"] == "cpu"

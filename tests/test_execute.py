@@ -5,6 +5,7 @@ on a robot driven from the host, in test_executor)."""
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 from hte_jax.flat.store import load_flat, shipped_flat_path
 from hte_jax.geometry import planar_pose, relative_pose
@@ -14,6 +15,9 @@ from hte_jax.online.skills import flat_skills
 from hte_jax.online.maze import PAPER_MAZE, Maze
 from hte_jax.sim.robot import load_robot
 from hte_jax.sim.rollout import standing_state
+
+# Bit for bit: a flat action against its trained controller run directly.
+pytestmark = [pytest.mark.exact_numerics, pytest.mark.slow]
 
 
 def _batched(tree, batch):

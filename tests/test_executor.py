@@ -45,6 +45,7 @@ def native():
     return MujocoExecutor.in_maze(PAPER_MAZE, LEG1)
 
 
+@pytest.mark.slow
 def test_native_mujoco_walks_as_the_mjx_robot_does(hbr, native):
     """The same middle elite (the damage's own pattern, 0.2 m forward) for 3 s and the neutral second,
     from the same state: poses within 1 cm and 1 degree after every second, contacts within 0.05."""
@@ -135,6 +136,7 @@ def _check_flipped(episode, robot, actions):
     np.testing.assert_allclose(observed[0], np.linalg.norm(track[-1, :2] - track[start, :2]), atol=1e-5)
 
 
+@pytest.mark.slow
 def test_a_robot_that_flips_ends_an_hbr_episode(hbr):
     """Flipping in the second step of the second action: that action's third step and neutral second
     are never sent, and the episode ends broken with the robot's reason."""
@@ -152,6 +154,7 @@ def test_a_robot_that_flips_ends_an_hbr_episode(hbr):
     assert (patterns[0] >= 0).all() and (patterns[1, :2] >= 0).all() and patterns[1, 2] == -1  # step 3 never ran
 
 
+@pytest.mark.slow
 def test_a_robot_that_flips_ends_a_flat_episode():
     """A flat skill goes to the robot as one command of 4 seconds (the controller 3 times, then the
     neutral one); flipping in its second second ends the episode."""

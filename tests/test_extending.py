@@ -87,6 +87,7 @@ def test_iso_line_matches_the_formula_in_numpy(variation_example):
     assert np.any((want == 0.0) | (want == 1.0)) and np.any((want > 0.0) & (want < 1.0))  # both branches of the clip
 
 
+@pytest.mark.slow
 def test_the_new_variant_example_runs_its_own_rule_through_maze_eval(tmp_path, monkeypatch):
     from hte_jax.online import variants
     from hte_jax.online.rules import CANDIDATE_PATTERNS
@@ -110,6 +111,7 @@ def test_the_new_variant_example_runs_its_own_rule_through_maze_eval(tmp_path, m
         variants.VARIANTS.pop("hte-mean", None)
 
 
+@pytest.mark.slow
 def test_the_new_task_example_trains_saves_and_loads_its_repertoire(tmp_path, monkeypatch, capsys):
     from hte_jax.qd import Grid, TaskSpec, load_repertoire
     from hte_jax.qd.io import CheckpointError
@@ -142,6 +144,7 @@ def test_the_new_task_example_trains_saves_and_loads_its_repertoire(tmp_path, mo
         load_repertoire(tmp_path / "runs" / "duty-gaits" / "repertoire.npz", other)
 
 
+@pytest.mark.slow
 def test_the_executor_example_drives_native_mujoco_to_the_goal(capsys):
     from hte_jax.online.action import SECONDS_PER_ACTION
     from hte_jax.online.maze import PAPER_MAZE
@@ -164,6 +167,7 @@ def test_the_executor_example_drives_native_mujoco_to_the_goal(capsys):
     assert set(patterns.ravel().tolist()) <= {-1, 0b101111} and (patterns[-1] == 0b101111).all()
 
 
+@pytest.mark.slow
 def test_the_damage_example_registers_a_heavy_leg_that_the_rollout_runs(capsys):
     from hte_jax.sim import damage
 

@@ -27,14 +27,19 @@ from hte_jax.sim import standing_state
 from hte_jax.sim.damage import APROL_DAMAGES, damage_masks, parse_damage
 from tests import golden
 
+# Bit for bit: the golden output of the tiny Flat-8D run and a resumed run against it.
+pytestmark = pytest.mark.exact_numerics
+
 
 flat8d_run = golden.run_fixture("flat8d_tiny")
 
 
+@pytest.mark.slow
 def test_tiny_8d_run_matches_the_golden_output(flat8d_run):
     golden.check("flat8d_tiny", flat8d_run)
 
 
+@pytest.mark.slow
 def test_standing_still_is_the_centre_cell_with_every_healthy_foot_down(robot):
     task = FlatTask(descriptor="8d", steps=100)
     zeros = jnp.zeros((1, 36))
@@ -74,6 +79,7 @@ def _arm_algorithm(offsets):
     )
 
 
+@pytest.mark.slow
 def test_batched_runs_equal_the_same_runs_made_one_by_one():
     algo = _arm_algorithm([0.0, 1.0, -2.0])
     key = jax.random.PRNGKey(3)
@@ -95,6 +101,7 @@ def test_batched_runs_equal_the_same_runs_made_one_by_one():
         BatchedMapElites(algo.container, algo.evaluate, 4, jnp.zeros(2), ("a", "b", "c"))
 
 
+@pytest.mark.slow
 def test_8d_run_writes_consistent_repertoires_and_plots(flat8d_run):
     flat, meta = load_flat(flat8d_run / "repertoires.npz")
     config = preset("tiny", "8d")
@@ -113,6 +120,7 @@ def test_8d_run_writes_consistent_repertoires_and_plots(flat8d_run):
         assert image.ndim == 3 and image.std() > 0
 
 
+@pytest.mark.slow
 def test_killed_flat_run_resumes_bit_identical(flat8d_run, tmp_path, capsys):
     class Killed(Exception):
         pass
@@ -137,6 +145,7 @@ def test_killed_flat_run_resumes_bit_identical(flat8d_run, tmp_path, capsys):
     assert strip((tmp_path / "killed" / "metrics.csv").read_text()) == strip((flat8d_run / "metrics.csv").read_text())
 
 
+@pytest.mark.slow
 def test_flat_cli_errors_name_the_problem(flat8d_run, capsys):
     assert flat_main(["--variant", "3d"]) == 2
     assert "unknown variant '3d'" in capsys.readouterr().err
@@ -167,6 +176,7 @@ def test_presets_match_the_hbr_top_layer_budget():
         with_overrides(preset("cpu", "2d"), {"speed": 1})
 
 
+@pytest.mark.slow
 def test_flat_files_are_checked_on_load(flat8d_run, tmp_path):
     arrays, header = read_checkpoint(flat8d_run / "repertoires.npz")
     meta = header["metadata"]
@@ -208,6 +218,7 @@ def test_projected_statistics_hand_case():
     assert table["A"]["mean_fitness"] == pytest.approx((-0.2, np.sqrt(0.02)))
 
 
+@pytest.mark.slow
 def test_repertoire_stats_cli_over_files(flat8d_run, tmp_path, capsys):
     out = tmp_path / "table"
     assert stats_main(["--hbr", str(shipped_hbr_path()), "--flat8d", str(flat8d_run), "--out", str(out)]) == 0

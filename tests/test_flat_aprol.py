@@ -17,6 +17,8 @@ from hte_jax.flat.training import preset
 from hte_jax.sim import standing_state
 from hte_jax.sim.damage import APROL_DAMAGES
 
+pytestmark = pytest.mark.slow
+
 
 @pytest.fixture(scope="module")
 def aprol_run(tmp_path_factory):

@@ -3,9 +3,11 @@
 import dataclasses
 import json
 
+import matplotlib.image
 import numpy as np
 import pytest
 
+from hte_jax.flat.plots import contact_pattern_counts, plot_flat
 from hte_jax.flat.store import load_flat, shipped_flat_path
 from hte_jax.flat.training import FlatConfig, flat_statistics, preset
 from hte_jax.hbr.middle import pattern_code
@@ -13,7 +15,7 @@ from hte_jax.sim.damage import APROL_DAMAGES
 from hte_jax.sim.robot import LEGACY_SOLVER, SOLVER_FIELDS, SolverConfig
 
 
-@pytest.mark.parametrize("variant", ["2d", "8d", "aprol"])
+@pytest.mark.parametrize("variant", ["2d", "8d", pytest.param("aprol", marks=pytest.mark.slow)])
 def test_shipped_flat_sets_are_the_gpu_preset_as_trained(variant):
     path = shipped_flat_path(variant)
     flat, meta = load_flat(path)
@@ -48,6 +50,19 @@ def test_shipped_8d_set_spans_many_contact_patterns():
     assert stats["effective_size"] < stats["size"]  # 8-D elites collapse onto fewer x-y cells
 
 
+def test_figures_of_the_shipped_8d_set(tmp_path):
+    """A training run's figures of a set: its x-y map, its contact patterns (one count per elite) and its curves."""
+    path = shipped_flat_path("8d")
+    flat, _ = load_flat(path)
+    counts = contact_pattern_counts(flat, 0)
+    assert counts.shape == (64,) and counts.sum() == int(np.asarray(flat[0].filled).sum())
+    plot_flat(flat, path.parent / "8d" / "metrics.csv", tmp_path)
+    for name in ("xy_fitness", "contact_patterns", "metrics"):
+        image = matplotlib.image.imread(tmp_path / f"{name}.png")
+        assert image.ndim == 3 and image.shape[0] > 100 and image.std() > 0, name
+
+
+@pytest.mark.slow
 def test_shipped_aprol_set_has_one_repertoire_per_damage_with_those_legs_lifted():
     flat, _ = load_flat(shipped_flat_path("aprol"))
     assert flat.damages == tuple(APROL_DAMAGES)

@@ -3,10 +3,12 @@
 import dataclasses
 import json
 
+import matplotlib.image
 import numpy as np
 import pytest
 
 from hte_jax.hbr import PRESETS, hbr_statistics, load_hbr, shipped_hbr_path
+from hte_jax.hbr.plots import plot_hbr
 from hte_jax.hbr.training import HBRConfig
 from hte_jax.sim.robot import LEGACY_SOLVER, SolverConfig
 
@@ -52,3 +54,13 @@ def test_shipped_top_skills_use_many_middle_motions(shipped):
     # Every stored top elite's genes are three middle primary descriptors in [0, 1].
     genes = np.asarray(hbr.top.genotypes)[filled]
     assert genes.shape[1] == 9 and genes.min() >= 0 and genes.max() <= 1
+
+
+def test_figures_of_the_shipped_hbr(shipped, tmp_path):
+    """A training run's figures of an HBR: each layer's map, and each layer's curves from its run folder."""
+    hbr, top_task, _ = shipped
+    plot_hbr(hbr, top_task, shipped_hbr_path().parent, tmp_path)
+    for name in ("top_xy_fitness", "middle_xy_yaw_patterns", "bottom_projections", "bottom_metrics", "middle_metrics",
+                 "top_metrics"):
+        image = matplotlib.image.imread(tmp_path / f"{name}.png")
+        assert image.ndim == 3 and image.shape[0] > 100 and image.std() > 0, name

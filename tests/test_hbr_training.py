@@ -22,6 +22,11 @@ from hte_jax.sim import standing_state
 from tests.benchmark_runner import run_benchmark_process  # resume_kill.py kills and restarts commands: its own process
 from tests import golden
 
+# Bit for bit: the golden output of the tiny HBR and resumed runs against it. Group hbr_tiny: the files that run
+# the tiny HBR's programs (test_benchmarks_hbr, test_interrupts) on one worker, one after the other, so that only
+# the first compiles them. The tiny run (a module fixture) takes minutes: its first test has more than 600 s.
+pytestmark = [pytest.mark.exact_numerics, pytest.mark.xdist_group("hbr_tiny"), pytest.mark.timeout(1200)]
+
 LAYERS = ("bottom", "middle", "top")
 
 
@@ -38,6 +43,7 @@ def _rows(path):
         return list(csv.DictReader(handle))
 
 
+@pytest.mark.slow
 def test_tiny_preset_writes_a_complete_hbr(tiny_run):
     config = preset("tiny")
     summary = json.loads((tiny_run / "summary.json").read_text())
@@ -70,10 +76,12 @@ def test_tiny_preset_writes_a_complete_hbr(tiny_run):
         assert image.ndim == 3 and image.shape[0] > 100 and image.std() > 0
 
 
+@pytest.mark.slow
 def test_tiny_run_matches_the_golden_output(tiny_run):
     golden.check("hbr_tiny", tiny_run)
 
 
+@pytest.mark.slow
 def test_killed_run_resumes_bit_identical(tiny_run, tmp_path):
     class Killed(Exception):
         pass
@@ -97,6 +105,7 @@ def test_killed_run_resumes_bit_identical(tiny_run, tmp_path):
         assert strip(_rows(out / layer / "metrics.csv")) == strip(_rows(tiny_run / layer / "metrics.csv"))
 
 
+@pytest.mark.slow
 def test_sigkilled_command_resumes_bit_identical(tiny_run, tmp_path):
     """benchmarks/resume_kill.py on the command: `train_hbr --preset tiny` SIGKILLed in the bottom layer's
     second block, its resume SIGKILLed between the middle layer's first checkpoint's temporary file and
@@ -118,6 +127,7 @@ def test_sigkilled_command_resumes_bit_identical(tiny_run, tmp_path):
     assert row["identical"] and "1 of 1 scenarios identical" in stdout
 
 
+@pytest.mark.slow
 def test_cli_refuses_to_clobber_or_mix_configurations(tiny_run, capsys):
     assert train_main(["--preset", "tiny", "--out", str(tiny_run)]) == 2
     assert "--resume" in capsys.readouterr().err
@@ -166,6 +176,7 @@ def test_every_preset_value_can_be_overridden():
     assert paper.top.evaluations == pytest.approx(20000 * 200, rel=0.01)
 
 
+@pytest.mark.slow
 def test_stored_middle_elites_reproduce_when_re_simulated(tiny_run, robot, start):
     """Hierarchical execution of a middle elite (its target -> nearest elite -> controller) from
     the standing state reproduces its stored primary descriptor (to 1e-4 for the reported
@@ -190,6 +201,7 @@ def test_stored_middle_elites_reproduce_when_re_simulated(tiny_run, robot, start
     np.testing.assert_allclose(measured, stored[chosen, :PRIMARY], atol=1e-3)
 
 
+@pytest.mark.slow
 def test_top_skills_replay_through_hierarchical_execution(tiny_run, robot, start):
     """Deployment decodes a skill exactly as training did: same middle elites, same final position."""
     hbr, top_task, _ = load_hbr(tiny_run / "hbr.npz")
@@ -203,6 +215,7 @@ def test_top_skills_replay_through_hierarchical_execution(tiny_run, robot, start
                                np.asarray(hbr.top.descriptors)[filled], atol=1e-4)
 
 
+@pytest.mark.slow
 def test_hbr_files_are_checked_on_load(tiny_run, tmp_path):
     arrays, header = read_checkpoint(tiny_run / "hbr.npz")
     meta = header["metadata"]
@@ -235,6 +248,7 @@ def test_hbr_files_are_checked_on_load(tiny_run, tmp_path):
         load_hbr(tiny_run / "top" / "checkpoint.npz")
 
 
+@pytest.mark.slow
 def test_measure_steps_cli_adds_a_step_model(tiny_run, tmp_path, capsys):
     out = tmp_path / "measured.npz"
     assert measure_main(["--hbr", str(tiny_run), "--out", str(out), "--starts", "1"]) == 0

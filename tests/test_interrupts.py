@@ -20,12 +20,15 @@ from hte_jax.hbr.training import LAYERS
 from hte_jax.qd.io import read_checkpoint
 from tests.golden import HBR_ARGS, check
 
+# Bit for bit: interrupted and resumed commands against the golden outputs; the tiny HBR's group (test_hbr_training).
+pytestmark = [pytest.mark.exact_numerics, pytest.mark.xdist_group("hbr_tiny")]
+
 ROOT = Path(__file__).resolve().parents[1]
 PROMPTLY_S = 10.0  # "within a few seconds", with room for a loaded CI machine
 
 
 # XLA's own C++ log lines (such as its slow-compile alarm on a loaded machine) would share stderr; added to
-# the environment as it is when a command starts (conftest's XLA_FLAGS for golden runs: `DEFAULT_COMPILE`)
+# the environment as it is when a command starts (XLA_FLAGS at XLA's defaults in this `exact_numerics` file)
 QUIET_XLA = {"TF_CPP_MIN_LOG_LEVEL": "3"}
 
 
@@ -66,6 +69,7 @@ def wait_for(done, process: subprocess.Popen, what: str, timeout: float = 1800) 
         time.sleep(0.02)
 
 
+@pytest.mark.slow
 def test_ctrl_c_while_training_keeps_the_checkpoint_and_its_resume_command_finishes(tmp_path, start):
     """train_hbr --preset tiny, interrupted once the top layer has a checkpoint (while it trains or
     the step model compiles or runs: the main thread is in XLA); a leftover temporary file beside
@@ -95,6 +99,7 @@ def test_ctrl_c_while_training_keeps_the_checkpoint_and_its_resume_command_finis
     check("hbr_tiny", out)
 
 
+@pytest.mark.slow
 def test_ctrl_c_in_a_long_xla_call_ends_the_command_at_once(tmp_path, start, monkeypatch):
     """modulation on 50 skills of the shipped HBR simulates them in one jitted call (minutes on a
     CPU). JAX's compile log says when the call has been lowered: from then on the main thread is
@@ -117,6 +122,7 @@ def test_ctrl_c_in_a_long_xla_call_ends_the_command_at_once(tmp_path, start, mon
     assert not out.exists()
 
 
+@pytest.mark.slow
 def test_ctrl_c_while_a_command_starts_writes_one_line(tmp_path, start):
     """A SIGINT while the command imports jax (before `interruptible` takes over)."""
     out = tmp_path / "flat"

@@ -46,6 +46,7 @@ def _radial_actions():
     return np.stack([radius * np.cos(angle), radius * np.sin(angle), np.zeros_like(radius)], -1).reshape(-1, 3)
 
 
+@pytest.mark.slow
 def test_open_field_reaches_the_goal_in_the_fewest_actions():
     maze = Maze(obstacles=(), bounds=(0.0, 0.0, 5.0, 3.0), start=(0.5, 1.5, 0.0), goal=(3.0, 1.5))
     grid = GridSpec(cell=0.25)
@@ -77,6 +78,7 @@ def test_open_field_reaches_the_goal_in_the_fewest_actions():
     assert all(np.abs(moves - step).sum(axis=1).min() < 1e-4 for step in steps)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("start", [(2.32, 3.27, np.pi), (3.9, 0.9, -np.pi / 2)])
 def test_maze_plans_never_hit_a_wall(start):
     hbr, task, _ = load_hbr()
@@ -202,6 +204,7 @@ def test_select_agrees_with_numpy_on_grown_trees():
         assert np.asarray(path.nodes)[: int(path.length)].tolist() == expected
 
 
+@pytest.mark.slow
 def test_expand_follows_progressive_widening():
     world = make_world(OPEN, OPEN_GRID, _radial_actions(), np.ones(80, bool))
     key = jax.random.PRNGKey(4)
@@ -250,6 +253,7 @@ def test_search_never_widens_faster_than_visits_allow():
     assert int(visits[0]) == config.iterations and count[0] >= 2
 
 
+@pytest.mark.slow
 def test_expansion_takes_the_free_action_nearest_the_goal():
     # A thin wall ahead, and besides the 80 moves one 1.2 m jump that would cross it and end nearest
     # the goal. With many more draws than actions, the choice is the best of all actions by the
@@ -266,6 +270,7 @@ def test_expansion_takes_the_free_action_nearest_the_goal():
     assert int(expansion_action(maze, OPEN_GRID, config, world, jax.random.PRNGKey(6), start)) == best
 
 
+@pytest.mark.slow
 def test_evaluate_is_the_discounted_rollout_return_within_the_depth_limit():
     # One usable action, 0.5 m straight ahead: from x = 0.6 the fifth step (k = 4) ends 0.1 m from the goal.
     world = make_world(OPEN, OPEN_GRID, np.array([[0.5, 0.0, 0.0], [-0.5, 0.0, 0.0]]), np.array([True, False]))

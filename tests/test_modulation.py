@@ -79,6 +79,7 @@ def test_spread_skills_cover_the_shipped_map(shipped_hbr):
         assert abs(np.linalg.norm(np.asarray(task.denormalise(sample)), axis=-1).mean() / radius - 1) < 0.1
 
 
+@pytest.mark.slow
 def test_reexecutions_match_direct_hierarchical_execution(tmp_path, shipped_hbr):
     out = tmp_path / "mod"
     assert modulation_main(["--skills", "2", "--seed", "3", "--chunk", "64", "--out", str(out), "--no-progress"]) == 0
@@ -114,6 +115,21 @@ def test_reexecutions_match_direct_hierarchical_execution(tmp_path, shipped_hbr)
     again = tmp_path / "again"
     assert modulation_main(["--data", str(out / "modulation.npz"), "--radius", "0.1", "--out", str(again)]) == 0
     assert json.loads((again / "modulation.json").read_text())["per_skill"]["shows"] == data["per_skill"]["shows"]
+
+
+def test_the_cli_replots_saved_data_without_simulating(tmp_path, capsys):
+    """--data: the figures and counts of a modulation.npz written earlier (here the hand case), nothing re-run."""
+    mod = _hand_case()
+    mod.save(tmp_path / "hand.npz")
+    out = tmp_path / "replot"
+    assert modulation_main(["--data", str(tmp_path / "hand.npz"), "--radius", "0.05", "--out", str(out)]) == 0
+    data = json.loads((out / "modulation.json").read_text())
+    assert data["per_skill"]["both"] == mod.counts(0.05)["both"].tolist() and data["composition"] is None
+    assert data["per_skill"]["slot"] == [5, 7] and not (out / "modulation.npz").exists()
+    for name in ("modulation_map", "modulation_grid"):
+        image = matplotlib.image.imread(out / f"{name}.png")
+        assert image.ndim == 3 and image.std() > 0
+    assert f"wrote figures and data under {out}" in capsys.readouterr().out
 
 
 @pytest.mark.parametrize("args, message", [

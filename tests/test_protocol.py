@@ -7,17 +7,22 @@ import json
 
 import matplotlib.image
 import numpy as np
+import pytest
 
 from experiments.maze_eval import main as maze_main
 from hte_jax.flat.store import shipped_flat_path
 from hte_jax.geometry import relative_pose
 from hte_jax.qd.io import read_checkpoint
 
+# With test_seed_sets, which runs these 2D-RTE episodes: one worker compiles their programs once.
+pytestmark = pytest.mark.xdist_group("rte_episodes")
+
 
 def _records(out):
     return json.loads((out / "episodes.json").read_text())["episodes"]
 
 
+@pytest.mark.slow
 def test_flat_and_aprol_episodes_on_two_seeds_and_protocol_outputs(tmp_path):
     seeds = tmp_path / "seeds"
     for seed in ("seed0", "seed1"):  # two "repertoire seeds", both the shipped files

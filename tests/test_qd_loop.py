@@ -148,6 +148,7 @@ def _run_script(directory, *flags):
     return subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300)
 
 
+@pytest.mark.slow
 def test_kill_and_resume_is_bit_identical(tmp_path):
     """Acceptance 3: SIGKILL after block 2, resume, and get exactly the uninterrupted run."""
     straight, killed = tmp_path / "straight", tmp_path / "killed"

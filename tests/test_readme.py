@@ -9,6 +9,8 @@ import sys
 import time
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"
 BLOCKS = re.findall(r"```python\n(.*?)```", README.read_text(), re.S)
@@ -35,6 +37,7 @@ def test_every_python_block_is_checked():
     assert len(BLOCKS) == 3
 
 
+@pytest.mark.slow
 def test_block_1_simulates_a_damaged_population():
     out = run_block(0)
     line = re.search(r"valid \(7,\) base_pos \(7, 4, 3\) foot_contacts \(7, 300, 6\) \| metres walked: \[(.*)\]", out)
@@ -43,6 +46,7 @@ def test_block_1_simulates_a_damaged_population():
     assert len(walked) == 7 and all(0 <= w < 5 for w in walked)  # 3 s of walking: metres, not kilometres
 
 
+@pytest.mark.slow
 def test_block_2_runs_and_resumes_map_elites():
     began = time.time()
     out = run_block(1)
@@ -54,6 +58,7 @@ def test_block_2_runs_and_resumes_map_elites():
         assert path.stat().st_size > 0 and path.stat().st_mtime >= began - 1
 
 
+@pytest.mark.slow
 def test_block_3_executes_the_shipped_skills(xla_defaults):
     out = run_block(2)
     assert re.search(r"skills [1-9]\d* \| displacement \(7, 3\) \| middle elite per second \(3, 7\)", out), out

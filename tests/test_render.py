@@ -76,6 +76,7 @@ def _footprint(frame: np.ndarray) -> np.ndarray:
     return np.asarray([cols.mean(), rows.mean()])
 
 
+@pytest.mark.slow
 def test_clip_frames_show_the_robot_moving_along_its_recorded_displacement(clip):
     frames, displacement = clip["frames"], clip["displacement"]
     assert frames.shape == (31, 120, 160, 3) and frames.dtype == np.uint8
@@ -91,6 +92,7 @@ def test_clip_frames_show_the_robot_moving_along_its_recorded_displacement(clip)
     np.testing.assert_allclose(np.linalg.norm(moved), scale * np.linalg.norm(displacement), rtol=0.25)
 
 
+@pytest.mark.slow
 def test_recorded_states_are_the_rollout_and_recording_changes_nothing():
     """qpos recorded every 25 steps equals the base poses the rollout reports at those steps, and
     every other output is bit-identical with recording off (None then)."""
@@ -114,6 +116,7 @@ def _render_cli(*args, env=PLAIN):
                           capture_output=True, text=True, timeout=900)
 
 
+@pytest.mark.slow
 def test_render_skills_cli_writes_a_grid_gif(tmp_path, gl_env):
     out = tmp_path / "skills.gif"
     proc = _render_cli("skills", "--flat", "2d", "--count", "2", "--damage", "leg1", "--width", "64", "--height", "48",
@@ -124,6 +127,7 @@ def test_render_skills_cli_writes_a_grid_gif(tmp_path, gl_env):
         assert gif.size == (128, 48) and gif.n_frames == 31  # two clips side by side, 3 s at 10 fps + the end
 
 
+@pytest.mark.slow
 def test_render_patterns_cli_labels_one_clip_per_pattern(tmp_path, gl_env):
     """One skill under three patterns: three labelled clips side by side; the clips differ (the
     patterns run different middle elites) and the label's dark pixels sit in the top-left corner."""
@@ -146,8 +150,8 @@ NO_GL = PLAIN | NO_EGL | {"MUJOCO_GL": "egl"}
 
 @pytest.mark.parametrize("args, fragment", [
     (["skills", "--damage", "leg9"], "unknown damage"),
-    (["skills", "--skills", "999999"], "out of range"),
-    (["patterns", "--patterns", "any,64"], "unknown contact pattern '64': use 0..63 or any"),
+    pytest.param(["skills", "--skills", "999999"], "out of range", marks=pytest.mark.slow),  # loads the shipped HBR
+    pytest.param(["patterns", "--patterns", "any,64"], "unknown contact pattern '64': use 0..63 or any", marks=pytest.mark.slow),
 ])
 def test_render_cli_bad_input_is_one_line_and_exit_2_before_opengl_is_needed(args, fragment):
     """Errors found in the files (the repertoire, the damage names) come before the missing OpenGL."""
@@ -159,7 +163,7 @@ def test_render_cli_bad_input_is_one_line_and_exit_2_before_opengl_is_needed(arg
 
 @pytest.mark.parametrize("value, fragment", [
     ("vulkan", "MUJOCO_GL='vulkan' is not a renderer"),
-    ("egl", "MUJOCO_GL=egl does not start"),  # with NO_EGL
+    pytest.param("egl", "MUJOCO_GL=egl does not start", marks=pytest.mark.slow),  # with NO_EGL
 ])
 def test_render_cli_reports_a_renderer_that_cannot_start_in_one_line(value, fragment):
     """A MUJOCO_GL the user set is kept: not a renderer, or one that cannot start, is one line
@@ -227,6 +231,25 @@ def test_without_egl_the_choice_falls_back_to_osmesa_or_names_what_to_install():
         (line,) = proc.stderr.strip().splitlines()
         assert line.startswith("error: cannot render: no headless OpenGL starts here (EGL: ")
         assert "OSMesa: libOSMesa not found" in line and "apt-get install libosmesa6" in line
+
+
+def test_skill_and_pattern_choices_of_the_render_cli():
+    """`render skills` takes --count skills spread over the repertoire or the numbers given; `render patterns`
+    takes 0..63 or any, each checked with a one-line message."""
+    from hte_jax.hbr.hierarchy import ANY_PATTERN
+    from hte_jax.viz.skills import chosen, parse_patterns, pattern_label
+
+    assert chosen(3, 10).tolist() == [0, 4, 9] and chosen(20, 4).tolist() == [0, 1, 2, 3]
+    assert chosen(1, 10, [9, 0]).tolist() == [9, 0]
+    with pytest.raises(ConfigError, match=r"^skill 10 out of range: the repertoire holds 10 skills \(0 .. 9\)$"):
+        chosen(1, 10, [3, 10])
+    with pytest.raises(ConfigError, match="--count must be >= 1, got 0"):
+        chosen(0, 10)
+    assert parse_patterns("63, any,0").tolist() == [63, ANY_PATTERN, 0]
+    for bad in ("64", "-1", "x"):
+        with pytest.raises(ConfigError, match=f"unknown contact pattern '{bad}': use 0..63 or any"):
+            parse_patterns(f"1,{bad}")
+    assert pattern_label(ANY_PATTERN) == "any pattern" and pattern_label(5) == "pattern 5 (000101)"
 
 
 def test_choice_order_and_messages():

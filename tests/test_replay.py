@@ -28,6 +28,9 @@ from hte_jax.viz import gl
 from hte_jax.viz.episode import episode_model, frame_states, frame_text
 from hte_jax.viz.render import posed
 
+# With test_benchmarks (its adaptation benchmark runs this episode): one worker compiles the programs once.
+pytestmark = pytest.mark.xdist_group("adaptation_episode")
+
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 # The render CLI as a user starts it: MUJOCO_GL unset, the backend chosen by the CLI, and the user's
 # XLA_FLAGS as collection found them (XLA's default code: these CLIs load the shipped HBR, tests/conftest.py).
@@ -55,6 +58,7 @@ def runs(tmp_path_factory):
     return root / "on", root / "off", progress.getvalue()
 
 
+@pytest.mark.slow
 def test_recording_changes_no_result(runs):
     on, off, _ = runs
     recorded, _ = read_checkpoint(on / "episodes_0.npz")
@@ -68,12 +72,14 @@ def test_recording_changes_no_result(runs):
     assert not (off / "replays").exists() and not (off / "videos").exists()
 
 
+@pytest.mark.slow
 def test_no_video_bar_without_videos(runs):
     """--video 0 (the default): progress bars for the episodes, none for videos."""
     _, _, progress = runs
     assert "hte" in progress and "video" not in progress
 
 
+@pytest.mark.slow
 def test_replay_reproduces_the_recorded_base_trajectory_exactly(runs):
     """Setting the recorded states in the render model (kinematics only) puts the base exactly where
     the episode's history says it was after every second; the annotations are the history's."""
@@ -113,6 +119,7 @@ def _check_moving(frames):
     assert all(np.abs(a.astype(int) - b.astype(int)).sum() > 0 for a, b in zip(frames[:8], frames[1:9]))
 
 
+@pytest.mark.slow
 @pytest.mark.filterwarnings("ignore:os.fork:RuntimeWarning")  # imageio-ffmpeg's reader is a subprocess
 def test_maze_eval_video_writes_the_episode_video(gl_env, runs):
     on, _, _ = runs
@@ -127,6 +134,7 @@ def _render_episode(*args, env=PLAIN):
                           capture_output=True, text=True, timeout=900)
 
 
+@pytest.mark.slow
 def test_render_episode_cli_writes_a_gif(gl_env, runs, tmp_path):
     on, _, _ = runs
     out = tmp_path / "episode.gif"
@@ -146,6 +154,7 @@ def test_render_episode_cli_writes_a_gif(gl_env, runs, tmp_path):
     _check_moving(np.stack(frames))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("args, env, fragment", [
     (["{root}/nowhere"], PLAIN, "no such run folder"),
     (["{off}"], PLAIN | NO_GL, "maze_eval --video N"),
@@ -173,6 +182,7 @@ def test_maze_eval_bad_video_count(count, message, tmp_path, capsys):
     assert len(err) == 1 and message in err[0]
 
 
+@pytest.mark.slow
 def test_maze_eval_without_opengl_keeps_its_results_and_says_how_to_render_later(tmp_path, capsys, monkeypatch):
     """Videos are rendered after the results are written: where no OpenGL starts (NO_GL) the run
     succeeds (exit 0) with every result and its replays, and one line says the videos were not

@@ -20,6 +20,9 @@ from hte_jax.sim.robot import RobotConfig, build_spec, load_robot, mj_model, wit
 from hte_jax.sim.env import InvalidReason, reflex_braced
 from hte_jax.sim.rollout import RolloutSpec, initial_state, rollout, standing_state
 
+# Bit for bit: the tilt reflex's held pose and chained rollouts against other compiled paths.
+pytestmark = pytest.mark.exact_numerics
+
 
 def _gait(amplitude, hip, lift):
     """The 36 controller parameters of a gait: per leg (amplitude, phase, duty 0.5) of the hip
@@ -85,6 +88,7 @@ def _up_z(quat):
     return 1.0 - 2.0 * (quat[..., 1] ** 2 + quat[..., 2] ** 2)
 
 
+@pytest.mark.slow
 def test_standing_state(robot):
     state = standing_state(robot)
     assert state.qpos.shape == (25,)
@@ -100,6 +104,7 @@ def test_initial_state_places_damaged_legs():
     assert np.all(_np(state.qpos[7:13]) == 0)
 
 
+@pytest.mark.slow
 def test_zero_parameters_stand_still(batch):
     """Acceptance 2: steady base height, drift < 1 cm over 3 s."""
     res = batch["clean"]
@@ -110,6 +115,7 @@ def test_zero_parameters_stand_still(batch):
     assert _up_z(_np(res.base_quat[STAND])).min() > math.cos(math.radians(2))
 
 
+@pytest.mark.slow
 def test_tripod_walks_forward_upright(batch):
     """Acceptance 3: > 0.2 m forward in 3 s, body upright throughout."""
     res = batch["clean"]
@@ -122,6 +128,7 @@ def test_tripod_walks_forward_upright(batch):
     assert 0.2 < contacts.mean() < 0.9  # feet alternate between stance and swing
 
 
+@pytest.mark.slow
 def test_damaged_feet_never_touch_the_floor(batch):
     """Acceptance 4: the 7 paper conditions in one batch; blocked legs stay in the air."""
     res, masks = batch["clean"], batch["damages"][DAMAGED]
@@ -137,6 +144,7 @@ def test_damaged_feet_never_touch_the_floor(batch):
         assert np.linalg.norm(pos[-1, :2] - pos[0, :2]) > 0.05  # it still walks
 
 
+@pytest.mark.slow
 def test_joint_travel_sums_the_joint_angle_changes(batch, robot):
     """The travel equals sum |q(t+1) - q(t)| of the recorded angles; damaged legs hardly move."""
     res, masks = batch["clean"], batch["damages"]
@@ -156,6 +164,7 @@ def _period_travel(params):
     return np.abs(np.roll(tables, -1, axis=1) - tables).sum(axis=1)
 
 
+@pytest.mark.slow
 def test_target_travel_is_what_the_controller_commanded_whatever_the_damage(batch):
     """Without the reflex, 3 s of one controller command three periods of its target travel
     (`commanded_travel`, per leg), on a damaged leg too: the damage holds the leg, it does not change
@@ -169,6 +178,7 @@ def test_target_travel_is_what_the_controller_commanded_whatever_the_damage(batc
     assert (legs[DAMAGED][batch["damages"][DAMAGED]] > 1.0).all()  # the held legs were asked to move
 
 
+@pytest.mark.slow
 def test_invalid_rollouts_are_flagged_and_isolated(batch):
     """Acceptance 5: NaN, explosion, flip are flagged per individual; the batch survives."""
     dirty, clean = batch["dirty"], batch["clean"]
@@ -190,6 +200,7 @@ def test_invalid_rollouts_are_flagged_and_isolated(batch):
         np.testing.assert_array_equal(_np(a)[GOOD], _np(b)[GOOD])
 
 
+@pytest.mark.slow
 def test_controller_segments_reset_the_clock(robot, batch):
     """(B, S, 36): three identical 1 s segments equal one 3 s controller; a zero segment stops."""
     init = jax.tree.map(lambda x: x[TRIPOD_IDX], batch["init"])
@@ -201,6 +212,7 @@ def test_controller_segments_reset_the_clock(robot, batch):
     assert np.linalg.norm(pos[-1, :2] - pos[15, :2]) < 0.01  # then stood still
 
 
+@pytest.mark.slow
 def test_reset_free_chaining(robot, batch):
     """Two chained 1.5 s rollouts from arbitrary states equal one 3 s rollout."""
     idx = [TRIPOD_IDX, WAVE_IDX]
@@ -217,6 +229,7 @@ def test_reset_free_chaining(robot, batch):
     np.testing.assert_allclose(_np(second.base_pos[:, 0]), _np(full.base_pos[jnp.asarray(idx), 30]), atol=2e-3)
 
 
+@pytest.mark.slow
 def test_mjx_agrees_with_native_mujoco(robot, batch):
     """The tripod in native MuJoCo (float64, same servo law) ends within 3 cm of MJX."""
     model = mj_model(robot.config)
@@ -254,6 +267,7 @@ def _tilted(state, degrees: float, lift: float):
     return state.replace(qpos=jnp.asarray(qpos))
 
 
+@pytest.mark.slow
 def test_tilt_reflex_holds_the_neutral_pose_until_the_segment_ends(robot, batch):
     """RobotConfig.reflex_tilt: a robot started 15 degrees tilted drops its gait for the neutral pose
     for the rest of the 1 s segment, then walks the next segment; an upright tripod never fires it.
@@ -345,6 +359,7 @@ def test_spring_term_is_off_only_where_it_changes_no_force():
     assert not without_idle_springs(sprung).opt.disableflags & mujoco.mjtDisableBit.mjDSBL_SPRING
 
 
+@pytest.mark.slow
 def test_raised_and_locked_damages_give_the_leg_mask_bits():
     params = jax.random.uniform(jax.random.key(4), (3, 36))
     masks = np.stack([damage_mask(()), damage_mask((1,)), damage_mask((1, 4))])

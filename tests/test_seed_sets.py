@@ -6,6 +6,7 @@ import os
 import shutil
 
 import numpy as np
+import pytest
 
 from experiments.cli import EXIT_BAD_INPUT
 from experiments.maze_eval import main as maze_main
@@ -13,8 +14,11 @@ from experiments.train_set import main as set_main
 from hte_jax.flat.store import load_flat, shipped_flat_path
 from hte_jax.qd.io import write_json
 
+# With test_protocol, which runs these 2D-RTE episodes: one worker compiles their programs once.
+pytestmark = pytest.mark.xdist_group("rte_episodes")
 
-def test_train_set_parts_resume_and_matched_budget(tmp_path, capsys):
+
+def test_train_set_refuses_bad_input_in_one_line(tmp_path, capsys):
     out = tmp_path / "seed1"
     args = ["--seed", "1", "--preset", "tiny", "--out", str(out), "--no-progress"]
     assert set_main([*args, "--parts", "2d,bogus"]) == EXIT_BAD_INPUT
@@ -24,7 +28,13 @@ def test_train_set_parts_resume_and_matched_budget(tmp_path, capsys):
     assert err == ["error: unknown part(s) bogus; choose among hbr, spare, 2d, 8d, aprol, matched",
                    "error: --impl must be jax or warp, got 'cuda'",
                    f"error: --resume: {out} holds no set to resume"]
+    assert not out.exists()
 
+
+@pytest.mark.slow
+def test_train_set_parts_resume_and_matched_budget(tmp_path, capsys):
+    out = tmp_path / "seed1"
+    args = ["--seed", "1", "--preset", "tiny", "--out", str(out), "--no-progress"]
     assert set_main([*args, "--parts", "2d"]) == 0
     flat, _ = load_flat(out / "flat2d.npz")
     assert flat.damages == ("none",) and int(np.asarray(flat.repertoire.filled).sum()) > 0
@@ -48,6 +58,7 @@ def test_train_set_parts_resume_and_matched_budget(tmp_path, capsys):
     assert (out / "matched" / "flat2d.npz").is_file()
 
 
+@pytest.mark.slow
 def test_maze_eval_resumes_a_killed_run_to_the_same_results(tmp_path, capsys):
     seeds = tmp_path / "seeds"
     for name in ("a", "b"):  # two seed folders holding one flat file: two batches of the same shapes

@@ -23,6 +23,9 @@ from hte_jax.sim.controller import commanded_travel
 from hte_jax.sim.damage import parse_damage
 from hte_jax.sim.robot import NUM_LEGS, RobotConfig, load_robot
 from hte_jax.sim.rollout import initial_state
+from tests import xla_codegen
+
+pytestmark = pytest.mark.slow
 
 # The hte-jax protocol's reflex angle, holding (no release: the neutral pose to the end of the second,
 # the worst case), on a robot whose damaged leg is locked in its standing pose.
@@ -93,13 +96,16 @@ def test_a_native_robot_held_by_the_reflex_keeps_its_healthy_legs_and_flags_a_lo
     _check(*(np.concatenate(rows) for rows in zip(*sensed)))
 
 
-def test_the_leg_senses_flag_a_raised_leg_within_two_actions_and_no_leg_of_an_intact_robot():
+def test_the_leg_senses_flag_a_raised_leg_within_two_actions_and_no_leg_of_an_intact_robot(shipped_hbr):
     """hte-spare's detectors end to end, in MJX: after two actions the robot with leg 1 blocked in the
     air has sensed it off the floor and not following its joint commands, and nothing else; the
     intact robot flags no leg (its rule then still takes RTE's any pattern)."""
+    from hte_jax.hbr.store import load_spare, spare_beside
     from hte_jax.online.evaluation import preset, run_batch, with_overrides
     from hte_jax.online.sensing import stuck_legs, unusable_legs
 
+    with xla_codegen.at_defaults():  # the shipped spare archive's lookup (kept for run_batch's load): ~5 CPU s, ~19 fast
+        load_spare(spare_beside(None), shipped_hbr[0])
     config = with_overrides(preset("cpu"), {"variants": "hte-spare", "damages": "none,leg1", "max_actions": "2",
                                             "iterations": "50", "roots": "1"})
     result = run_batch(config, None, ["hte-spare"], progress=False)

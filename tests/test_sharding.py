@@ -83,20 +83,24 @@ def _check_agreement(results: dict, part: str, counts=DEVICES, tolerance: float 
                 np.testing.assert_array_equal(got, expected, err_msg=f"{part} on {count} devices: {name}")
 
 
+@pytest.mark.slow
 def test_batched_repertoires_agree_on_every_device_count(results):
     _check_agreement(results, "batched", tolerance=TRAINING_TOLERANCE)
 
 
+@pytest.mark.slow
 @full_only
 def test_hbr_repertoires_agree_on_every_device_count(results):
     _check_agreement(results, "hbr", tolerance=TRAINING_TOLERANCE)
 
 
+@pytest.mark.slow
 @full_only
 def test_flat_repertoires_agree_on_every_device_count(results):
     _check_agreement(results, "flat", tolerance=TRAINING_TOLERANCE)
 
 
+@pytest.mark.slow
 @full_only
 def test_an_episode_batch_of_6_on_4_devices_agrees_with_1_device(results):
     runs = _runs(results, "episodes")
@@ -104,12 +108,14 @@ def test_an_episode_batch_of_6_on_4_devices_agrees_with_1_device(results):
     _check_agreement(results, "episodes", counts=(1, 4), tolerance=EPISODE_TOLERANCE)
 
 
+@pytest.mark.slow
 def test_the_compiled_generation_has_no_collective_inside_the_rollout(results):
     assert results["hlo/loops"] > 0  # the rollout's scan and the solver's loops are there
     assert list(results["hlo/collectives"]) == []
     assert results["hlo/outside"] > 0  # the results are gathered once the rollouts are done
 
 
+@pytest.mark.slow
 def test_zero_sized_arrays_cross_the_split(results):
     """Zero-sized arguments and constants inside `map_rows` (MJX's Warp models and data hold many) compile and
     give one device's result on every count (jax 0.11.2's partitioner crashed on them as shard_map inputs)."""
@@ -117,6 +123,7 @@ def test_zero_sized_arrays_cross_the_split(results):
     np.testing.assert_array_equal(_runs(results, "empty")[1]["out"], 2.0 * np.arange(12, dtype=np.float32))
 
 
+@pytest.mark.slow
 def test_a_replica_mismatch_stops_with_a_clear_error(results):
     message = str(results["replica/error"])
     assert "repertoire['fitnesses'] differs between devices" in message and "stopping" in message

@@ -22,7 +22,7 @@ from hte_jax.qd.io import prepare_run_dir
 from hte_jax.sim.damage import paper_damage_masks
 from hte_jax.sim.robot import FOOT_RADIUS, LEGACY_SOLVER, SOLVER_FIELDS, RobotConfig, SolverConfig, load_robot, mj_model
 from hte_jax.sim.rollout import rollout, standing_state
-from tests.test_rollout import SPEC  # with test_rollout's batch shape (16): the default robot's programs are shared
+from tests.test_rollout import SPEC  # test_rollout's 3 s spec at its batch shape (16)
 
 # Converged: doubling both counts changes no final position (benchmarks/physics_frontier.py).
 REFERENCE = RobotConfig(solver_iterations=20, ls_iterations=20)
@@ -39,6 +39,7 @@ def _final(config: RobotConfig, params: np.ndarray, damages: np.ndarray):
     return pose, np.asarray(result.valid), depth
 
 
+@pytest.mark.slow
 def test_default_solver_holds_its_fidelity_budget():
     """32 random controllers for 3 s, intact and with the paper's damages in turn, against the
     converged solver: the budget of docs/design.md (final position median <= 1 cm, p90 <= 3 cm,
@@ -58,6 +59,7 @@ def test_default_solver_holds_its_fidelity_budget():
     assert depth[both].max() <= ref_depth[both].max() + 0.001
 
 
+@pytest.mark.slow
 def test_shipped_elites_run_under_the_default_as_under_the_solver_they_were_trained_with():
     """Acceptance 4 of the solver issue: the default's line-search cap (4) never binds where 4 / 8
     stopped earlier, so 16 shipped Flat-2D elites end exactly where they end under 4 / 8."""

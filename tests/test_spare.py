@@ -64,6 +64,7 @@ def test_spare_elites_join_only_the_spare_sets(shipped_hbr):
     np.testing.assert_array_equal(np.sort(row), np.concatenate([own_members, own + np.arange(added)]))
 
 
+@pytest.mark.slow
 def test_simulated_spare_steps_keep_the_lifted_legs_mostly_off_the_floor(shipped_hbr):
     """Six skills held at a pattern that lifts leg 1 (or leg 4), run in MJX from standing with their
     steps planned among the pattern's spare set: the lifted leg's foot is down about 5 % of each
@@ -106,6 +107,7 @@ def test_the_set_of_the_pattern_lifting_no_leg_is_its_own_elites(shipped_hbr):
     np.testing.assert_array_equal(np.sort(row[row >= 0]), np.flatnonzero(np.asarray(hbr.middle_patterns) == 63))
 
 
+@pytest.mark.slow
 def test_train_spare_writes_an_archive_tied_to_its_bottom_layer(shipped_hbr, tmp_path):
     from experiments.train_spare import main as spare_main
     from hte_jax.hbr.store import load_spare

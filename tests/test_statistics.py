@@ -1,9 +1,13 @@
 """The paper's statistics on hand-made data: nearest data-point percentiles, replication medians,
 failure rates, Bonferroni-corrected Wilcoxon-Mann-Whitney tests."""
 
+import matplotlib.image
 import numpy as np
 import pytest
 from scipy import stats
+
+from hte_jax.online.maze import PAPER_MAZE
+from hte_jax.online.plots import plot_failures, plot_prediction_error, plot_protocol_box, plot_variant_mazes
 
 from hte_jax.online.statistics import (
     bonferroni,
@@ -71,6 +75,22 @@ def test_protocol_statistics_on_hand_made_records():
     assert test["a"] == "a" and test["b"] == "b"
     assert test["p"] == pytest.approx(expected.pvalue) and test["p_bonferroni"] == pytest.approx(expected.pvalue)
     assert test["u"] == 0  # every 'a' median is below every 'b' median
+
+
+def test_protocol_figures_of_hand_made_records(tmp_path):
+    """The protocol's figures (actions per variant with the paper's quartiles, failures, GP prediction error,
+    sample tracks in the maze) are written from statistics and curves alone."""
+    statistics = protocol_statistics(_records())
+    plot_protocol_box(tmp_path / "box.png", statistics, 80, paper={"a": (11, 12, 14)})
+    plot_failures(tmp_path / "failures.png", statistics)
+    errors = np.full((3, 10), np.nan)
+    errors[:, :4] = np.linspace(0.3, 0.05, 4)
+    plot_prediction_error(tmp_path / "error.png", {"a": errors, "b": np.full((2, 10), np.nan)})  # b: no action
+    track = np.stack([np.linspace(0, 2, 9), np.linspace(0, 1, 9), np.zeros(9)], axis=1)
+    plot_variant_mazes(tmp_path / "tracks.png", PAPER_MAZE, {"a": [("leg0", track)], "b": [("leg1", track[:4])]})
+    for name in ("box", "failures", "error", "tracks"):
+        image = matplotlib.image.imread(tmp_path / f"{name}.png")
+        assert image.ndim == 3 and image.shape[0] > 100 and image.std() > 0, name
 
 
 def test_pairwise_tests_correct_over_all_pairs():

@@ -145,6 +145,7 @@ def test_sensed_legs_learns_what_the_step_sensed_beside_what_its_elite_expected(
     assert (np.asarray(learnt.motion[:, 1]) > 0).all()  # the elites' controllers command every joint
 
 
+@pytest.mark.slow
 def test_no_rule_but_the_oracle_reads_the_damage(shipped_hbr):
     """The same batch, with the damages handed to the rules permuted, makes the same choices and
     learns the same states for every rule but the oracle (the robot does not know its damage)."""
