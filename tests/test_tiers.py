@@ -23,13 +23,16 @@ def _modules() -> set[str]:
     return found
 
 
-def _is_slow(decorators) -> bool:
-    return any("mark.slow" in ast.unparse(d) for d in decorators)
+def _is_slow(marks) -> bool:
+    """Whether `pytest.mark.slow` is among the marks (a parametrized case's own marks do not count)."""
+    return any(ast.unparse(mark) == "pytest.mark.slow" for mark in marks)
 
 
 def _module_slow(tree) -> bool:
-    return any(isinstance(node, ast.Assign) and any(getattr(t, "id", None) == "pytestmark" for t in node.targets)
-               and "mark.slow" in ast.unparse(node.value) for node in tree.body)
+    for node in tree.body:
+        if isinstance(node, ast.Assign) and any(getattr(t, "id", None) == "pytestmark" for t in node.targets):
+            return _is_slow(node.value.elts if isinstance(node.value, ast.List) else [node.value])
+    return False
 
 
 def _quick_parts(tree) -> list[ast.AST] | None:
