@@ -147,7 +147,7 @@ def _damaged_model(config: RobotConfig, given, damage: Damage) -> mujoco.MjModel
     """The native model of `config` (shared), or a copy with the model values of `damage` (`damage.edited_fields`)
     where it changes them."""
     model = mj_model(config)
-    if not (isinstance(given, Damage) or edits_model(config.damage_model)):
+    if not edits_model(given, config.damage_model):
         return model
     edited = edited_fields({name: getattr(model, name) for name in EDITED_FIELDS}, damage, robot_info(model, config))
     copy = model.__copy__()

@@ -205,9 +205,11 @@ def as_damage(damage, model: str, xp=jnp) -> Damage:
     return damage if isinstance(damage, Damage) else make_damage(damage, model, xp=xp)
 
 
-def edits_model(model: str) -> bool:
-    """Whether damage model `model` changes model values (its `edit` is its own), not only the servos' targets."""
-    return type(damage_model(model)).edit is not DamageModel.edit
+def edits_model(damage, model: str) -> bool:
+    """Whether `damage` (a `Damage`, or a leg mask under damage model `model`) may change model values, not only
+    the servos' targets: any `Damage` (its models and friction are data), or a mask whose model has its own `edit`.
+    Known before tracing: it decides which program runs."""
+    return isinstance(damage, Damage) or type(damage_model(model)).edit is not DamageModel.edit
 
 
 def held_targets(targets, damage: Damage, xp=jnp):

@@ -164,7 +164,7 @@ def rollout(robot: Robot, params: jax.Array, damage: jax.Array, init: SimState, 
     batch, num_segments = params.shape[:2]
     if spec.num_steps % num_segments:
         raise ConfigError(f"{num_segments} controller segments do not divide num_steps={spec.num_steps}")
-    edits = isinstance(damage, Damage) or edits_model(robot.config.damage_model)
+    edits = edits_model(damage, robot.config.damage_model)
     if edits and robot.config.impl == "warp":
         raise ConfigError("impl='warp' cannot change model values per robot (damage models removed, shortened, weak, "
                           "floor friction): use impl='jax' or a raised / locked leg mask")
