@@ -48,6 +48,7 @@ import shlex
 import sys
 import time
 from pathlib import Path
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -65,7 +66,7 @@ from hte_jax.qd.io import CheckpointError
 from hte_jax.sim.damage import DAMAGE_PARTS, Damage, damage_model, make_damage
 from hte_jax.sim.env import InvalidReason, ValidityLimits
 from hte_jax.sim.robot import NUM_LEGS, RobotConfig, load_robot
-from hte_jax.sim.rollout import RolloutSpec, rollout, standing_state
+from hte_jax.sim.rollout import rollout, standing_state
 
 INTACT = "intact"  # the reference condition
 FRICTION = "friction"  # the floor's friction scaled, no leg damaged
@@ -74,8 +75,7 @@ ROBOTS = {"online": (True, ONLINE_LIMITS), "training": (False, ValidityLimits())
 REPERTOIRES = ("hbr", "flat-2d")
 
 
-@dataclasses.dataclass(frozen=True)
-class Condition:
+class Condition(NamedTuple):
     """One condition: `model` (INTACT, a damage model or FRICTION) on `leg` (None: no leg) with its `damage`
     (a `Damage` of NumPy arrays, unbatched)."""
 
@@ -258,6 +258,8 @@ def _checked(args) -> tuple:
         raise ConfigError(f"--setting: {error}") from None
     config = RobotConfig(**overrides, reflex_tilt=args.reflex_tilt, reflex_release=args.reflex_release,
                          body_floor_contact=ROBOTS[args.robot][0])
+    if config.impl == "warp":
+        raise ConfigError("--setting ...@impl=warp cannot change model values per robot (the Damage batch): use jax")
     items = conditions(parse_models(args.models), parse_legs(args.legs), args.fraction, args.friction)
     return items, kinds, config
 
