@@ -301,7 +301,7 @@ def main(argv=None) -> int:
             outcomes = run_all(fn, genotypes, damage, start, args.chunk)
         timings[f"{kind}_s"] = time.perf_counter() - began
         results[kind] = summarise(items, *outcomes)
-        sampled[kind] = rows.tolist()
+        sampled[kind] = "all" if args.skills == 0 else rows.tolist()  # --skills 0: every filled cell, in order
     env = environment()
     for kind in kinds:
         print_table(kind, results[kind])

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from hte_jax.errors import ConfigError
+from hte_jax.sim.robot import FOOT_REACH
 from hte_jax.hbr.bottom import (
-    FOOT_REACH,
     BottomTask,
     activation_fitness,
     duty_level,

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from hte_jax.errors import ConfigError
-from hte_jax.sim.robot import WALL_BIT, RobotConfig, load_robot, mj_model
+from hte_jax.sim.robot import FOOT_RADIUS, FOOT_REACH, STEPS_PER_SECOND, WALL_BIT, RobotConfig, load_robot, mj_model
 
 
 @pytest.fixture(scope="module")
@@ -19,6 +19,7 @@ def test_sizes_and_mass(model):
     assert (model.nq, model.nv, model.nu) == (25, 24, 18)
     assert model.body_mass.sum() == pytest.approx(0.6791 + 6 * (0.0199 + 0.1872 + 0.0911), rel=1e-6)
     assert model.opt.timestep == pytest.approx(0.01)
+    assert STEPS_PER_SECOND * RobotConfig().control_dt == pytest.approx(1.0)  # the control step's one definition
 
 
 def test_hip_placements_and_axes(model):
@@ -40,15 +41,15 @@ def test_hip_placements_and_axes(model):
 
 
 def test_neutral_pose_geometry(model):
-    # At q = 0 the foot bottoms are 0.136 m below the base and 0.176 m from the hip.
+    # At q = 0 the foot bottoms are 0.136 m below the base and FOOT_REACH (0.176 m) from the hip.
     data = mujoco.MjData(model)
     mujoco.mj_kinematics(model, data)
     base_z = data.xpos[model.body("base_link").id][2]
     for leg in range(6):
         foot = data.geom_xpos[model.geom(f"foot_{leg}").id]
         hip = data.xpos[model.body(f"leg_{leg}_1").id]
-        assert base_z - (foot[2] - 0.025) == pytest.approx(0.136, abs=1e-4)
-        assert np.linalg.norm((foot - hip)[:2]) == pytest.approx(0.176, abs=1e-4)
+        assert base_z - (foot[2] - FOOT_RADIUS) == pytest.approx(0.136, abs=1e-4)
+        assert np.linalg.norm((foot - hip)[:2]) == pytest.approx(FOOT_REACH, abs=1e-4) == pytest.approx(0.176)
 
 
 def test_only_feet_touch_the_floor(model):

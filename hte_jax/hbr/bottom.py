@@ -14,13 +14,12 @@ from hte_jax.qd.archive import Archive
 from hte_jax.qd.repertoire import Evaluation
 from hte_jax.qd.task_spec import EvaluateFn, TaskSpec
 from hte_jax.sim.controller import NUM_PARAMS
-from hte_jax.sim.robot import NUM_LEGS, Robot
+from hte_jax.sim.robot import FOOT_REACH, NUM_LEGS, Robot
 from hte_jax.sim.env import SimState
 from hte_jax.sim.rollout import RolloutSpec, rollout
 
 GENES = 6  # (a, p, d) hip signal, (a, p, d) vertical signal
 DESCRIPTORS = 3  # swing, height, duty
-FOOT_REACH = 0.176  # horizontal hip-to-foot distance at the standing pose (m)
 BOTTOM_FITNESSES = ("commands", "genes")
 EXTRAS = {"leg": ((), "int32")}  # the leg each primitive was evaluated on
 ARCHIVE_L = 0.01  # default distance threshold of the layer's archive (`HBRConfig.bottom_l`)

@@ -14,6 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from hte_jax.errors import check_fields, integer, number
+from hte_jax.hbr import bottom
 from hte_jax.geometry import angle_error, medoid_index, planar_pose, relative_pose
 from hte_jax.qd.archive import Archive, map_rows, squared_distance
 from hte_jax.qd.repertoire import Evaluation, Repertoire
@@ -22,7 +23,7 @@ from hte_jax.sim.robot import NUM_LEGS, Robot
 from hte_jax.sim.env import SimState
 from hte_jax.sim.rollout import RolloutSpec, rollout
 
-GENES = 18
+GENES = NUM_LEGS * bottom.DESCRIPTORS  # per leg a target in the bottom layer's descriptor space
 PRIMARY = 3  # x, y, yaw
 DESCRIPTORS = PRIMARY + NUM_LEGS
 NUM_PATTERNS = 2**NUM_LEGS

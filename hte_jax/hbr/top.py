@@ -10,6 +10,7 @@ import jax
 import jax.numpy as jnp
 
 from hte_jax.hbr.hierarchy import HBR, STEPS_PER_SKILL, execute_skill
+from hte_jax.hbr.middle import PRIMARY
 from hte_jax.geometry import angle_error
 from hte_jax.hbr.skill_grid import TopTask as TopTask  # the top layer's grid, re-exported
 from hte_jax.qd.repertoire import Evaluation
@@ -17,7 +18,7 @@ from hte_jax.qd.task_spec import EvaluateFn, TaskSpec
 from hte_jax.sim.robot import Robot
 from hte_jax.sim.env import SimState
 
-GENES = 9  # three middle-layer primary descriptors (x, y, yaw steps)
+GENES = STEPS_PER_SKILL * PRIMARY  # a middle-layer primary descriptor (x, y, yaw step) per second
 EXTRAS = {"middle_indices": ((STEPS_PER_SKILL,), "int32"), "arrival_yaw": ((), "float32")}
 QD_OFFSET = -math.pi  # the lowest angle error
 

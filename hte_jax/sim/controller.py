@@ -9,9 +9,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from hte_jax.sim.robot import NUM_JOINTS, NUM_LEGS
+from hte_jax.sim.robot import NUM_JOINTS, NUM_LEGS, STEPS_PER_SECOND
 
-SAMPLES_PER_PERIOD = 100
+SAMPLES_PER_PERIOD = STEPS_PER_SECOND  # a gait's period is one second
 PARAMS_PER_SIGNAL = 3
 PARAMS_PER_LEG = 6
 NUM_PARAMS = NUM_LEGS * PARAMS_PER_LEG  # 36

@@ -9,15 +9,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from hte_jax.errors import ConfigError
-from hte_jax.hbr.hierarchy import ANY_PATTERN, execute_skill
+from hte_jax.hbr.hierarchy import ANY_PATTERN, STEPS_PER_SKILL, execute_skill
 from hte_jax.hbr.middle import NUM_PATTERNS
-from hte_jax.sim.robot import RobotConfig
+from hte_jax.sim.robot import STEPS_PER_SECOND, RobotConfig
 from hte_jax.sim.rollout import RolloutSpec, rollout, standing_state
 from hte_jax.viz.camera import Camera
 from hte_jax.viz.render import label, open_renderer, render_frames, render_model, tile
 
-CONTROL_HZ = 100
-SKILL_STEPS = 300  # 3 s
+SKILL_STEPS = STEPS_PER_SKILL * STEPS_PER_SECOND  # 3 s
 
 
 def chosen(count: int, filled: int, numbers: list[int] | None = None) -> np.ndarray:
