@@ -112,7 +112,6 @@ def check_arguments(args) -> None:
     if args.fps < 1 or CONTROL_HZ % args.fps:
         raise ConfigError(f"--fps must divide {CONTROL_HZ}, got {args.fps}")
     require_int("--columns", args.columns)
-    chosen_damage(args)
     if args.hbr is not None and not Path(args.hbr).exists():
         raise CheckpointError(f"{args.hbr}: no such HBR file")
     if args.command == "skills":
@@ -124,11 +123,10 @@ def check_arguments(args) -> None:
 
 def chosen_damage(args):
     """The one damage `args.damage` spells (`damage.parse_damages` under `args.damage_model`): its leg mask where
-    that says the same (`damage.mask_if_plain`), else an unbatched `Damage`; ConfigError for a bad spelling."""
+    that says the same (`damage.mask_if_plain`), else an unbatched `Damage`; ConfigError for a bad spelling.
+    It imports mujoco: after `gl.setup()`."""
     from hte_jax.sim.damage import mask_if_plain, parse_damages
-    from hte_jax.sim.robot import RobotConfig
 
-    RobotConfig(damage_model=args.damage_model)  # validates the model
     damages = parse_damages(args.damage, args.damage_model)
     if len(damages) != 1:
         raise ConfigError(f"--damage: give one damage, got {len(damages)} ({', '.join(damages)})")
