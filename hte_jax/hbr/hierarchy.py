@@ -149,12 +149,13 @@ def skill_waypoints(task: MiddleTask, genotypes: jax.Array) -> jax.Array:
     return jnp.stack(waypoints, axis=-2)
 
 
-def execute_skill(robot: Robot, hbr: HBR, genotypes: jax.Array, start: SimState, damage: jax.Array | Damage | None = None,
-                  patterns: jax.Array | None = None, record_every: int = 0, table: PatternTable | None = None,
-                  ends: jax.Array | None = None, limits: ValidityLimits = ValidityLimits()) -> SkillResult:
+def execute_skill(robot: Robot, hbr: HBR, genotypes: jax.Array, start: SimState,
+                  damage: jax.Array | Damage | None = None, patterns: jax.Array | None = None, record_every: int = 0,
+                  table: PatternTable | None = None, ends: jax.Array | None = None,
+                  limits: ValidityLimits = ValidityLimits()) -> SkillResult:
     """Execute (B, 9) top genotypes from `start` (B, ...) with damage (a (B, 6) or (6,) bool leg mask, or a `Damage`
-    batched or not; None: intact), contact patterns
-    (B, 3) (None or -1: any) and `run_elite`'s record_every (`steps.qpos` (3, B, F, 25)). table, ends (B, 3)
+    batched or not; None: intact), contact patterns (B, 3) (None or -1: any) and `run_elite`'s record_every
+    (`steps.qpos` (3, B, F, 25)). table, ends (B, 3)
     (end poses in the start frame): a step with a pattern >= 0 runs the first step of a plan towards the end
     (`composition`). limits: when a step is invalid (default: training's)."""
     batch = genotypes.shape[0]

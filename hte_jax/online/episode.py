@@ -75,9 +75,10 @@ class History:
 @struct.dataclass
 class Episodes:
     """B adaptation episodes: sim SimState (B, ...) (None when an executor drives the robots), damage what is wrong
-    with each robot (a (B, 6) bool leg mask under the robot's `damage_model`, or a `Damage` (B, ...)), rte GPData (B, K, L, D, 4) per repertoire, belief MapBelief (B, K), rules, key (B, 2), taken (B,)
-    int32, reached and broken (B,) bool, reason (B,) int32 `InvalidReason` bits, trajectory (B, 4 L + 1, 3)
-    world pose every second (the last repeated after the end), history."""
+    with each robot (a (B, 6) bool leg mask under the robot's `damage_model`, or a `Damage` (B, ...)), rte GPData
+    (B, K, L, D, 4) per repertoire, belief MapBelief (B, K), rules, key (B, 2), taken (B,) int32, reached and broken
+    (B,) bool, reason (B,) int32 `InvalidReason` bits, trajectory (B, 4 L + 1, 3) world pose every second (the last
+    repeated after the end), history."""
 
     sim: SimState
     damage: jax.Array | Damage

@@ -65,11 +65,12 @@ class EvalConfig:
     (legs "none", "leg1", "legs1+4", the original's indices -1..6 or "all"; e.g. "leg0:removed",
     "leg2:shortened=0.5:friction=0.6", "none:friction=0.5"); an item without a model is under
     `damage_model`. Episodes, summaries and statistics name each damage by its canonical label
-    (`damage_list`). replicates: episodes per (variant, damage). repertoire: an HBR or single flat repertoire file for the HBR variants and
-    "rte" ("" = the shipped HBR). repertoire_dir: a folder with one subfolder per repertoire seed
-    (files `SEED_FILES`) used instead of the shipped repertoires. damage_model: the model of the damages
-    that name none: "raised" (a damaged leg blocked in the air, the paper's words), "locked" (in the
-    standing pose, the original code's) or "removed". max_actions: the failure cap. planner: the MCTS settings (`PlannerConfig`,
+    (`damage_list`). replicates: episodes per (variant, damage). repertoire: an HBR or single flat
+    repertoire file for the HBR variants and "rte" ("" = the shipped HBR). repertoire_dir: a folder
+    with one subfolder per repertoire seed (files `SEED_FILES`) used instead of the shipped
+    repertoires. damage_model: the model of the damages that name none: "raised" (a damaged leg
+    blocked in the air, the paper's words), "locked" (in the standing pose, the original code's) or
+    "removed". max_actions: the failure cap. planner: the MCTS settings (`PlannerConfig`,
     inlined: settings iterations, roots, exploration, widening, gamma, depth, candidates,
     collision_reward, goal_reward; 200 x 2 trees by default). composition: how an HBR step with a chosen contact pattern picks its elite: "planned" (ours,
     `hbr.composition`: a plan among the pattern's elites to the skill's end) or "waypoints" (the
