@@ -7,6 +7,7 @@
     python -m experiments.maze_eval --repertoire runs/hbr-gpu/hbr.npz --damage none,0,6
     python -m experiments.maze_eval --protocol paper --preset gpu    # the paper's Fig. 6 / 7 experiment
     python -m experiments.maze_eval --protocol paper --damage-model locked
+    python -m experiments.maze_eval --damage leg0:removed,leg2:shortened=0.5:friction=0.6,none:friction=0.5
     python -m experiments.maze_eval --protocol hte-jax --preset gpu  # our HTE (hte-spare) against RTE and 2D-RTE
     python -m experiments.maze_eval --protocol paper --preset gpu --repertoire-dir runs/seeds  # R seeds
     python -m experiments.maze_eval --protocol paper --preset gpu --repertoire-dir runs/seeds --resume  # after a kill
@@ -17,9 +18,19 @@
 Variants: hte, perfect-hte, random-hte, rte (on an HBR: the shipped one or --repertoire; rte also on a
 flat file), 2d-rte, 8d-rte, aprol (shipped flat repertoires). --protocol paper: the paper's six variants
 on all 7 damages; hte-jax: hte-spare, perfect-spare, perfect-hte, hte, rte, 2d-rte on all 7 with
---reflex-tilt 0.3 --reflex-release 0.15 (docs/results.md). Damages: all (the paper's 7) or
-names / indices (none, leg0..leg5 = 0..5, legs1+4 = 6, legs<i>+<j>). --damage-model: raised (default)
-or locked. --repertoire-dir: a subfolder per seed with hbr.npz, flat2d.npz, flat8d.npz, aprol.npz
+--reflex-tilt 0.3 --reflex-release 0.15 (docs/results.md).
+
+--damage: all (the paper's 7) or comma-separated items <legs>[:<model>[=<fraction>]][:friction=<scale>]:
+  <legs>        none, leg0..leg5 (= 0..5), legs1+4 (= 6), legs<i>+<j>(+<k>...) increasing, -1 (none),
+                or all (the paper's 7, each with the rest of the item)
+  <model>       raised, locked, removed (no fraction); shortened=<f> (the tibia at f of its length),
+                weak=<f> (the servos at f of their torque), f in (0, 1]; default: --damage-model
+  friction=<s>  the floor's friction x s (> 0; default 1)
+e.g. leg0:removed, leg2:shortened=0.5:friction=0.6, none:friction=0.5 (the intact robot on a slippery
+floor), all:locked. --damage-model: the model of the items that name none: raised (default, the leg
+blocked in the air), locked (in its standing pose) or removed. Each damage is named in the outputs by
+its canonical label (the model omitted where it is --damage-model, the friction where it is 1).
+--repertoire-dir: a subfolder per seed with hbr.npz, flat2d.npz, flat8d.npz, aprol.npz
 (from `experiments.train_set`); a replication's score is the median over seeds. --resume reads the
 batches a killed run finished and runs the others: the results equal an uninterrupted run's.
 
@@ -61,6 +72,7 @@ from hte_jax.online.recording import replay_path, save_replay
 from hte_jax.online.statistics import (PAPER_FAILURE_REDUCTION, PAPER_QUARTILES, failure_reduction, failure_reductions,
                                        protocol_statistics)
 from hte_jax.qd.io import prepare_run_dir, read_checkpoint, save_checkpoint, write_json
+from hte_jax.sim.damage import DAMAGE_PARTS
 from hte_jax.sim.mjx_import import require_impl
 from hte_jax.viz import gl
 
@@ -166,10 +178,11 @@ def main(argv=None) -> int:
         plot_failures(out / "plots" / "fig7_failures.png", statistics)
         plot_variant_mazes(out / "plots" / "maze_variants.png", maze, tracks)
         unrendered = _write_videos(out, recorded, progress=not args.no_progress)
-        print(f"{'variant':<12} {'damage':<8} {'rep':>3} {'actions':>7}  result")
+        width = max(8, *(len(r["damage"]) for r in records))
+        print(f"{'variant':<12} {'damage':<{width}} {'rep':>3} {'actions':>7}  result")
         for r in records:
             result = "goal" if r["reached"] else ("flipped" if r["broken"] else "failed")
-            print(f"{r['variant']:<12} {r['damage']:<8} {r['replicate']:>3} {r['actions']:>7}  {result}")
+            print(f"{r['variant']:<12} {r['damage']:<{width}} {r['replicate']:>3} {r['actions']:>7}  {result}")
         _print_statistics(statistics)
         if unrendered:  # the results are written: the run succeeded without its videos
             print(unrendered, file=sys.stderr)
@@ -271,9 +284,13 @@ def _load_batch(path: Path, seed: int, labels: list[tuple[str, str, int]]):
 
 def _save_batch(path: Path, result, records: list[dict]) -> None:
     ep = result.episodes
-    arrays = {**{k: getattr(ep, k) for k in ("trajectory", "taken", "reached", "broken", "damage")},
+    damage = result.damage
+    arrays = {**{k: getattr(ep, k) for k in ("trajectory", "taken", "reached", "broken")}, "damage": damage.legs,
+              "damage_fraction": damage.fraction, "damage_friction": damage.friction,
               **{field.name: getattr(ep.history, field.name) for field in dataclasses.fields(ep.history)}}
+    models = [list(DAMAGE_PARTS)[int(index)] for index in damage.model]
     labels = {"seed": result.seed, "variants": result.variants, "damages": result.damages, "replicates": result.replicates,
+              "damage_models": models,
               "repertoire": result.repertoire, "plan_seconds": result.timings.plan, "act_seconds": result.timings.act,
               "records": records}
     save_checkpoint(path, arrays, labels, compress=True)

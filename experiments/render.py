@@ -2,6 +2,7 @@
 
     python -m experiments.render skills                                # 6 skills of the shipped HBR: 77 s on 2 cores
     python -m experiments.render skills --damage leg1 --count 9        # the same under a raised leg 1
+    python -m experiments.render skills --damage leg2:shortened=0.5:friction=0.6  # a short tibia, a slippery floor
     python -m experiments.render skills --flat 2d --camera top         # elites of the shipped Flat-2D
     python -m experiments.render skills --hbr runs/hbr-gpu --skills 10,200,1500 --out runs/render/mine.gif
     python -m experiments.render patterns --skill 1400 --damage leg1   # one skill, several contact patterns
@@ -9,7 +10,9 @@
 
 `skills`: each chosen skill (top-layer skills of an HBR, or a flat repertoire's controllers, intact
 or under a damage) simulated for 3 s from standing, the clips on a grid: a tracking camera (or
-`--camera top`), damaged legs in red. `patterns`: one HBR skill executed with several contact
+`--camera top`), damaged legs in red. --damage: one damage as `maze_eval --damage` spells it,
+<legs>[:<model>[=<fraction>]][:friction=<scale>] (none, leg<i>, legs<i>+<j>; raised, locked, removed,
+shortened=<f>, weak=<f>; the model defaults to --damage-model). `patterns`: one HBR skill executed with several contact
 patterns held for its three steps ("any": RTE's nearest elite of any pattern), each clip labelled.
 `episode`: a maze episode recorded by `maze_eval --video N` (<run>/replays/; --episode I is the
 variant's I-th episode of the run), the maze seen from above (or --camera track), the goal in green,
@@ -39,7 +42,8 @@ from hte_jax.viz.camera import CAMERAS, Camera
 # Nothing above imports mujoco or OpenGL: gl.setup() must choose MUJOCO_GL first. The modules that
 # simulate and render are imported inside the commands, after it.
 CONTROL_HZ = 100
-DAMAGE_MODELS = "raised (the damaged leg blocked in the air, default) or locked (its standing pose)"
+DAMAGE_MODELS = ("the model of a --damage that names none: raised (the damaged leg blocked in the air, default), "
+                 "locked (its standing pose) or removed")
 VIDEO_SUFFIXES = (".mp4", ".gif")
 
 
@@ -58,7 +62,8 @@ def parser() -> argparse.ArgumentParser:
     q.add_argument("--patterns", default="any,63,47,61,45,31,59",
                    help="comma-separated contact patterns 0..63 (leg 0 = most significant bit) or any")
     for clips, columns, name in ((s, 3, "skills"), (q, 4, "patterns")):
-        clips.add_argument("--damage", default="none", help="none, leg0..leg5, legs<i>+<j> (default none)")
+        clips.add_argument("--damage", default="none", help="one damage, <legs>[:<model>[=<fraction>]][:friction=<scale>]: "
+                           "e.g. leg1, leg0:removed, leg2:shortened=0.5:friction=0.6 (default none)")
         clips.add_argument("--damage-model", default="raised", help=DAMAGE_MODELS)
         clips.add_argument("--camera", default="track", help=f"one of {', '.join(CAMERAS)}")
         clips.add_argument("--width", type=int, default=320)
@@ -116,6 +121,18 @@ def check_arguments(args) -> None:
             raise ConfigError(f"--count must be >= 1, got {args.count}")
 
 
+def chosen_damage(args):
+    """The one damage `args.damage` spells (`damage.parse_damages` under `args.damage_model`): its leg mask where
+    that says the same (`damage.mask_if_plain`), else an unbatched `Damage`; ConfigError for a bad spelling.
+    It imports mujoco: after `gl.setup()`."""
+    from hte_jax.sim.damage import mask_if_plain, parse_damages
+
+    damages = parse_damages(args.damage, args.damage_model)
+    if len(damages) != 1:
+        raise ConfigError(f"--damage: give one damage, got {len(damages)} ({', '.join(damages)})")
+    return mask_if_plain(next(iter(damages.values())), args.damage_model)
+
+
 def _elites(args):
     """(the HBR, None for a flat repertoire; the genotypes of its elites) that --hbr / --flat name."""
     from hte_jax.flat.comparison import resolve
@@ -141,13 +158,13 @@ def skills_video(args) -> Path:
     """`skills` / `patterns`: load and check what `args` names, simulate the clips, render the grid, write the video."""
     import jax.numpy as jnp
 
-    from hte_jax.sim.damage import parse_damage
+    from hte_jax.sim.damage import batch_damage
     from hte_jax.sim.robot import RobotConfig, load_robot
     from hte_jax.viz import skills
     from hte_jax.viz.render import write_video
 
     config = RobotConfig(damage_model=args.damage_model)
-    damage = parse_damage(args.damage)
+    damage = chosen_damage(args)
     labels = held = None
     hbr, genotypes = _elites(args)
     if args.command == "patterns":
@@ -160,7 +177,7 @@ def skills_video(args) -> Path:
         picked = skills.chosen(args.count, len(genotypes), _skill_numbers(args.skills))
     gl.require()  # every input is checked: OpenGL is needed from here on
     robot, every = load_robot(config), CONTROL_HZ // args.fps
-    batch = jnp.broadcast_to(jnp.asarray(damage), (picked.size, damage.size))
+    batch = batch_damage(damage, picked.size)
     clips = jnp.asarray(genotypes[picked])
     states = np.asarray(skills.flat_states(robot, clips, batch, every) if hbr is None
                         else skills.hbr_states(robot, hbr, clips, batch, every, held))
@@ -195,6 +212,11 @@ def chosen_replay(args):
     return load_replay(replay_path(run, variant, args.episode))
 
 
+def file_label(label: str) -> str:
+    """A damage's label as a file name's part: "leg2:shortened=0.5:friction=0.6" -> "leg2_shortened0.5_friction0.6"."""
+    return label.replace(":", "_").replace("=", "")
+
+
 def episode_video(args) -> Path:
     """`episode`: load and check the chosen recorded episode, then render it and write its video."""
     from hte_jax.viz.episode import frame_states, render_episode
@@ -207,7 +229,7 @@ def episode_video(args) -> Path:
                           f"({CONTROL_HZ // replay.every} per simulated second); choose them to make it a whole number >= 1")
     gl.require()  # every input is checked: OpenGL is needed from here on
     info = replay.info
-    out = args.out or Path(args.run) / "videos" / f"{info['variant']}_ep{info['episode']}_{info['damage']}.mp4"
+    out = args.out or Path(args.run) / "videos" / f"{info['variant']}_ep{info['episode']}_{file_label(info['damage'])}.mp4"
     frames = frame_states(replay, round(stride))
     with tqdm(total=len(frames), desc="render", unit="frame", disable=args.no_progress) as bar:
         video = render_episode(replay, args.width, args.height, args.camera, round(stride), hold=args.fps, progress=bar)

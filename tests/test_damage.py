@@ -1,4 +1,4 @@
-"""Damage masks, names and the blocked-in-the-air pose."""
+"""Damage masks, names, the command lines' spelling of a damage (`parse_damages`) and the blocked-in-the-air pose."""
 
 import jax.numpy as jnp
 import mujoco
@@ -17,12 +17,13 @@ def test_paper_conditions():
     np.testing.assert_array_equal(masks[6], [False, True, False, False, True, False])
 
 
-@pytest.mark.parametrize("name,legs", [("none", []), ("leg3", [3]), ("legs1+4", [1, 4]), (6, [1, 4]), (-1, []), (0, [0])])
+@pytest.mark.parametrize("name,legs", [("none", []), ("leg3", [3]), ("legs1+4", [1, 4]), (6, [1, 4]), (-1, []), (0, [0]),
+                                       ("legs0+2+4", [0, 2, 4])])
 def test_parse_damage(name, legs):
     np.testing.assert_array_equal(np.flatnonzero(damage.parse_damage(name)), legs)
 
 
-@pytest.mark.parametrize("bad", ["leg6", "legs5+2", "legs2+2", "", 7, -2])
+@pytest.mark.parametrize("bad", ["leg6", "legs5+2", "legs2+2", "legs1+3+2", "legs0+6+2", "legs", "", 7, -2])
 def test_unknown_damage_is_a_clear_error(bad):
     with pytest.raises(ConfigError, match="unknown damage"):
         damage.parse_damage(bad)
@@ -90,3 +91,81 @@ def test_locked_leg_starts_in_the_standing_pose():
     mujoco.mj_kinematics(model, data)
     feet = np.array([data.geom_xpos[model.geom(f"foot_{leg}").id][2] for leg in range(6)])
     np.testing.assert_allclose(feet, feet[0], atol=1e-6)
+
+
+# spelling -> [(canonical label, legs, model, fraction, friction)] under the run's damage model "raised"
+SPELLINGS = {
+    "leg0:removed": [("leg0:removed", [0], "removed", 1.0, 1.0)],
+    " leg2 : shortened = 0.50 : friction=0.6 ": [("leg2:shortened=0.5:friction=0.6", [2], "shortened", 0.5, 0.6)],
+    "leg2:friction=0.6:shortened=0.5": [("leg2:shortened=0.5:friction=0.6", [2], "shortened", 0.5, 0.6)],
+    "none:friction=0.5": [("none:friction=0.5", [], "raised", 1.0, 0.5)],
+    "6,-1,leg1:raised,3:friction=1": [("legs1+4", [1, 4], "raised", 1.0, 1.0), ("none", [], "raised", 1.0, 1.0),
+                                      ("leg1", [1], "raised", 1.0, 1.0), ("leg3", [3], "raised", 1.0, 1.0)],
+    "legs0+2+5:weak=0.25": [("legs0+2+5:weak=0.25", [0, 2, 5], "weak", 0.25, 1.0)],
+    "leg4:locked:friction=2": [("leg4:locked:friction=2", [4], "locked", 1.0, 2.0)],
+}
+
+
+@pytest.mark.parametrize("text", SPELLINGS)
+def test_a_spelled_damage_parses_to_its_damage_and_canonical_label(text):
+    parsed = damage.parse_damages(text)
+    assert [(label, np.flatnonzero(d.legs).tolist(), list(damage.DAMAGE_PARTS)[int(d.model)], float(d.fraction),
+             float(d.friction)) for label, d in parsed.items()] == [
+        (label, legs, model, pytest.approx(fraction), pytest.approx(friction))
+        for label, legs, model, fraction, friction in SPELLINGS[text]]
+    for label, one in parsed.items():  # a label reads back to its damage, bit for bit
+        (again, read), = damage.parse_damages(label).items()
+        assert again == label and damage.damage_label(read, "raised") == label
+        for field in ("legs", "model", "fraction", "friction"):
+            assert getattr(read, field).dtype == getattr(one, field).dtype
+            np.testing.assert_array_equal(getattr(read, field), getattr(one, field))
+
+
+def test_all_is_the_papers_seven_under_the_runs_model_or_the_items():
+    assert list(damage.parse_damages("all")) == list(damage.PAPER_DAMAGES)
+    locked = damage.parse_damages("all", "locked")
+    assert list(locked) == list(damage.PAPER_DAMAGES)  # the run's model is not named in the labels
+    assert {int(d.model) for d in locked.values()} == {list(damage.DAMAGE_PARTS).index("locked")}
+    assert list(damage.parse_damages("leg1:raised,leg1", "locked")) == ["leg1:raised", "leg1"]
+    spelled = damage.parse_damages("all:shortened=0.5:friction=0.8,none")
+    assert list(spelled) == [f"{name}:shortened=0.5:friction=0.8" for name in damage.PAPER_DAMAGES] + ["none"]
+    np.testing.assert_array_equal(np.stack([d.legs for d in spelled.values()])[:7], damage.paper_damage_masks())
+
+
+@pytest.mark.parametrize("text, fragment", [
+    ("leg2:shortened=0", "fraction must be in (0, 1], got 0"),
+    ("leg2:weak=1.5", "fraction must be in (0, 1], got 1.5"),
+    ("leg2:shortened=half", "fraction must be a number"),
+    ("leg2:shortened", "needs a fraction in (0, 1]"),
+    ("leg0:removed=0.5", "damage model 'removed' takes no fraction"),
+    ("leg0:floppy", "unknown damage model 'floppy'"),
+    ("leg7:removed", "unknown damage 'leg7'"),
+    ("9", "unknown damage index 9"),
+    ("leg0:friction=0", "friction scale must be > 0, got 0"),
+    ("leg0:friction=-0.5", "friction scale must be > 0"),
+    ("leg0:friction=nan", "friction must be a number"),
+    ("leg0:friction", "as friction=<scale>"),
+    ("leg0:friction=0.5:friction=0.6", "give friction once"),
+    ("leg0:removed:locked", "names two damage models"),
+    ("leg0::removed", "empty part"),
+    ("none:removed", "none damages no leg"),
+    ("leg1,leg1:raised", "names the damage 'leg1' twice"),
+    (" , ", "give 'all' or at least one damage"),
+])
+def test_a_bad_spelling_is_a_one_line_config_error(text, fragment):
+    with pytest.raises(ConfigError) as error:
+        damage.parse_damages(text)
+    assert fragment in str(error.value) and "\n" not in str(error.value)
+
+
+def test_a_damage_that_says_no_more_than_its_legs_is_given_as_the_mask():
+    """`mask_if_plain`: the rollout keeps a mask's program where the mask says the same."""
+    plain = damage.stack_damages(damage.parse_damages("leg1,none,legs1+4", "locked").values())
+    mask = damage.mask_if_plain(plain, "locked")
+    assert isinstance(mask, np.ndarray) and mask.dtype == bool
+    np.testing.assert_array_equal(mask, damage.damage_masks(["leg1", "none", "legs1+4"]))
+    assert not damage.edits_model(mask, "locked") and damage.edits_model(plain, "locked")
+    for text in ("leg1,leg2:removed", "leg1,none:friction=0.9", "leg1:raised"):
+        mixed = damage.stack_damages(damage.parse_damages(text, "locked").values())
+        assert damage.mask_if_plain(mixed, "locked") is mixed
+    np.testing.assert_array_equal(damage.damage_legs(mixed), mixed.legs)

@@ -119,7 +119,9 @@ def _render_cli(*args, env=PLAIN):
 @pytest.mark.slow
 def test_render_skills_cli_writes_a_grid_gif(tmp_path, gl_env):
     out = tmp_path / "skills.gif"
-    proc = _render_cli("skills", "--flat", "2d", "--count", "2", "--damage", "leg1", "--width", "64", "--height", "48",
+    # A damage spelled as maze_eval spells it: the clips simulated and drawn with the short tibia, on a slippery floor.
+    proc = _render_cli("skills", "--flat", "2d", "--count", "2", "--damage", "leg1:shortened=0.5:friction=0.8",
+                       "--width", "64", "--height", "48",
                        "--fps", "10", "--no-progress", "--out", str(out), env=PLAIN | gl_env)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert proc.stdout.strip() == f"wrote {out}" and proc.stderr.strip() == ""
@@ -150,6 +152,8 @@ NO_GL = PLAIN | NO_EGL | {"MUJOCO_GL": "egl"}
 
 @pytest.mark.parametrize("args, fragment", [
     (["skills", "--damage", "leg9"], "unknown damage"),
+    (["skills", "--damage", "leg1:weak=2"], "fraction must be in (0, 1], got 2"),
+    (["skills", "--damage", "leg1,leg2:removed"], "--damage: give one damage, got 2"),
     pytest.param(["skills", "--skills", "999999"], "out of range", marks=pytest.mark.slow),  # loads the shipped HBR
     pytest.param(["patterns", "--patterns", "any,64"], "unknown contact pattern '64': use 0..63 or any", marks=pytest.mark.slow),
 ])

@@ -177,3 +177,23 @@ def test_no_rule_but_the_oracle_reads_the_damage(shipped_hbr):
     # the oracle does read it: the permuted damages move its patterns
     oracle_rows = np.flatnonzero(which == 4)
     assert (np.asarray(first[0][0])[oracle_rows] != np.asarray(second[0][0])[oracle_rows]).any()
+
+
+def test_the_oracle_keeps_the_damaged_legs_off_whatever_their_model():
+    """Episodes started with a `Damage` per row: the oracle's pattern has the damaged legs up whatever their damage
+    model, and a damage of the floor alone damages no leg; the episodes keep the damage."""
+    from hte_jax.flat.store import load_flat, shipped_flat_path
+    from hte_jax.online.episode import AdaptationConfig, start_episodes
+    from hte_jax.online.skills import flat_skills
+    from hte_jax.sim.damage import damage_mask, parse_damages, stack_damages
+
+    flat, _ = load_flat(shipped_flat_path("2d"))
+    spelled = parse_damages("leg0:removed,leg1:shortened=0.5:friction=0.6,none:friction=0.5,legs1+4:weak=0.3")
+    damage = stack_damages(spelled.values())
+    episodes = start_episodes(AdaptationConfig(max_actions=2), flat_skills(flat[0], flat.task.extent),
+                              jnp.zeros((4, 3)), damage, (Oracle(),), np.zeros(4, np.int32), jax.random.PRNGKey(0))
+    expected = [oracle_pattern(damage_mask(legs)) for legs in ([0], [1], [], [1, 4])]
+    assert expected[2] == 0b111111
+    np.testing.assert_array_equal(episodes.rules.states[0].pattern, expected)
+    for field in ("legs", "model", "fraction", "friction"):
+        np.testing.assert_array_equal(getattr(episodes.damage, field), getattr(damage, field))

@@ -14,7 +14,7 @@ from hte_jax.hbr.middle import PRIMARY, MiddleTask, elite_controllers, pattern_c
 from hte_jax.hbr.skill_grid import TopTask
 from hte_jax.qd.archive import map_rows, squared_distance
 from hte_jax.qd.repertoire import Repertoire
-from hte_jax.sim.damage import Damage
+from hte_jax.sim.damage import Damage, batch_damage
 from hte_jax.sim.robot import NUM_JOINTS, NUM_LEGS, Robot
 from hte_jax.sim.env import SimState, ValidityLimits
 from hte_jax.sim.rollout import RolloutSpec, rollout
@@ -114,7 +114,7 @@ def step_elite(hbr: HBR, here: jax.Array, target: jax.Array, pattern: jax.Array,
 
 def run_elite(robot: Robot, hbr: HBR, state: SimState, damage: jax.Array | Damage, index: jax.Array,
               found: jax.Array, limits: ValidityLimits = ValidityLimits(), record_every: int = 0) -> StepResult:
-    """Simulate middle elites `index` (B,) for one step from `state` with `damage` (a leg mask or a `Damage`, as
+    """Simulate middle elites `index` (B,) for one step from `state` under `damage` (a leg mask or a `Damage`, as
     `rollout` takes it); record_every > 0 also records qpos."""
     steps = hbr.middle_task.steps
     spec = RolloutSpec(num_steps=steps, pose_steps=(0, steps), record_contacts=True, limits=limits,
@@ -132,8 +132,7 @@ def run_elite(robot: Robot, hbr: HBR, state: SimState, damage: jax.Array | Damag
 
 
 def execute_step(robot: Robot, hbr: HBR, state: SimState, damage: jax.Array | Damage, target: jax.Array,
-                 pattern: jax.Array,
-                 limits: ValidityLimits = ValidityLimits(), record_every: int = 0,
+                 pattern: jax.Array, limits: ValidityLimits = ValidityLimits(), record_every: int = 0,
                  elite: jax.Array | None = None) -> StepResult:
     """Walk one second towards the world pose `target` (B, 3) with contact `pattern` (B,) (-1: any)."""
     index, found = step_elite(hbr, state_pose(state), target, pattern, elite)
@@ -154,19 +153,13 @@ def execute_skill(robot: Robot, hbr: HBR, genotypes: jax.Array, start: SimState,
                   damage: jax.Array | Damage | None = None, patterns: jax.Array | None = None, record_every: int = 0,
                   table: PatternTable | None = None, ends: jax.Array | None = None,
                   limits: ValidityLimits = ValidityLimits()) -> SkillResult:
-    """Execute (B, 9) top genotypes from `start` (B, ...) with damage a (B, 6) or (6,) leg mask or a `Damage`
-    batched (B, ...) or not (None: intact), contact patterns (B, 3) (None or -1: any) and `run_elite`'s
-    record_every (`steps.qpos` (3, B, F, 25)). table, ends (B, 3) (end poses in the start frame): a step with a
-    pattern >= 0 runs the first step of a plan towards the end (`composition`). limits: when a step is invalid
-    (default: training's)."""
+    """Execute (B, 9) top genotypes from `start` (B, ...) with damage (a (B, 6) or (6,) bool leg mask, or a `Damage`
+    batched or not; None: intact), contact patterns (B, 3) (None or -1: any) and `run_elite`'s record_every
+    (`steps.qpos` (3, B, F, 25)). table, ends (B, 3)
+    (end poses in the start frame): a step with a pattern >= 0 runs the first step of a plan towards the end
+    (`composition`). limits: when a step is invalid (default: training's)."""
     batch = genotypes.shape[0]
-    if damage is None:
-        damage = jnp.zeros((batch, NUM_LEGS), bool)
-    elif isinstance(damage, Damage):
-        unbatched = damage.legs.ndim - 1  # the leading axes of each field to replace by (B,)
-        damage = jax.tree.map(lambda x: jnp.broadcast_to(x, (batch, *x.shape[unbatched:])), damage)
-    else:
-        damage = jnp.broadcast_to(damage, (batch, NUM_LEGS))
+    damage = jnp.zeros((batch, NUM_LEGS), bool) if damage is None else batch_damage(damage, batch)
     patterns = jnp.full((batch, STEPS_PER_SKILL), ANY_PATTERN, jnp.int32) if patterns is None else patterns
     origin = state_pose(start)
     targets = compose_pose(origin[:, None, :], skill_waypoints(hbr.middle_task, genotypes))  # (B, 3, 3)

@@ -20,6 +20,7 @@ from hte_jax.online.rules import RuleBatch, StepContext, StepObservation, choose
 from hte_jax.online.secondary import ERROR_DIM
 from hte_jax.online.skills import Skills, displacement_of
 from hte_jax.sim.controller import NUM_PARAMS
+from hte_jax.sim.damage import Damage, damage_legs
 from hte_jax.sim.robot import NUM_LEGS, Robot
 from hte_jax.sim.env import SimState, ValidityLimits
 from hte_jax.sim.rollout import RolloutSpec, rollout
@@ -70,10 +71,11 @@ class ActionOutcome:
 
 @dataclasses.dataclass(frozen=True)
 class SimulatedRobots:
-    """B robots in MJX with damage (B, 6) bool; record_every k > 0 (dividing 100) records the state every k steps."""
+    """B robots in MJX with damage: a (B, 6) bool leg mask (under the robot's `damage_model`) or a `Damage` (B, ...);
+    record_every k > 0 (dividing 100) records the state every k steps."""
 
     robot: Robot
-    damage: jax.Array
+    damage: jax.Array | Damage
     record_every: int = 0
 
     def pose(self, state: SimState) -> jax.Array:
@@ -96,7 +98,7 @@ class SimulatedRobots:
         spec = RolloutSpec(num_steps=STEP_CONTROL_STEPS, record_contacts=False, limits=ONLINE_LIMITS,
                            record_qpos_every=self.record_every)
         result = rollout(self.robot, jnp.zeros((state.qpos.shape[0], NUM_PARAMS)), self.damage, state, spec)
-        zeros = jnp.zeros_like(self.damage, jnp.float32)
+        zeros = jnp.zeros_like(damage_legs(self.damage), jnp.float32)
         return Second(state=result.final_state, pose=state_pose(result.final_state), displacement=jnp.zeros_like(
             zeros[:, :3]), valid=result.valid, invalid_reason=result.invalid_reason, contact_fraction=zeros,
             leg_travel=zeros, qpos=result.qpos)
@@ -110,7 +112,7 @@ class SimulatedRobots:
                            record_contacts=False, limits=ONLINE_LIMITS, record_qpos_every=self.record_every)
         result = rollout(self.robot, segments, self.damage, state, spec)
         poses = planar_pose(result.base_pos, result.base_quat)  # (B, 5, 3)
-        zeros = jnp.zeros_like(self.damage, jnp.float32)
+        zeros = jnp.zeros_like(damage_legs(self.damage), jnp.float32)
         last = Second(state=result.final_state, pose=poses[:, -1], displacement=relative_pose(poses[:, 0], poses[:, -1]),
                       valid=result.valid, invalid_reason=result.invalid_reason, contact_fraction=zeros,
                       leg_travel=zeros, qpos=result.qpos)

@@ -11,6 +11,7 @@ import jax.numpy as jnp
 
 from hte_jax.geometry import heading
 from hte_jax.online.maze import Maze
+from hte_jax.sim.damage import Damage, damage_legs
 from hte_jax.sim.robot import Robot, RobotConfig, load_robot
 from hte_jax.sim.env import SimState
 from hte_jax.sim.rollout import standing_state
@@ -54,10 +55,11 @@ def place(state: SimState, pose: jax.Array) -> SimState:
     return SimState(qpos=qpos, qvel=qvel, qacc_warmstart=warm)
 
 
-def start_states(maze: Maze, damages: jax.Array, base: RobotConfig = RobotConfig()) -> SimState:
-    """Robots with damages (B, 6), settled standing (away from walls) and placed at the maze's start."""
-    damages = jnp.asarray(damages, bool)
+def start_states(maze: Maze, damages: jax.Array | Damage, base: RobotConfig = RobotConfig()) -> SimState:
+    """Robots with damages (a (B, 6) bool leg mask under `base.damage_model`, or a `Damage` (B, ...)), settled
+    standing (away from walls) and placed at the maze's start."""
+    damages = damages if isinstance(damages, Damage) else jnp.asarray(damages, bool)
     plain = load_robot(dataclasses.replace(base, walls=()))
     settled = standing_state(plain, damages)
-    pose = jnp.broadcast_to(jnp.asarray(maze.start, jnp.float32), (damages.shape[0], 3))
+    pose = jnp.broadcast_to(jnp.asarray(maze.start, jnp.float32), (damage_legs(damages).shape[0], 3))
     return place(settled, pose)

@@ -32,6 +32,7 @@ from hte_jax.online.rules import PatternRule, RuleBatch, start_rules
 from hte_jax.online.secondary import ERROR_DIM
 from hte_jax.online.skills import OUTCOME_DIM, Skills, displacement_of, predict
 from hte_jax.online.skills import outcome as outcome_of
+from hte_jax.sim.damage import Damage, damage_legs
 from hte_jax.sim.robot import NUM_LEGS, Robot
 from hte_jax.sim.env import SimState
 
@@ -73,13 +74,14 @@ class History:
 
 @struct.dataclass
 class Episodes:
-    """B adaptation episodes: sim SimState (B, ...) (None when an executor drives the robots), damage (B, 6)
-    bool, rte GPData (B, K, L, D, 4) per repertoire, belief MapBelief (B, K), rules, key (B, 2), taken (B,)
-    int32, reached and broken (B,) bool, reason (B,) int32 `InvalidReason` bits, trajectory (B, 4 L + 1, 3)
-    world pose every second (the last repeated after the end), history."""
+    """B adaptation episodes: sim SimState (B, ...) (None when an executor drives the robots), damage what is wrong
+    with each robot (a (B, 6) bool leg mask under the robot's `damage_model`, or a `Damage` (B, ...)), rte GPData
+    (B, K, L, D, 4) per repertoire, belief MapBelief (B, K), rules, key (B, 2), taken (B,) int32, reached and broken
+    (B,) bool, reason (B,) int32 `InvalidReason` bits, trajectory (B, 4 L + 1, 3) world pose every second (the last
+    repeated after the end), history."""
 
     sim: SimState
-    damage: jax.Array
+    damage: jax.Array | Damage
     rte: GPData
     belief: MapBelief
     rules: RuleBatch
@@ -103,12 +105,15 @@ class Episodes:
         return state_pose(self.sim)
 
 
-def start_episodes(config: AdaptationConfig, skills: Skills, start: SimState | jax.Array, damages: np.ndarray,
-                   rules: tuple[PatternRule, ...], which: np.ndarray, key: jax.Array) -> Episodes:
+def start_episodes(config: AdaptationConfig, skills: Skills, start: SimState | jax.Array,
+                   damages: np.ndarray | Damage, rules: tuple[PatternRule, ...], which: np.ndarray,
+                   key: jax.Array) -> Episodes:
     """B fresh episodes of robots `start` (SimState (B, ...), or world poses (B, 3) of executor-driven robots)
-    with `damages` (B, 6), episode b running `rules[which[b]]` and planning first with a random repertoire."""
-    damages = np.asarray(damages, bool)
-    batch, length, depth, maps = damages.shape[0], config.max_actions, config.planner.depth, skills.num_maps
+    with `damages` (a (B, 6) bool leg mask or a `Damage` (B, ...)), episode b running `rules[which[b]]` (whose
+    `init` reads the damaged legs) and planning first with a random repertoire."""
+    damages = damages if isinstance(damages, Damage) else np.asarray(damages, bool)
+    legs = np.asarray(damage_legs(damages), bool)
+    batch, length, depth, maps = legs.shape[0], config.max_actions, config.planner.depth, skills.num_maps
     simulated = isinstance(start, SimState)
     pose = state_pose(start) if simulated else jnp.asarray(start, jnp.float32)
     first_map = jax.random.randint(jax.random.fold_in(key, 1), (batch,), 0, maps)
@@ -123,10 +128,10 @@ def start_episodes(config: AdaptationConfig, skills: Skills, start: SimState | j
         contacts=jnp.zeros((batch, length, STEPS_PER_SKILL, NUM_LEGS), jnp.float32),
         leg_travel=jnp.zeros((batch, length, STEPS_PER_SKILL, NUM_LEGS), jnp.float32))
     return Episodes(
-        sim=start if simulated else None, damage=jnp.asarray(damages),
+        sim=start if simulated else None, damage=jax.tree.map(jnp.asarray, damages),
         rte=jax.tree.map(lambda x: jnp.broadcast_to(x, (batch, maps, *x.shape)),
                          empty_gp(length, skills.actions.inputs.shape[-1], OUTCOME_DIM)),
-        belief=jax.vmap(lambda k: initial_belief(maps, k))(first_map), rules=start_rules(rules, which, damages, length),
+        belief=jax.vmap(lambda k: initial_belief(maps, k))(first_map), rules=start_rules(rules, which, legs, length),
         key=jax.random.split(key, batch), taken=jnp.zeros(batch, jnp.int32), reached=jnp.zeros(batch, bool),
         broken=jnp.zeros(batch, bool), reason=jnp.zeros(batch, jnp.int32),
         trajectory=jnp.broadcast_to(pose[:, None, :], (batch, SECONDS_PER_ACTION * length + 1, 3)), history=history)

@@ -36,9 +36,9 @@ from hte_jax.online.variants import batch_rules
 from hte_jax.online.variants import variant as variant_named
 from hte_jax.online.maze import Maze, load_maze, maze_to_dict
 from hte_jax.online.mcts import PlannerConfig
-from hte_jax.online.recording import Recorder, Replay, replay_of
+from hte_jax.online.recording import Recorder, Replay, damage_info, replay_of
 from hte_jax.qd.io import CheckpointError, read_checkpoint
-from hte_jax.sim.damage import PAPER_DAMAGES, parse_damage
+from hte_jax.sim.damage import Damage, mask_if_plain, parse_damages, stack_damages
 from hte_jax.sim.robot import RobotConfig, SolverConfig
 
 with_overrides = _with_overrides  # the configurations' one override rule, re-exported
@@ -60,13 +60,17 @@ PROTOCOLS = {
 class EvalConfig:
     """An adaptation experiment. Every field can be overridden from the CLI.
 
-    variants: comma-separated variant names. damages: "all" (the paper's 7), or comma-separated
-    names ("none", "leg1", "legs1+4") or the original's indices 0..6. replicates: episodes per
-    (variant, damage). repertoire: an HBR or single flat repertoire file for the HBR variants and
-    "rte" ("" = the shipped HBR). repertoire_dir: a folder with one subfolder per repertoire seed
-    (files `SEED_FILES`) used instead of the shipped repertoires. damage_model: "raised" (a
-    damaged leg blocked in the air, the paper's words) or "locked" (in the standing pose, the
-    original code's). max_actions: the failure cap. planner: the MCTS settings (`PlannerConfig`,
+    variants: comma-separated variant names. damages: the damages, as `sim.damage.parse_damages` spells
+    them: "all" (the paper's 7), or comma-separated items `<legs>[:<model>[=<fraction>]][:friction=<scale>]`
+    (legs "none", "leg1", "legs1+4", the original's indices -1..6 or "all"; e.g. "leg0:removed",
+    "leg2:shortened=0.5:friction=0.6", "none:friction=0.5"); an item without a model is under
+    `damage_model`. Episodes, summaries and statistics name each damage by its canonical label
+    (`damage_list`). replicates: episodes per (variant, damage). repertoire: an HBR or single flat
+    repertoire file for the HBR variants and "rte" ("" = the shipped HBR). repertoire_dir: a folder
+    with one subfolder per repertoire seed (files `SEED_FILES`) used instead of the shipped
+    repertoires. damage_model: the model of the damages that name none: "raised" (a damaged leg
+    blocked in the air, the paper's words), "locked" (in the standing pose, the original code's) or
+    "removed". max_actions: the failure cap. planner: the MCTS settings (`PlannerConfig`,
     inlined: settings iterations, roots, exploration, widening, gamma, depth, candidates,
     collision_reward, goal_reward; 200 x 2 trees by default). composition: how an HBR step with a chosen contact pattern picks its elite: "planned" (ours,
     `hbr.composition`: a plan among the pattern's elites to the skill's end) or "waypoints" (the
@@ -103,10 +107,10 @@ class EvalConfig:
         check_fields(self)
         for name in self.variant_list:
             variant_named(name)  # validates the name
-        self.damage_list  # noqa: B018 (validates the names)
         if self.repertoire and self.repertoire_dir:
             raise ConfigError("give either repertoire (one HBR file) or repertoire_dir (seed folders), not both")
         self.robot  # noqa: B018 (RobotConfig validates the damage model)
+        self.damage_conditions  # noqa: B018 (validates the damages)
         self.adaptation  # noqa: B018 (validates max_actions)
         self.maze_task  # noqa: B018 (reads and validates the maze)
 
@@ -120,22 +124,16 @@ class EvalConfig:
         return names
 
     @property
+    def damage_conditions(self) -> dict[str, Damage]:
+        """Canonical label -> unbatched NumPy `Damage` of each damage, in order (`parse_damages` of `damages`
+        under `damage_model`)."""
+        return parse_damages(self.damages, self.damage_model)
+
+    @property
     def damage_list(self) -> tuple[str, ...]:
-        """Damage names in order (indices 0..6 become the paper's names)."""
-        if self.damages.strip() == "all":
-            return tuple(PAPER_DAMAGES)
-        names = []
-        for item in (d.strip() for d in self.damages.split(",") if d.strip()):
-            if item.lstrip("-").isdigit():
-                index = int(item)
-                parse_damage(index)
-                names.append("none" if index == -1 else list(PAPER_DAMAGES)[index])
-            else:
-                parse_damage(item)
-                names.append(item)
-        if not names:
-            raise ConfigError("damages: give 'all' or at least one damage")
-        return tuple(names)
+        """The damages' canonical labels in order (indices 0..6 become the paper's names; the model is named
+        where it is not `damage_model`)."""
+        return tuple(self.damage_conditions)
 
     @property
     def maze_task(self) -> Maze:
@@ -221,14 +219,16 @@ def load_skills(path: str | Path | None, maps: bool = False, composition: str = 
 
 @dataclasses.dataclass
 class BatchResult:
-    """One batch of episodes on one repertoire (of repertoire seed `seed`): labels per episode, the
-    final `Episodes` and the replays of the recorded episodes (in row order)."""
+    """One batch of episodes on one repertoire (of repertoire seed `seed`): labels per episode, damage
+    (B, ...) NumPy what is wrong with each episode's robot, the final `Episodes` and the replays of the
+    recorded episodes (in row order)."""
 
     seed: int
     repertoire: dict
     variants: list[str]
     damages: list[str]
     replicates: list[int]
+    damage: Damage
     episodes: Episodes
     timings: RunTimings
     replays: list[Replay] = dataclasses.field(default_factory=list)
@@ -273,7 +273,8 @@ def run_batch(config: EvalConfig, path: str | None, variants: list[str], maze: M
     batch of episodes. record: batch rows whose states are recorded every `record_every` control
     steps (`BatchResult.replays`); none by default, and then nothing is recorded. mesh: the devices
     the episodes are spread over (`episode.run_episodes`; None: all visible). maze: the world
-    (None: the configuration's, `EvalConfig.maze_task`)."""
+    (None: the configuration's, `EvalConfig.maze_task`). The episodes' robots carry a `Damage`, or its leg
+    mask where that says the same (`damage.mask_if_plain`: the rollout's program without model edits)."""
     maze = config.maze_task if maze is None else maze
     maps = len(variants) == 1 and variant_named(variants[0]).repertoire == "aprol"
     labels = batch_labels(config, variants)
@@ -282,22 +283,24 @@ def run_batch(config: EvalConfig, path: str | None, variants: list[str], maze: M
     for name in variants:
         variant_named(name).check_skills(skills)
     rules, which = batch_rules([v for v, _, _ in labels])
-    damages = np.stack([parse_damage(d) for _, d, _ in labels])
+    conditions = config.damage_conditions
+    damage = stack_damages([conditions[d] for _, d, _ in labels])
+    simulated = mask_if_plain(damage, config.damage_model)
     adaptation = config.adaptation
-    start = start_states(maze, damages, config.robot)
+    start = start_states(maze, simulated, config.robot)
     key = jax.random.PRNGKey(config.seed)
     key = key if seed == 0 else jax.random.fold_in(key, seed)
-    episodes = start_episodes(adaptation, skills, start, damages, rules, np.asarray(which), key)
+    episodes = start_episodes(adaptation, skills, start, simulated, rules, np.asarray(which), key)
     robot = maze_robot(maze, config.robot)
     recorder = Recorder(tuple(record), record_every) if record else None
     episodes, timings = run_episodes(maze, adaptation, robot, skills, episodes, progress=progress,
                                      description="/".join(variants), recorder=recorder, mesh=mesh)
     replays = [replay_of(recorder, episodes, row, {
         "variant": labels[row][0], "damage": labels[row][1], "replicate": labels[row][2], "seed": seed,
-        "repertoire": info["path"], "hierarchical": skills.hierarchical, "damage_model": config.damage_model,
+        "repertoire": info["path"], "hierarchical": skills.hierarchical, **damage_info(conditions[labels[row][1]]),
         "max_actions": config.max_actions, "maze": maze_to_dict(maze)}) for row in record]
     variants, damages, replicates = (list(column) for column in zip(*labels))
-    return BatchResult(seed, info, variants, damages, replicates, episodes, timings, replays)
+    return BatchResult(seed, info, variants, damages, replicates, damage, episodes, timings, replays)
 
 
 def episode_numbers(variants: list[str], earlier: dict[str, int]) -> list[int]:

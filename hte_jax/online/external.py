@@ -22,8 +22,7 @@ from hte_jax.online.maze import Maze, distance_field
 from hte_jax.online.skills import Skills
 from hte_jax.online.variants import variant as variant_named
 from hte_jax.sim.controller import NUM_PARAMS, SAMPLES_PER_PERIOD, target_table
-from hte_jax.sim.damage import (Damage, EDITED_FIELDS, as_damage, edited_fields, edits_model, held_targets,
-                                touching_feet)
+from hte_jax.sim.damage import Damage, as_damage, edited_native_model, edits_model, held_targets, touching_feet
 from hte_jax.sim.robot import FOOT_RADIUS, NUM_LEGS, RobotConfig, mj_model, robot_info
 from hte_jax.sim.env import SimState, ValidityLimits, check_state, control
 from hte_jax.sim.rollout import RolloutSpec
@@ -111,15 +110,17 @@ class ExecutorRobot:
 
 
 def run_episode(maze: Maze, config: AdaptationConfig, skills: Skills, executor: Executor, variant: str = "hte",
-                key: jax.Array | None = None, damage: np.ndarray | None = None) -> Episodes:
+                key: jax.Array | None = None, damage: np.ndarray | Damage | None = None) -> Episodes:
     """One episode of `variant` on the robot `executor` drives, from where it stands, as `Episodes` (B = 1, no
-    `sim`). damage: (6,) bool, the true damage that only Perfect HTE's oracle reads (default: intact)."""
+    `sim`). damage: the true damage that only Perfect HTE's oracle reads (its legs), a (6,) bool leg mask or an
+    unbatched `Damage` (default: intact)."""
     chosen = variant_named(variant)
     chosen.check_skills(skills)
-    damage = np.zeros(NUM_LEGS, bool) if damage is None else np.asarray(damage, bool)
+    damage = np.zeros(NUM_LEGS, bool) if damage is None else damage
     key = jax.random.PRNGKey(0) if key is None else key
     robot = ExecutorRobot(executor)
-    episodes = start_episodes(config, skills, robot.pose(), damage[None], (chosen.rule,), np.zeros(1, np.int32), key)
+    batched = jax.tree.map(lambda x: np.asarray(x)[None], damage)
+    episodes = start_episodes(config, skills, robot.pose(), batched, (chosen.rule,), np.zeros(1, np.int32), key)
     # Committed inputs, as in `episode.run_episodes` (jit keys its cache on committed-ness).
     field, skills, episodes = jax.device_put((distance_field(maze, config.grid), skills, episodes), jax.devices()[0])
     while not bool(episodes.done[0]):
@@ -144,16 +145,12 @@ def _host_damage(damage, config: RobotConfig) -> Damage:
 
 
 def _damaged_model(config: RobotConfig, given, damage: Damage) -> mujoco.MjModel:
-    """The native model of `config` (shared), or a copy with the model values of `damage` (`damage.edited_fields`)
+    """The native model of `config` (shared), or a copy with the model values of `damage` (`damage.edited_native_model`)
     where it changes them."""
     model = mj_model(config)
     if not edits_model(given, config.damage_model):
         return model
-    edited = edited_fields({name: getattr(model, name) for name in EDITED_FIELDS}, damage, robot_info(model, config))
-    copy = model.__copy__()
-    for name, values in edited.items():
-        getattr(copy, name)[:] = np.asarray(values, np.float64)
-    return copy
+    return edited_native_model(model, damage, robot_info(model, config))
 
 
 class MujocoExecutor:
@@ -174,8 +171,9 @@ class MujocoExecutor:
         self._set(np.asarray(start.qpos), np.asarray(start.qvel), np.asarray(start.qacc_warmstart))
 
     @classmethod
-    def in_maze(cls, maze: Maze, damage: np.ndarray, base: RobotConfig = RobotConfig()) -> MujocoExecutor:
-        """A robot with `damage` settled standing (as `arena.start_states`) and turned to the maze's start."""
+    def in_maze(cls, maze: Maze, damage: np.ndarray | Damage, base: RobotConfig = RobotConfig()) -> MujocoExecutor:
+        """A robot with `damage` (a (6,) bool leg mask under `base.damage_model` or an unbatched `Damage`, e.g. of
+        `damage.parse_damages`) settled standing (as `arena.start_states`) and turned to the maze's start."""
         plain = dataclasses.replace(base, walls=())
         model = mj_model(plain)
         qpos = model.qpos0.copy()

@@ -15,6 +15,7 @@ from hte_jax.errors import ConfigError, require_int
 from hte_jax.online.action import SECONDS_PER_ACTION, STEP_CONTROL_STEPS
 from hte_jax.online.maze import Maze, maze_from_dict
 from hte_jax.qd.io import CheckpointError, read_checkpoint, save_checkpoint
+from hte_jax.sim.damage import DAMAGE_PARTS, Damage, damage_legs, make_damage
 
 KIND = "hte_jax.replay"
 REPLAY_DIR = "replays"
@@ -53,8 +54,9 @@ class Recorder:
 class Replay:
     """One recorded episode of N actions, F = 400 / k states per action (k = `every`): qpos (N F + 1, 25) float32
     (state j F + s F / 4 starts second s of action j), action and map (N,) int32, patterns (N, 3) int32,
-    trajectory (4 N + 1, 3) float32, damage (6,) bool, info JSON-able labels (variant, damage, seed, replicate,
-    row, reached, broken, damage_model, maze, max_actions, every, episode)."""
+    trajectory (4 N + 1, 3) float32, damage (6,) bool the damaged legs, info JSON-able labels (variant, damage (its
+    label), seed, replicate, row, reached, broken, damage_model, damage_fraction, damage_friction (`damage_info`),
+    maze, max_actions, every, episode)."""
 
     qpos: np.ndarray
     action: np.ndarray
@@ -80,6 +82,20 @@ class Replay:
     def maze(self) -> Maze:
         return maze_from_dict(self.info["maze"])
 
+    @property
+    def robot_damage(self) -> Damage:
+        """The episode's `Damage` (unbatched, NumPy): its legs under its model, fraction and floor friction."""
+        info = self.info
+        return make_damage(self.damage, info["damage_model"], info.get("damage_fraction", 1.0),
+                           info.get("damage_friction", 1.0), xp=np)
+
+
+def damage_info(damage: Damage) -> dict:
+    """The JSON-able labels of an unbatched `damage` that a `Replay` keeps beside its legs: damage_model (a name of
+    `DAMAGE_PARTS`), damage_fraction, damage_friction."""
+    return {"damage_model": list(DAMAGE_PARTS)[int(damage.model)], "damage_fraction": float(damage.fraction),
+            "damage_friction": float(damage.friction)}
+
 
 def replay_of(recorder: Recorder, episodes, row: int, info: dict) -> Replay:
     """The ended episode in batch `row` of the `episode.Episodes` that `run_episodes` ran with `recorder`."""
@@ -93,7 +109,7 @@ def replay_of(recorder: Recorder, episodes, row: int, info: dict) -> Replay:
         qpos=np.concatenate([*frames, final]).astype(np.float32), action=np.asarray(history.action[row, :taken]),
         map=np.asarray(history.map[row, :taken]), patterns=np.asarray(history.patterns[row, :taken]),
         trajectory=np.asarray(episodes.trajectory[row, : SECONDS_PER_ACTION * taken + 1]),
-        damage=np.asarray(episodes.damage[row], bool),
+        damage=np.asarray(damage_legs(episodes.damage)[row], bool),
         info={**info, "row": int(row), "every": recorder.every, "actions": taken,
               "reached": bool(episodes.reached[row]), "broken": bool(episodes.broken[row])})
 

@@ -1,7 +1,8 @@
 """Pattern rules: how an adaptation variant picks the contact pattern of each 1 s step of a skill.
 
 A rule is a frozen dataclass that owns its state (a pytree with a leading (B,) episode axis):
-`init(damages (B, 6), max_actions) -> state` (only an oracle reads the damages), `choose(state, context)
+`init(damages (B, 6), max_actions) -> state` (damages: each robot's damaged legs, whatever their damage model;
+only an oracle reads them), `choose(state, context)
 -> (pattern (B,) int32, -1: any; spare (B,) bool)` and `learn(state, observation) -> state`.
 """
 
@@ -139,8 +140,9 @@ class TruePattern:
 
 @dataclasses.dataclass(frozen=True)
 class Oracle(PatternRule):
-    """Perfect HTE: the pattern of the true damage (an upper bound; the only rule that reads it).
-    spare: run that pattern's steps from its spare set (the damaged legs kept off the floor)."""
+    """Perfect HTE: the pattern of the true damage, its damaged legs off the floor whatever their damage model
+    (an upper bound; the only rule that reads it; a damage of the floor alone damages no leg). spare: run that
+    pattern's steps from its spare set (the damaged legs kept off the floor)."""
 
     spare: bool = False
 
@@ -210,7 +212,8 @@ class RuleBatch:
 
 
 def start_rules(rules: tuple, which: np.ndarray, damages: np.ndarray, max_actions: int) -> RuleBatch:
-    """The rules of B new episodes: episode b runs `rules[which[b]]`; damages (B, 6) reach `init`."""
+    """The rules of B new episodes: episode b runs `rules[which[b]]`; damages (B, 6) bool, the damaged legs
+    (`Damage.legs`), reach `init`."""
     which = np.asarray(which, np.int32)
     if which.size and (which.min() < 0 or which.max() >= len(rules)):
         raise ValueError(f"rule indices must be in [0, {len(rules)}), got {sorted(set(which.tolist()))}")

@@ -6,7 +6,15 @@ original's comment), "shortened" (the tibia at a fraction of its length, RTE's o
 servos at a fraction of their torque). A `Damage` holds, per robot, the damaged legs, their model, its fraction
 and the floor's friction scale (APROL's conditions), as arrays: one compiled program serves a batch that mixes
 damages. A plain (6,) bool mask is the legs alone, under `RobotConfig.damage_model`. The paper's seven
-conditions: each single leg and the middle legs 1+4."""
+conditions: each single leg and the middle legs 1+4.
+
+A damage as the command lines spell it (`parse_damages`): comma-separated items, each
+`<legs>[:<model>[=<fraction>]][:friction=<scale>]`. <legs>: none, leg<i>, legs<i>+<j> (i < j), an index of the
+original's -l (-1: none, 0..5: leg<i>, 6: legs1+4), or all (the paper's seven, each with the rest of the item).
+<model>: a registered damage model (default: the run's damage model); =<fraction> in (0, 1] for a model that takes
+one (shortened: of the tibia's length, weak: of the torque), and only for it. friction=<scale> > 0: the floor's
+friction scale. `leg0:removed`, `leg2:shortened=0.5:friction=0.6`, `none:friction=0.5` (the intact robot on a
+slippery floor), `all:locked`."""
 
 from __future__ import annotations
 
@@ -43,7 +51,8 @@ def damage_mask(legs: Iterable[int]) -> np.ndarray:
 
 
 def parse_damage(name: str | int) -> np.ndarray:
-    """Mask for a damage name ('none', 'leg<i>', 'legs<i>+<j>') or the original's -l index (6: legs 1+4, -1: none)."""
+    """Mask for a damage name ('none', 'leg<i>', 'legs<i>+<j>', 'legs<i>+<j>+<k>'..., increasing) or the original's -l
+    index (6: legs 1+4, -1: none)."""
     if isinstance(name, (int, np.integer)):
         names = list(PAPER_DAMAGES)
         if name == -1:
@@ -55,8 +64,13 @@ def parse_damage(name: str | int) -> np.ndarray:
         return damage_mask(())
     if name in APROL_DAMAGES:  # the paper's too
         return damage_mask(APROL_DAMAGES[name])
-    raise ConfigError(f"unknown damage {name!r}; expected 'none', 'leg<i>' or 'legs<i>+<j>' with 0 <= i < j <= 5 "
-                      f"(the paper's: {', '.join(DAMAGE_NAMES)})")
+    legs = name.removeprefix("legs").split("+") if name.startswith("legs") else []
+    if len(legs) > 2 and all(leg.isdigit() for leg in legs):
+        legs = [int(leg) for leg in legs]
+        if legs == sorted(set(legs)) and legs[-1] < NUM_LEGS:
+            return damage_mask(legs)
+    raise ConfigError(f"unknown damage {name!r}; expected 'none', 'leg<i>' or 'legs<i>+<j>(+<k>...)' with "
+                      f"0 <= i < j < k ... <= 5 (the paper's: {', '.join(DAMAGE_NAMES)})")
 
 
 def paper_damage_masks() -> np.ndarray:
@@ -205,6 +219,33 @@ def as_damage(damage, model: str, xp=jnp) -> Damage:
     return damage if isinstance(damage, Damage) else make_damage(damage, model, xp=xp)
 
 
+def stack_damages(damages: Iterable[Damage], xp=np) -> Damage:
+    """Unbatched damages stacked into one `Damage` (N, ...)."""
+    return jax.tree.map(lambda *fields: xp.stack(fields), *damages)
+
+
+def batch_damage(damage, batch: int):
+    """`damage` (a (6,) or (batch, 6) bool leg mask, or a `Damage` unbatched or batched) with a leading batch axis."""
+    if isinstance(damage, Damage):
+        return jax.tree.map(lambda x: jnp.broadcast_to(x, (batch, *jnp.shape(x)[jnp.ndim(damage.legs) - 1:])), damage)
+    return jnp.broadcast_to(damage, (batch, NUM_LEGS))
+
+
+def mask_if_plain(damage: Damage, model: str):
+    """`damage`'s legs (..., 6) bool (NumPy) when that plain leg mask under damage model `model` says the same:
+    every robot's model is `model` and its floor intact (its fraction is then 1); else `damage` itself. A rollout
+    of the mask keeps the program of a mask (`edits_model`)."""
+    index = list(DAMAGE_PARTS).index(damage_model(model).name)
+    plain = (np.all(np.asarray(damage.model) == index) and np.all(np.asarray(damage.fraction) == 1.0)
+             and np.all(np.asarray(damage.friction) == 1.0))
+    return np.asarray(damage.legs, bool) if plain else damage
+
+
+def damage_legs(damage) -> jax.Array:
+    """The damaged legs (..., 6) bool of `damage` (a `Damage` or a plain leg mask), whatever their model."""
+    return damage.legs if isinstance(damage, Damage) else damage
+
+
 def edits_model(damage, model: str) -> bool:
     """Whether `damage` (a `Damage`, or a leg mask under damage model `model`) may change model values, not only
     the servos' targets: any `Damage` (its models and friction are data), or a mask whose model has its own `edit`.
@@ -241,3 +282,112 @@ def edited_fields(fields: dict, damage: Damage, info: RobotInfo) -> dict[str, ja
 def edited_model(model, damage: Damage, info: RobotInfo):
     """One robot's MJX `model` with `damage` (unbatched) applied (`edited_fields`)."""
     return model.replace(**edited_fields({name: getattr(model, name) for name in EDITED_FIELDS}, damage, info))
+
+
+def edited_native_model(model, damage: Damage, info: RobotInfo):
+    """A copy of the native MuJoCo `model` with `damage` (unbatched) applied (`edited_fields`)."""
+    edited = edited_fields({name: getattr(model, name) for name in EDITED_FIELDS}, damage, info)
+    copy = model.__copy__()
+    for name, values in edited.items():
+        getattr(copy, name)[:] = np.asarray(values, np.float64)
+    return copy
+
+
+def legs_label(legs) -> str:
+    """The name of a leg mask (6,): none, leg<i> or legs<i>+<j>(+...)."""
+    damaged = [int(leg) for leg in np.flatnonzero(np.asarray(legs, bool))]
+    if not damaged:
+        return "none"
+    return f"leg{damaged[0]}" if len(damaged) == 1 else "legs" + "+".join(map(str, damaged))
+
+
+def _number(text: str) -> str:
+    """The shortest decimal that reads back as the float32 of `text` (a label's spelling of a value)."""
+    return np.format_float_positional(np.float32(float(text)), trim="-")
+
+
+def damage_label(damage: Damage, model: str) -> str:
+    """The canonical spelling of an unbatched `damage` in a run whose damage model is `model` (what `parse_damages`
+    reads back to it): its legs' name, ":<model>" unless it is `model` (with "=<fraction>" for a model that takes
+    one), ":friction=<scale>" unless the floor is intact."""
+    label = legs_label(damage.legs)
+    part = list(DAMAGE_PARTS.values())[int(damage.model)]
+    if part.name != model or part.fraction:
+        label += f":{part.name}" + (f"={_number(damage.fraction)}" if part.fraction else "")
+    if float(damage.friction) != 1.0:
+        label += f":friction={_number(damage.friction)}"
+    return label
+
+
+def _value(item: str, name: str, text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not np.isfinite(value):
+        raise ConfigError(f"damage {item!r}: {name} must be a number, got {text!r}")
+    return value
+
+
+def _parse_item(item: str, model: str) -> list[tuple[str, Damage]]:
+    """(label, unbatched NumPy `Damage`) of one item of `parse_damages` (the paper's seven for `all`)."""
+    legs, *parts = item.split(":")
+    legs = legs.strip()
+    chosen, fraction, friction = None, None, None
+    for part in (p.strip() for p in parts):
+        key, equals, value = part.partition("=")
+        key = key.strip()
+        if not key:
+            raise ConfigError(f"damage {item!r}: empty part; expected <legs>[:<model>[=<fraction>]][:friction=<scale>]")
+        if key == "friction":
+            if friction is not None or not equals:
+                raise ConfigError(f"damage {item!r}: give friction once, as friction=<scale>")
+            friction = _value(item, "friction", value.strip())
+            if not friction > 0.0:
+                raise ConfigError(f"damage {item!r}: floor friction scale must be > 0, got {value.strip()}")
+            continue
+        if chosen is not None:
+            raise ConfigError(f"damage {item!r}: names two damage models ({chosen!r}, {key!r})")
+        if key not in DAMAGE_PARTS:
+            raise ConfigError(f"damage {item!r}: unknown damage model {key!r}; expected one of {', '.join(DAMAGE_PARTS)}"
+                              " or friction=<scale>")
+        chosen = key
+        if equals:
+            fraction = _value(item, "fraction", value.strip())
+            if not damage_model(chosen).fraction:
+                raise ConfigError(f"damage {item!r}: damage model {chosen!r} takes no fraction")
+            if not 0.0 < fraction <= 1.0:
+                raise ConfigError(f"damage {item!r}: fraction must be in (0, 1], got {value.strip()}")
+        elif damage_model(chosen).fraction:
+            raise ConfigError(f"damage {item!r}: damage model {chosen!r} needs a fraction in (0, 1]: {chosen}=<fraction>")
+    if legs == "all":
+        names = list(PAPER_DAMAGES)
+    else:
+        names = [legs_label(parse_damage(int(legs) if legs.lstrip("-").isdigit() else legs))]
+    if names == ["none"] and chosen is not None:
+        raise ConfigError(f"damage {item!r}: none damages no leg, so it takes no damage model (only friction=<scale>)")
+    part = damage_model(model) if chosen is None else damage_model(chosen)
+    out = []
+    for name in names:
+        damage = make_damage(parse_damage(name), part.name, 1.0 if fraction is None else fraction,
+                             1.0 if friction is None else friction, xp=np)
+        out.append((damage_label(damage, model), damage))
+    return out
+
+
+def parse_damages(text: str, model: str = "raised") -> dict[str, Damage]:
+    """label -> unbatched NumPy `Damage` of each damage that `text` spells (the module's docstring: comma-separated
+    items, "all" the paper's seven), in order, under the run's damage model `model` where an item names none;
+    labels are canonical (`damage_label`). ConfigError, one line, for a bad item or a damage named twice."""
+    damage_model(model)
+    damages: dict[str, Damage] = {}
+    for item in (i.strip() for i in text.split(",")):
+        if not item:
+            continue
+        for label, damage in _parse_item(item, model):
+            if label in damages:
+                raise ConfigError(f"damages: {text!r} names the damage {label!r} twice")
+            damages[label] = damage
+    if not damages:
+        raise ConfigError("damages: give 'all' or at least one damage")
+    return damages

@@ -12,7 +12,7 @@ from hte_jax.online.action import SECONDS_PER_ACTION
 from hte_jax.online.recording import Replay
 from hte_jax.sim.robot import RobotConfig
 from hte_jax.viz.camera import CAMERAS, Camera
-from hte_jax.viz.render import label, open_renderer, render_frames, render_spec
+from hte_jax.viz.render import damaged, label, open_renderer, render_frames, render_spec
 
 GOAL_RGBA = (0.1, 0.75, 0.25, 0.7)
 TRAIL_RGBA = (0.1, 0.3, 0.95, 1.0)
@@ -31,14 +31,15 @@ def maze_region(replay: Replay) -> tuple[float, float, float, float]:
 def episode_model(replay: Replay, view_extent: float | None = None) -> mujoco.MjModel:
     """The maze robot's render model with the goal disc; orthographic showing `view_extent` (m) high, or None."""
     maze = replay.maze
-    config = maze_config(maze, RobotConfig(damage_model=replay.info["damage_model"]))
-    spec = render_spec(config, replay.damage, checks=2.0)
+    config = maze_config(maze, RobotConfig())  # the render draws recorded states: no damage model acts
+    damage = replay.robot_damage
+    spec = render_spec(config, damage, checks=2.0)
     spec.worldbody.add_geom(name="goal", type=mujoco.mjtGeom.mjGEOM_CYLINDER, pos=[*maze.goal, 0.002],
                             size=[maze.goal_radius, 0.002, 0.0], contype=0, conaffinity=0, rgba=list(GOAL_RGBA))
     if view_extent is not None:
         spec.visual.global_.orthographic = True
         spec.visual.global_.fovy = view_extent
-    return spec.compile()
+    return damaged(spec.compile(), config, damage)
 
 
 def frame_states(replay: Replay, stride: int) -> np.ndarray:

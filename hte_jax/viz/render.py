@@ -11,7 +11,8 @@ import mujoco
 import numpy as np
 
 from hte_jax.errors import ConfigError, require_int
-from hte_jax.sim.robot import NUM_LEGS, RobotConfig, build_spec
+from hte_jax.sim.damage import Damage, damage_legs, edited_native_model
+from hte_jax.sim.robot import NUM_LEGS, RobotConfig, build_spec, robot_info
 from hte_jax.viz import gl
 from hte_jax.viz.camera import Camera
 from hte_jax.viz.gl import RenderError  # noqa: F401 (re-exported)
@@ -19,9 +20,10 @@ from hte_jax.viz.gl import RenderError  # noqa: F401 (re-exported)
 DAMAGED_RGBA = (0.85, 0.1, 0.1, 1.0)
 
 
-def render_spec(config: RobotConfig = RobotConfig(), damage: np.ndarray | None = None,
+def render_spec(config: RobotConfig = RobotConfig(), damage: np.ndarray | Damage | None = None,
                 checks: float = 8.0) -> mujoco.MjSpec:
-    """The simulation model's spec with a checkered floor (`checks` repeats per metre), damaged legs (6,) tinted."""
+    """The simulation model's spec with a checkered floor (`checks` repeats per metre), the damaged legs of `damage`
+    (a (6,) bool leg mask or an unbatched `Damage`) tinted."""
     spec = build_spec(config)
     spec.add_texture(name="checker", type=mujoco.mjtTexture.mjTEXTURE_2D, builtin=mujoco.mjtBuiltin.mjBUILTIN_CHECKER,
                      rgb1=[0.82, 0.82, 0.82], rgb2=[0.62, 0.62, 0.66], width=256, height=256)
@@ -30,16 +32,25 @@ def render_spec(config: RobotConfig = RobotConfig(), damage: np.ndarray | None =
         if geom.name == "floor":
             geom.material = "checker"
             geom.rgba = [1.0, 1.0, 1.0, 1.0]
-    damage = np.zeros(NUM_LEGS, bool) if damage is None else np.asarray(damage, bool)
-    for leg in np.flatnonzero(damage):
+    legs = np.zeros(NUM_LEGS, bool) if damage is None else np.asarray(damage_legs(damage), bool)
+    for leg in np.flatnonzero(legs):
         for geom in spec.geoms:
             if geom.name.startswith((f"leg_{leg}_", f"foot_{leg}")):
                 geom.rgba = list(DAMAGED_RGBA)
     return spec
 
 
-def render_model(config: RobotConfig = RobotConfig(), damage: np.ndarray | None = None) -> mujoco.MjModel:
-    return render_spec(config, damage).compile()
+def render_model(config: RobotConfig = RobotConfig(), damage: np.ndarray | Damage | None = None) -> mujoco.MjModel:
+    """`render_spec`'s model, with the model values a `Damage` changes (`damaged`)."""
+    return damaged(render_spec(config, damage).compile(), config, damage)
+
+
+def damaged(model: mujoco.MjModel, config: RobotConfig, damage: np.ndarray | Damage | None) -> mujoco.MjModel:
+    """The render model `model` of `config`, or for a `Damage` a copy with the model values it changes
+    (`damage.edited_native_model`: a shortened tibia drawn short)."""
+    if not isinstance(damage, Damage):
+        return model
+    return edited_native_model(model, damage, robot_info(model, config))
 
 
 def open_renderer(model: mujoco.MjModel, width: int, height: int) -> mujoco.Renderer:

@@ -52,7 +52,8 @@ def pattern_label(pattern: int) -> str:
 
 @functools.partial(jax.jit, static_argnames=("every",))
 def flat_states(robot, params, damage, every: int):
-    """qpos (B, SKILL_STEPS / every + 1, 25) of flat controllers `params` (B, P) under `damage` (B, 6)."""
+    """qpos (B, SKILL_STEPS / every + 1, 25) of flat controllers `params` (B, P) under `damage` (a (B, 6) leg mask or
+    a `Damage` (B, ...))."""
     start = standing_state(robot, damage)
     spec = RolloutSpec(num_steps=SKILL_STEPS, record_contacts=False, record_qpos_every=every)
     result = rollout(robot, params, damage, start, spec)
@@ -61,15 +62,17 @@ def flat_states(robot, params, damage, every: int):
 
 @functools.partial(jax.jit, static_argnames=("every",))
 def hbr_states(robot, hbr, genotypes, damage, every: int, patterns=None):
-    """qpos (B, SKILL_STEPS / every + 1, 25) of HBR skills (B, G) under `damage` (B, 6), `patterns` (B, 3) held."""
+    """qpos (B, SKILL_STEPS / every + 1, 25) of HBR skills (B, G) under `damage` (a (B, 6) leg mask or a `Damage`
+    (B, ...)), `patterns` (B, 3) held."""
     result = execute_skill(robot, hbr, genotypes, standing_state(robot, damage), damage, patterns, record_every=every)
     steps = jnp.swapaxes(result.steps.qpos, 0, 1)  # (B, 3, F, 25)
     return jnp.concatenate([steps.reshape(steps.shape[0], -1, steps.shape[-1]), result.state.qpos[:, None]], axis=1)
 
 
-def render_grid(states: np.ndarray, damage: np.ndarray, config: RobotConfig, camera: Camera, width: int, height: int,
+def render_grid(states: np.ndarray, damage, config: RobotConfig, camera: Camera, width: int, height: int,
                 columns: int, labels: list[str] | None = None, progress=None) -> np.ndarray:
-    """Frames (T, rows * height, columns * width, 3) uint8: clips `states` (N, T, 25), damaged legs red, tiled."""
+    """Frames (T, rows * height, columns * width, 3) uint8: clips `states` (N, T, 25) of robots under `damage` (a (6,)
+    leg mask or an unbatched `Damage`: `render.render_model`), damaged legs red, tiled."""
     model = render_model(config, damage)
     renderer = open_renderer(model, width, height)
     try:
