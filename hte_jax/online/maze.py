@@ -80,9 +80,14 @@ def shipped_mazes() -> dict[str, Path]:
 
 
 def load_maze(spec: str) -> Maze:
-    """The maze `spec` names: "" (the paper's), a shipped maze's name or a JSON file."""
+    """The maze `spec` names: "" (the paper's), "random:K" (the generated maze of seed K, `maze_gen.random_maze`),
+    a shipped maze's name or a JSON file."""
     if not spec:
         return PAPER_MAZE
+    from hte_jax.online.maze_gen import RANDOM, parse_random, random_maze  # maze_gen builds on this module
+
+    if spec.startswith(RANDOM):
+        return random_maze(parse_random(spec))
     shipped = shipped_mazes()
     path = shipped.get(spec, Path(spec))
     if not path.is_file():
@@ -219,14 +224,21 @@ def edge_free(maze: Maze, grid: GridSpec) -> np.ndarray:
 
 def distance_field(maze: Maze, grid: GridSpec = GridSpec()) -> jax.Array:
     """(nx, ny) int32 fewest grid steps from each node to the goal's node (-1 if unreachable)."""
-    free = jnp.asarray(edge_free(maze, grid))
+    free = edge_free(maze, grid)
     nx, ny = free.shape[:2]
-    goal = grid.node_of(maze, jnp.asarray(maze.goal, jnp.float32))
+    padded_index = np.stack(np.meshgrid(np.arange(nx), np.arange(ny), indexing="ij"), -1)[:, :, None, :] + NEIGHBOURS
+    neighbour = np.clip(padded_index, 0, np.array([nx - 1, ny - 1]))
+    return _grid_steps(jnp.asarray(free), jnp.asarray(neighbour), grid.node_of(maze, jnp.asarray(maze.goal, jnp.float32)))
+
+
+@jax.jit
+def _grid_steps(free: jax.Array, neighbour: jax.Array, goal: jax.Array) -> jax.Array:
+    """Bellman-Ford relaxation of unit steps over the free edges (nx, ny, 8), neighbour indices (nx, ny, 8, 2),
+    from the goal node (2,); compiled once per grid shape."""
+    nx, ny = free.shape[:2]
     unreached = nx * ny + 1
     dist = jnp.full((nx, ny), unreached, jnp.int32).at[goal[0], goal[1]].set(0)
-    padded_index = np.stack(np.meshgrid(np.arange(nx), np.arange(ny), indexing="ij"), -1)[:, :, None, :] + NEIGHBOURS
-    ni = jnp.asarray(np.clip(padded_index[..., 0], 0, nx - 1))
-    nj = jnp.asarray(np.clip(padded_index[..., 1], 0, ny - 1))
+    ni, nj = neighbour[..., 0], neighbour[..., 1]
 
     def relax(_, d):
         through = jnp.where(free, d[ni, nj] + 1, unreached)  # step i->neighbour is free both ways
