@@ -13,6 +13,7 @@
     python -m experiments.maze_eval --protocol paper --preset gpu --repertoire-dir runs/seeds --resume  # after a kill
     python -m experiments.maze_eval --variant hte --damage leg1 --video 1   # and a video of the episode
     python -m experiments.maze_eval --maze two_rooms --variant hte,rte   # another world (assets/mazes/ or a JSON file)
+    python -m experiments.maze_eval --maze random:3 --variant hte,rte    # the generated maze of seed 3 (K >= 0)
     python -m experiments.maze_eval --set planner.iterations=50 --set solver.ls_iterations=8  # dotted keys
 
 Variants: hte, perfect-hte, random-hte, rte (on an HBR: the shipped one or --repertoire; rte also on a

@@ -83,8 +83,9 @@ class EvalConfig:
     rad): past this tilt a skill's gait gives way to the neutral pose for the rest of its second; 0
     (default, the paper's robot): off. reflex_release: the tilt below which the reflex lets go
     (`RobotConfig.reflex_release`; 0: at the end of the second). maze: the world, a
-    shipped maze's name (assets/mazes/: "paper", "two_rooms") or a JSON file of `Maze`'s fields
-    (`maze.load_maze`); "" (default): the paper's maze.
+    shipped maze's name (assets/mazes/: "paper", "two_rooms"), "random:K" (the generated maze of seed K,
+    `maze_gen.random_maze`) or a JSON file of `Maze`'s fields (`maze.load_maze`); "" (default): the paper's
+    maze.
     """
 
     variants: str = "hte"

@@ -228,7 +228,8 @@ def distance_field(maze: Maze, grid: GridSpec = GridSpec()) -> jax.Array:
     nx, ny = free.shape[:2]
     padded_index = np.stack(np.meshgrid(np.arange(nx), np.arange(ny), indexing="ij"), -1)[:, :, None, :] + NEIGHBOURS
     neighbour = np.clip(padded_index, 0, np.array([nx - 1, ny - 1]))
-    return _grid_steps(jnp.asarray(free), jnp.asarray(neighbour), grid.node_of(maze, jnp.asarray(maze.goal, jnp.float32)))
+    goal = grid.node_of(maze, jnp.asarray(maze.goal, jnp.float32))
+    return _grid_steps(jnp.asarray(free), jnp.asarray(neighbour), goal)
 
 
 @jax.jit

@@ -12,6 +12,7 @@ import functools
 import json
 import re
 import sys
+from pathlib import Path
 
 import jax.numpy as jnp
 import numpy as np
@@ -134,12 +135,12 @@ def main(argv=None) -> int:
         print(f"error: {error}", file=sys.stderr)
         return 2
     boxes = ",\n  ".join(json.dumps(box) for box in data.pop("obstacles"))
-    text = "{\n \"obstacles\": [\n  " + boxes + "],\n" + ",\n".join(f" {json.dumps(k)}: {json.dumps(v)}" for k, v in data.items()) + "\n}"
+    fields = "".join(f",\n {json.dumps(key)}: {json.dumps(value)}" for key, value in data.items())
+    text = f'{{\n "obstacles": [\n  {boxes}]{fields}\n}}\n'
     if args.out is None:
-        print(text)
+        print(text, end="")
     else:
-        with open(args.out, "w") as f:
-            f.write(text + "\n")
+        Path(args.out).write_text(text)
     return 0
 
 
