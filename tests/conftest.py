@@ -4,7 +4,7 @@
   marked `exact_numerics`;
 - one persistent XLA compilation cache for the session, its pytest-xdist workers and the processes the
   tests start (MJX programs take 15-30 s to compile on a CPU: a resumed run, a re-simulation or a
-  benchmark re-running a preset loads them), and compiled programs dropped from memory after each module;
+  benchmark re-running a preset loads them), and compiled programs dropped from memory between xdist groups;
 - pytest-xdist groups (`--dist loadgroup`): a test file is one group unless it names one, and the groups
   that hold `slow` tests start first;
 - a test past its time limit (pytest-timeout) in a pytest-xdist worker: every thread's stack on stderr;
@@ -47,13 +47,28 @@ def pytest_unconfigure(config):
         shutil.rmtree(_CACHE, ignore_errors=True)
 
 
+_held_group: str | None = None  # the xdist group whose compiled programs this process holds
+
+
 @pytest.hookimpl(tryfirst=True)
 def pytest_runtest_setup(item):
     """Each test, its fixtures included, compiles with the fast options unless marked `exact_numerics`
     (tests/xla_codegen.py). This process keeps the user's XLA_FLAGS and gives the fast options to each
     program; the processes a fast test starts read them from XLA_FLAGS. So an `exact_numerics` test's
     programs and those of the commands it starts have the same persistent-cache keys (same flags, no
-    options): a resumed command finds the programs its test compiled."""
+    options): a resumed command finds the programs its test compiled.
+
+    A process holds the compiled programs (and traced functions) of one xdist group at a time: they are
+    dropped when a test of another group starts. A whole session's MJX executables held in memory at once
+    outgrow a 24 GB CI machine, while the files of one group run the same programs in this process (the
+    tiny HBR of hbr_tiny: 171 s cold, 45 s from the persistent cache, which still traces every function,
+    22 s from memory)."""
+    global _held_group
+    group = _group(item)
+    if group != _held_group:
+        jax.clear_caches()
+        gc.collect()
+        _held_group = group
     xla_codegen.use(fast=item.get_closest_marker("exact_numerics") is None)
 
 
@@ -152,10 +167,3 @@ def shipped_hbr():
     return hbr, task
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _free_compiled_programs():
-    """Drop each module's compiled programs when it ends: a whole session's MJX executables held in
-    memory at once outgrow a 24 GB CI machine (the persistent cache above still saves recompiling)."""
-    yield
-    jax.clear_caches()
-    gc.collect()

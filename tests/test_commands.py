@@ -26,8 +26,9 @@ from hte_jax.qd.io import read_checkpoint
 from tests.commands_script import STEP_CHUNK
 from tests.processes import ROOT, cpu_devices_env
 
-# Its module fixture runs every command (minutes): the first test has more than the default 600 s.
-pytestmark = [pytest.mark.slow, pytest.mark.timeout(1800)]
+# Its module fixture runs every command (minutes): the first test has more than the default 600 s. Group
+# two_device_runs: test_distributed's one-process reference (2 forced devices) then loads this file's programs.
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(1800), pytest.mark.xdist_group("two_device_runs")]
 DEVICES = 2
 # command -> files it writes, under the script's output folder
 FLAT = ["config.json", "checkpoint.npz", "metrics.csv", "repertoires.npz", "summary.json", "plots"]

@@ -32,6 +32,8 @@ from tests.commands_script import STEP_CHUNK, near_goal_maze
 from tests.test_sharding import EPISODE_TOLERANCE, TRAINING_TOLERANCE
 
 ROOT = Path(__file__).resolve().parent.parent
+# After test_commands (its group): the one-process reference on 2 forced devices loads the programs it compiled.
+pytestmark = pytest.mark.xdist_group("two_device_runs")
 PHASE_S = 900  # a phase's processes must all end by then: a hang fails with their output, never blocks
 TRAIN = ["experiments.train_hbr", "--preset", "tiny", "--set", f"step_chunk={STEP_CHUNK}",
          "--set", "middle.generations=0", "--set", "top.generations=0"]

@@ -361,13 +361,19 @@ def test_spring_term_is_off_only_where_it_changes_no_force():
 
 @pytest.mark.slow
 def test_raised_and_locked_damages_give_the_leg_mask_bits():
-    params = jax.random.uniform(jax.random.key(4), (3, 36))
-    masks = np.stack([damage_mask(()), damage_mask((1,)), damage_mask((1, 4))])
-    for model in ("raised", "locked"):
-        robot = load_robot(dataclasses.replace(load_robot().config, damage_model=model))
-        start = standing_state(robot, masks)
-        spec = RolloutSpec(num_steps=100, pose_steps=(0, 100))
-        by_mask = rollout(robot, params, masks, start, spec)
-        by_part = rollout(robot, params, make_damage(masks, model), start, spec)
-        for name in ("base_pos", "foot_contacts", "invalid_reason"):
-            np.testing.assert_array_equal(np.asarray(getattr(by_mask, name)), np.asarray(getattr(by_part, name)))
+    """One program of `Damage` inputs runs both models (the model is data) and gives each mask program's bits
+    (every program at the same batch: rows 0-2 raised, 3-5 locked)."""
+    params = jnp.tile(jax.random.uniform(jax.random.key(4), (3, 36)), (2, 1))
+    masks = np.tile(np.stack([damage_mask(()), damage_mask((1,)), damage_mask((1, 4))]), (2, 1))
+    spec = RolloutSpec(num_steps=100, pose_steps=(0, 100))
+    models = ("raised", "locked")
+    robots = [load_robot(dataclasses.replace(load_robot().config, damage_model=model)) for model in models]
+    starts = [standing_state(robot, masks) for robot in robots]
+    by_mask = [rollout(robot, params, masks, start, spec) for robot, start in zip(robots, starts)]
+    rows = [slice(0, 3), slice(3, 6)]  # each model's rows
+    damage = jax.tree.map(lambda *x: jnp.concatenate(x), *[make_damage(masks[r], m) for r, m in zip(rows, models)])
+    start = jax.tree.map(lambda *x: jnp.concatenate(x), *[jax.tree.map(lambda a: a[r], s) for r, s in zip(rows, starts)])
+    by_part = rollout(robots[0], params, damage, start, spec)
+    for name in ("base_pos", "foot_contacts", "invalid_reason"):
+        for r, result in zip(rows, by_mask):
+            np.testing.assert_array_equal(np.asarray(getattr(result, name))[r], np.asarray(getattr(by_part, name))[r])
