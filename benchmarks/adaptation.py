@@ -1,7 +1,7 @@
 """Online adaptation speed: planning latency per action and whole-episode wall time, per batch size.
 
-For each batch size E, E episodes (the paper's 7 damages cycled from leg1, the damage of
-issue 6's acceptance, so E = 1 is a leg-1 episode) of --variant run on the
+For each batch size E, E episodes (the paper's 7 damages cycled from leg1, so E = 1 is a leg-1
+episode) of --variant run on the
 shipped repertoires with the --preset planner. One action of a warm-up run compiles; then
 --repeats timed runs follow. Reported per batch size: compile seconds, planning latency per
 action (median and 95th percentile over every action of the timed runs; one action = one

@@ -2,8 +2,8 @@
 
 Each --run is LABEL=DIR[:VARIANT][@SEEDS]: the episodes of run folder DIR (its episodes.json or
 episodes.json.gz), only VARIANT's if given, only the repertoire seeds SEEDS (comma-separated seed
-indices of that run) if given, all under the name LABEL. Used for the budget-matched control of
-issue 39, whose runs cover seeds 1 and 3 only:
+indices of that run) if given, all under the name LABEL. E.g. the budget-matched 2D-RTE control,
+whose runs cover seeds 1 and 3 only (`benchmarks/results/r4_matched_2d-rte_raised/`):
 
     python benchmarks/pool_statistics.py --out matched_statistics.json --key raised \\
         --run "2d-rte standard jax=R4_RAISED:2d-rte@1,3" --run "hte-spare=R4_RAISED:hte-spare@1,3" \\

@@ -48,7 +48,7 @@ RETIRED = {"optimism": 0.0, "pattern_ends": "", "reflex_rate": 0.0}
 SEED_FILES = {"hbr": "hbr.npz", "2d": "flat2d.npz", "8d": "flat8d.npz", "aprol": "aprol.npz"}  # in a seed folder
 # Named protocols: the EvalConfig values each fixes. paper: the paper's Fig. 6 variants, in its order,
 # on the paper's robot; hte-jax: our HTE against the baselines, on the robot with the tilt reflex that
-# lets go (docs/results.md, levers 21 and 22).
+# lets go (docs/design.md, the tilt reflex; its measurements in docs/levers.md).
 PROTOCOLS = {
     "paper": {"variants": "perfect-hte,hte,2d-rte,8d-rte,aprol,random-hte", "damages": "all"},
     "hte-jax": {"variants": "perfect-hte,hte-spare,perfect-spare,hte,rte,2d-rte", "damages": "all",
