@@ -35,11 +35,10 @@ import numpy as np  # noqa: E402
 from common import environment, result_path  # noqa: E402
 
 from hte_jax.flat.store import load_flat, shipped_flat_path  # noqa: E402
-from hte_jax.sim.robot import RobotConfig, load_robot  # noqa: E402
+from hte_jax.sim.robot import STEPS_PER_SECOND, RobotConfig, load_robot  # noqa: E402
 from hte_jax.sim.rollout import RolloutSpec, rollout, standing_state  # noqa: E402
 from hte_jax.viz.render import Camera, open_renderer, render_frames, render_model, write_video  # noqa: E402
 
-CONTROL_HZ = 100
 
 
 def main(argv=None) -> int:
@@ -51,7 +50,7 @@ def main(argv=None) -> int:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--out", default=None, help="JSON path (default benchmarks/results/render_speed_...)")
     args = parser.parse_args(argv)
-    if args.fps < 1 or CONTROL_HZ % args.fps or args.seconds < 1 or args.repeats < 1:
+    if args.fps < 1 or STEPS_PER_SECOND % args.fps or args.seconds < 1 or args.repeats < 1:
         parser.error("--fps must divide 100; --seconds and --repeats must be >= 1")
     try:
         gl.require()
@@ -61,8 +60,8 @@ def main(argv=None) -> int:
     repertoire = load_flat(shipped_flat_path("2d"))[0][0]
     params = jnp.asarray(np.asarray(repertoire.genotypes)[np.asarray(repertoire.filled)][:1])
     robot = load_robot()
-    spec = RolloutSpec(num_steps=args.seconds * CONTROL_HZ, record_contacts=False,
-                       record_qpos_every=CONTROL_HZ // args.fps)
+    spec = RolloutSpec(num_steps=args.seconds * STEPS_PER_SECOND, record_contacts=False,
+                       record_qpos_every=STEPS_PER_SECOND // args.fps)
     qpos = np.asarray(rollout(robot, params, jnp.zeros(6, bool), standing_state(robot), spec).qpos[0])
     model = render_model(RobotConfig())
     renderer = open_renderer(model, args.width, args.height)

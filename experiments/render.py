@@ -34,6 +34,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from experiments.cli import input_errors, interruptible
+from hte_jax.control_step import STEPS_PER_SECOND
 from hte_jax.errors import ConfigError, require_choice, require_int, require_number
 from hte_jax.qd.io import CheckpointError
 from hte_jax.viz import gl
@@ -41,7 +42,6 @@ from hte_jax.viz.camera import CAMERAS, Camera
 
 # Nothing above imports mujoco or OpenGL: gl.setup() must choose MUJOCO_GL first. The modules that
 # simulate and render are imported inside the commands, after it.
-CONTROL_HZ = 100
 DAMAGE_MODELS = ("the model of a --damage that names none: raised (the damaged leg blocked in the air, default), "
                  "locked (its standing pose) or removed")
 VIDEO_SUFFIXES = (".mp4", ".gif")
@@ -109,8 +109,8 @@ def check_arguments(args) -> None:
         if not Path(args.run).is_dir():
             raise ConfigError(f"{args.run}: no such run folder")
         return
-    if args.fps < 1 or CONTROL_HZ % args.fps:
-        raise ConfigError(f"--fps must divide {CONTROL_HZ}, got {args.fps}")
+    if args.fps < 1 or STEPS_PER_SECOND % args.fps:
+        raise ConfigError(f"--fps must divide {STEPS_PER_SECOND}, got {args.fps}")
     require_int("--columns", args.columns)
     if args.hbr is not None and not Path(args.hbr).exists():
         raise CheckpointError(f"{args.hbr}: no such HBR file")
@@ -176,7 +176,7 @@ def skills_video(args) -> Path:
     else:
         picked = skills.chosen(args.count, len(genotypes), _skill_numbers(args.skills))
     gl.require()  # every input is checked: OpenGL is needed from here on
-    robot, every = load_robot(config), CONTROL_HZ // args.fps
+    robot, every = load_robot(config), STEPS_PER_SECOND // args.fps
     batch = batch_damage(damage, picked.size)
     clips = jnp.asarray(genotypes[picked])
     states = np.asarray(skills.flat_states(robot, clips, batch, every) if hbr is None
@@ -223,10 +223,10 @@ def episode_video(args) -> Path:
     from hte_jax.viz.render import write_video
 
     replay = chosen_replay(args)
-    stride = args.speed * CONTROL_HZ / replay.every / args.fps  # recorded states per frame
+    stride = args.speed * STEPS_PER_SECOND / replay.every / args.fps  # recorded states per frame
     if not (stride >= 1 and abs(stride - round(stride)) < 1e-9):
         raise ConfigError(f"--speed {args.speed} at --fps {args.fps} shows {stride:g} recorded states per frame "
-                          f"({CONTROL_HZ // replay.every} per simulated second); choose them to make it a whole number >= 1")
+                          f"({STEPS_PER_SECOND // replay.every} per simulated second); choose them to make it a whole number >= 1")
     gl.require()  # every input is checked: OpenGL is needed from here on
     info = replay.info
     out = args.out or Path(args.run) / "videos" / f"{info['variant']}_ep{info['episode']}_{file_label(info['damage'])}.mp4"

@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from hte_jax.errors import ConfigError
-from hte_jax.sim.robot import FOOT_RADIUS, FOOT_REACH, STEPS_PER_SECOND, WALL_BIT, RobotConfig, load_robot, mj_model
+from hte_jax.control_step import STEPS_PER_SECOND
+from hte_jax.sim.robot import FOOT_RADIUS, FOOT_REACH, WALL_BIT, RobotConfig, load_robot, mj_model
 
 
 @pytest.fixture(scope="module")

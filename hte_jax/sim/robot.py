@@ -14,6 +14,7 @@ import numpy as np
 from flax import struct
 
 from hte_jax import sharding
+from hte_jax.control_step import STEPS_PER_SECOND  # noqa: F401  (the robot's control rate, re-exported)
 from hte_jax.errors import ConfigError, check_fields, choice, integer, number
 from hte_jax.sim.mjx_import import IMPLS, mjx, require_impl
 
@@ -22,7 +23,6 @@ JOINTS_PER_LEG = 3
 NUM_JOINTS = NUM_LEGS * JOINTS_PER_LEG
 FOOT_RADIUS = 0.025
 FOOT_REACH = 0.176  # m: horizontal hip-to-foot distance at the standing pose (assets/hexapod.xml; tests/test_robot.py)
-STEPS_PER_SECOND = 100  # control steps in one simulated second: the servos' 100 Hz (`RobotConfig.control_dt`)
 LEG_NAMES = ("front-right", "middle-right", "rear-right", "rear-left", "middle-left", "front-left")
 # Collision bits (see assets/hexapod.xml): feet touch the floor, body and links touch walls.
 FLOOR_BIT = 1
