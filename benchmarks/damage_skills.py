@@ -63,7 +63,7 @@ from hte_jax.hbr.hierarchy import execute_skill
 from hte_jax.hbr.store import load_hbr, shipped_hbr_path
 from hte_jax.online.action import ONLINE_LIMITS
 from hte_jax.qd.io import CheckpointError
-from hte_jax.sim.damage import DAMAGE_PARTS, Damage, damage_model, make_damage
+from hte_jax.sim.damage import DAMAGE_PARTS, Damage, damage_model, make_damage, stack_damages
 from hte_jax.sim.env import InvalidReason, ValidityLimits
 from hte_jax.sim.robot import NUM_LEGS, RobotConfig, load_robot
 from hte_jax.sim.rollout import rollout, standing_state
@@ -123,11 +123,6 @@ def conditions(models: tuple[str, ...], legs: tuple[int, ...], fraction: float, 
         for leg in legs:
             out.append(Condition(model, leg, make_damage(none | (np.arange(NUM_LEGS) == leg), model, share, xp=np)))
     return out
-
-
-def stacked(items: list[Condition]) -> Damage:
-    """(C, ...) `Damage` of the conditions, NumPy."""
-    return jax.tree.map(lambda *fields: np.stack(fields), *[item.damage for item in items])
 
 
 def sample(rng: np.random.Generator, filled, count: int) -> np.ndarray:
@@ -279,7 +274,7 @@ def main(argv=None) -> int:
         print(f"error: --flat {args.flat}: a {flat.task.descriptor} repertoire, not a Flat-2D one", file=sys.stderr)
         return 2
     limits = ROBOTS[args.robot][1]
-    damage = stacked(items)
+    damage = stack_damages([item.damage for item in items])
     rng = np.random.default_rng(args.seed)
     began = time.perf_counter()
     with sharding.spread_over(mesh):

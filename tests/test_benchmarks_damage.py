@@ -5,6 +5,7 @@ import json
 
 import pytest
 
+from hte_jax.sim.damage import stack_damages
 from tests.benchmark_runner import benchmark_module, run_benchmark
 
 damage_skills = benchmark_module("damage_skills")
@@ -73,7 +74,7 @@ def test_conditions_mix_models_in_one_batch():
     items = damage_skills.conditions(("locked", "shortened", "friction"), (0, 5), 0.3, 0.6)
     assert [(item.model, item.leg) for item in items] == [
         ("intact", None), ("locked", 0), ("locked", 5), ("shortened", 0), ("shortened", 5), ("friction", None)]
-    damage = damage_skills.stacked(items)
+    damage = stack_damages([item.damage for item in items])
     assert damage.legs.shape == (6, 6) and damage.legs.sum(axis=1).tolist() == [0, 1, 1, 1, 1, 0]
     assert damage.legs[2, 5] and damage.legs[3, 0]
     assert damage.fraction.tolist() == pytest.approx([1, 1, 1, 0.3, 0.3, 1])
