@@ -1,4 +1,4 @@
-"""Pool the episodes of several `maze_eval` runs into one set of the paper's statistics.
+"""Pool the episodes of several `maze_eval` runs into one set of statistics (the paper's, episode- and seed-level).
 
 Each --run is LABEL=DIR[:VARIANT][@SEEDS]: the episodes of run folder DIR (its episodes.json or
 episodes.json.gz), only VARIANT's if given, only the repertoire seeds SEEDS (comma-separated seed
@@ -10,8 +10,10 @@ whose runs cover seeds 1 and 3 only (`benchmarks/results/r4_matched_2d-rte_raise
         --run "2d-rte matched warp=MATCHED_RAISED" --run "2d-rte standard warp=STD_WARP_RAISED"
 
 A replication's score is the median over the seeds it covers (`protocol_statistics`); the seeds of
-different runs are paired by position, so give every run the same number of seeds. Writes (or adds
-KEY to) --out and prints each label's quartiles, failure rate and the Bonferroni-corrected tests.
+different runs are paired by position (also in the seed-level tests), so give every run the same
+number of seeds. Writes (or adds KEY to) --out and prints each label's quartiles (the paper's method)
+and failure rate, its success rate with a 95 % Wilson interval and per-seed rates, and the
+Bonferroni-corrected tests of each pair at the three levels.
 """
 
 from __future__ import annotations
@@ -21,7 +23,7 @@ import gzip
 import json
 from pathlib import Path
 
-from hte_jax.online.statistics import protocol_statistics
+from hte_jax.online.statistics import PAIR_LEGEND, pair_lines, protocol_statistics, success_lines
 
 
 def read_episodes(folder: Path) -> list[dict]:
@@ -65,11 +67,13 @@ def main(argv: list[str] | None = None) -> None:
     data = json.loads(args.out.read_text()) if args.out.is_file() else {}
     data[args.key] = stats
     args.out.write_text(json.dumps(data, indent=1) + "\n")
+    print("the paper's method: quartiles of the replication medians (actions, a failure counting as the cap)")
     for name, v in stats["variants"].items():
         print(f"{name:24s} p25/p50/p75 {v['p25']:5.1f} {v['p50']:5.1f} {v['p75']:5.1f}  failed {v['failure_percent']:5.1f} %"
               f"  ({v['replications']} replications, {v['episodes']} episodes)")
-    for t in stats["tests"]:
-        print(f"{t['a']} vs {t['b']}: medians {t['median_a']} / {t['median_b']}, p = {t['p_bonferroni']:.3g} (Bonferroni)")
+    print("\n".join(success_lines(stats)))
+    print(PAIR_LEGEND)
+    print("\n".join(pair_lines(stats)))
 
 
 if __name__ == "__main__":

@@ -54,7 +54,13 @@ def test_flat_and_aprol_episodes_on_two_seeds_and_protocol_outputs(tmp_path):
     # 2 damages x 2 replicates, each the median over the 2 seeds
     assert statistics["variants"]["aprol"]["replications"] == 4 and statistics["variants"]["aprol"]["episodes"] == 8
     assert statistics["variants"]["aprol"]["seeds_per_median"] == 2
-    assert len(statistics["tests"]) == 1
+    assert len(statistics["tests"]) == 1 and statistics["tests"][0]["method"] == "paper"
+    # the episode and seed levels: per seed success cells, the two seeds paired
+    aprol = statistics["success"]["aprol"]
+    assert set(aprol["seeds"]) == {"0", "1"} and set(aprol["damages"]) == {"none", "leg1"}
+    assert aprol["pooled"]["episodes"] == 8
+    assert len(statistics["episode_tests"]["success"]["pairs"]) == 1
+    assert statistics["seed_tests"]["success_rate"]["pairs"][0]["seeds"] == 2
     for name in ("fig6_actions", "fig7_failures", "maze_variants", "maze_aprol"):
         image = matplotlib.image.imread(out / "plots" / f"{name}.png")
         assert image.ndim == 3 and image.std() > 0

@@ -1,5 +1,8 @@
-"""The paper's statistics on hand-made data: nearest data-point percentiles, replication medians,
-failure rates, Bonferroni-corrected Wilcoxon-Mann-Whitney tests."""
+"""The statistics on hand-made data: the paper's (nearest data-point percentiles, replication medians,
+failure rates, Bonferroni-corrected Wilcoxon-Mann-Whitney tests), the episode level (Wilson intervals,
+Fisher's exact test, Mann-Whitney on successful actions) and the seed level (exact signed-rank tests)."""
+
+import math
 
 import matplotlib.image
 import numpy as np
@@ -10,13 +13,25 @@ from hte_jax.online.maze import PAPER_MAZE
 from hte_jax.online.plots import plot_failures, plot_prediction_error, plot_protocol_box, plot_variant_mazes
 
 from hte_jax.online.statistics import (
+    PAIR_LEGEND,
+    action_summary,
     bonferroni,
+    episode_action_tests,
+    episode_success_tests,
     failure_reduction,
     failure_reductions,
+    min_signed_rank_p,
     nearest_percentile,
+    pair_lines,
     pairwise_tests,
     protocol_statistics,
     replication_medians,
+    seed_level_tests,
+    seed_values,
+    signed_rank_test,
+    success_lines,
+    success_rates,
+    wilson_interval,
 )
 
 
@@ -75,6 +90,7 @@ def test_protocol_statistics_on_hand_made_records():
     assert test["a"] == "a" and test["b"] == "b"
     assert test["p"] == pytest.approx(expected.pvalue) and test["p_bonferroni"] == pytest.approx(expected.pvalue)
     assert test["u"] == 0  # every 'a' median is below every 'b' median
+    assert test["method"] == "paper" and "paper" in result["paper_method"] and "replication" in result["paper_method"]
 
 
 def test_protocol_figures_of_hand_made_records(tmp_path):
@@ -88,7 +104,10 @@ def test_protocol_figures_of_hand_made_records(tmp_path):
     plot_prediction_error(tmp_path / "error.png", {"a": errors, "b": np.full((2, 10), np.nan)})  # b: no action
     track = np.stack([np.linspace(0, 2, 9), np.linspace(0, 1, 9), np.zeros(9)], axis=1)
     plot_variant_mazes(tmp_path / "tracks.png", PAPER_MAZE, {"a": [("leg0", track)], "b": [("leg1", track[:4])]})
-    for name in ("box", "failures", "error", "tracks"):
+    old = {k: statistics[k] for k in ("variants", "tests", "medians")}  # a statistics.json without the success block
+    plot_failures(tmp_path / "old_failures.png", old)
+    plot_protocol_box(tmp_path / "old_box.png", old, 80)
+    for name in ("box", "failures", "error", "tracks", "old_failures", "old_box"):
         image = matplotlib.image.imread(tmp_path / f"{name}.png")
         assert image.ndim == 3 and image.shape[0] > 100 and image.std() > 0, name
 
@@ -144,8 +163,181 @@ def test_pool_statistics_script_pools_runs_with_a_seed_subset_under_labels(tmp_p
     stats = json.loads(out.read_text())["k"]
     assert set(stats["variants"]) == {"x on 1,3", "z"}  # 'y' and seeds 0, 2 left out
     x, z = stats["variants"]["x on 1,3"], stats["variants"]["z"]
-    assert (x["p25"], x["p50"], x["p75"]) == (15, 16, 16)  # medians 15 16 17: positions 0.5, 1, 1.5 round down and x["failures"] == 0 and x["episodes"] == 6
+    assert (x["p25"], x["p50"], x["p75"]) == (15, 16, 16)  # medians 15 16 17: positions 0.5, 1, 1.5 round down
+    assert x["failures"] == 0 and x["episodes"] == 6
     assert (z["p25"], z["p50"], z["p75"]) == (45, 45, 45) and z["episodes"] == 6
     (test,) = stats["tests"]
-    assert test["a"] == "x on 1,3" and test["median_a"] == 16 and test["median_b"] == 45
-    assert "x on 1,3" in printed and "p = " in printed
+    assert test["a"] == "x on 1,3" and test["median_a"] == 16 and test["median_b"] == 45 and test["method"] == "paper"
+    # seeds 1, 3 of 'x' renumbered 0, 1: all 3 episodes reached on each; 'z' reached on both seeds too
+    assert stats["success"]["x on 1,3"]["seeds"]["1"]["successes"] == 3 and stats["success"]["z"]["pooled"]["rate"] == 1
+    # per seed 'x' median 11 and 21 actions, 'z' 40 and 50: both differences negative, 2 seeds, p = min p = 0.5
+    (seed_test,) = stats["seed_tests"]["median_actions"]["pairs"]
+    assert seed_test["seeds"] == 2 and seed_test["p"] == seed_test["min_p"] == 0.5 and seed_test["w_plus"] == 0
+    assert "x on 1,3" in printed and "success 100.0 %" in printed and "seeds: success 1 (2, min 1)" in printed
+
+
+def test_wilson_interval_by_hand():
+    # 8 of 10, z = 1.959964, z^2 = 3.841459: scale = 1 + z^2/10 = 1.384146; centre = (0.8 + z^2/20) / scale = 0.716740;
+    # half = z / scale * sqrt(0.8 * 0.2 / 10 + z^2 / 400) = 1.416010 * 0.160011 = 0.226578 -> [0.490162, 0.943318]
+    low, high = wilson_interval(8, 10)
+    assert low == pytest.approx(0.490162, abs=1e-6) and high == pytest.approx(0.943318, abs=1e-6)
+    # 0 of 8: centre = half = (z^2/16) / (1 + z^2/8) = 0.240091 / 1.480182 = 0.162204 -> [0, 0.324408]
+    assert wilson_interval(0, 8) == (0.0, pytest.approx(0.324408, abs=1e-6))
+    assert wilson_interval(8, 8)[1] == 1.0 and wilson_interval(8, 8)[0] == pytest.approx(1 - 0.324408, abs=1e-6)
+    with pytest.raises(ValueError, match="at least one trial"):
+        wilson_interval(0, 0)
+    with pytest.raises(ValueError, match="successes"):
+        wilson_interval(11, 10)
+
+
+def test_action_summary_uses_numpys_median_and_nearest_data_point_quartiles():
+    summary = action_summary([30, 10, 20, 12, 14, 16])  # sorted 10 12 14 16 20 30
+    # median (14 + 16) / 2; p25 at position 1.25 -> 12, p75 at 3.75 -> 20
+    assert summary == {"count": 6, "median": 15.0, "p25": 12.0, "p75": 20.0}
+    assert action_summary([]) == {"count": 0, "median": None, "p25": None, "p75": None}
+
+
+def test_exact_signed_rank_test_by_hand():
+    # 4 seeds all favouring one variant: ranks 1..4, W+ = 10; of the 2^4 = 16 sign assignments only all-positive
+    # reaches 10, so P(W >= 10) = 1/16 and the two-sided p = 2/16 = 0.125
+    assert signed_rank_test([0.1, 0.2, 0.3, 0.4]) == (10.0, 4, 0.125)
+    assert signed_rank_test([-0.1, -0.2, -0.3, -0.4]) == (0.0, 4, 0.125)
+    # ties: |d| = 1 1 2 3 take mean ranks 1.5 1.5 3 4; W+ = 1.5 + 1.5 + 4 = 7. The 16 subset sums of {1.5, 1.5, 3, 4}
+    # are 0 1.5 1.5 3 3 4 4.5 4.5 5.5 5.5 6 7 7 8.5 8.5 10: five are >= 7, so p = 2 * 5/16 = 0.625
+    assert signed_rank_test([1, 1, -2, 3]) == (7.0, 4, 0.625)
+    # a zero difference is dropped (Wilcoxon's rule): the same test on the 4 others
+    assert signed_rank_test([0, 1, 1, -2, 3]) == (7.0, 4, 0.625)
+    assert signed_rank_test([0.0, 0.0]) == (0.0, 0, 1.0)  # nothing to rank: no evidence
+    rng = np.random.default_rng(3)
+    for n in (1, 3, 6, 9):  # without ties or zeros, scipy's exact test
+        d = rng.normal(size=n)
+        assert signed_rank_test(d)[2] == pytest.approx(stats.wilcoxon(d, method="exact").pvalue)
+    with pytest.raises(ValueError, match="finite"):
+        signed_rank_test([1.0, np.nan])
+
+
+def test_min_signed_rank_p_is_what_that_many_seeds_can_reach():
+    # 2 / 2^n: 4 seeds 0.125, 5 seeds 0.0625; one seed or none cannot go below 1
+    assert [min_signed_rank_p(n) for n in (0, 1, 2, 4, 5)] == [1.0, 1.0, 0.5, 0.125, 0.0625]
+    assert signed_rank_test(np.arange(1.0, 6.0))[2] == min_signed_rank_p(5)
+    with pytest.raises(ValueError, match="seeds"):
+        min_signed_rank_p(-1)
+
+
+def _episode(variant, damage, seed, replicate, actions):
+    """One record: `actions` None is a failure (the cap, 80)."""
+    return {"variant": variant, "damage": damage, "seed": seed, "replicate": replicate,
+            "actions": 80 if actions is None else actions, "reached": actions is not None, "broken": False}
+
+
+def _three_variants():
+    """'a' reaches 6 of 8 (d0: seed 0 10, 20; seed 1 30, fail. d1: seed 0 12, fail; seed 1 14, 16), 'b' 1 of 8
+    (seed 1, d0: 40 actions), 'c' none; 2 damages x 2 seeds x 2 replicates each."""
+    a = {("d0", 0): (10, 20), ("d0", 1): (30, None), ("d1", 0): (12, None), ("d1", 1): (14, 16)}
+    b = {("d0", 0): (None, None), ("d0", 1): (40, None), ("d1", 0): (None, None), ("d1", 1): (None, None)}
+    c = {key: (None, None) for key in a}
+    return [_episode(v, d, s, r, x) for v, cells in (("a", a), ("b", b), ("c", c))
+            for (d, s), pair in cells.items() for r, x in enumerate(pair)]
+
+
+def test_success_rates_pooled_per_damage_and_per_seed():
+    rates = success_rates(_three_variants())
+    a = rates["a"]
+    assert list(rates) == ["a", "b", "c"] and list(a["damages"]) == ["d0", "d1"] and list(a["seeds"]) == ["0", "1"]
+    # pooled: 6 of 8; Wilson: scale = 1 + z^2/8 = 1.480182, centre = (0.75 + z^2/16) / scale = 0.668898, half =
+    # z / scale * sqrt(0.75 * 0.25 / 8 + z^2 / 256) = 1.324137 * 0.196069 = 0.259623 -> [0.409275, 0.928521]
+    assert (a["pooled"]["episodes"], a["pooled"]["successes"], a["pooled"]["rate"]) == (8, 6, 0.75)
+    assert a["pooled"]["ci95"] == [pytest.approx(0.409275, abs=1e-6), pytest.approx(0.928521, abs=1e-6)]
+    assert a["pooled"]["actions"] == {"count": 6, "median": 15.0, "p25": 12.0, "p75": 20.0}
+    # d0: 10 20 30 (3 of 4): median 20; p25 at position 0.5 -> 10 (halfway, the lower), p75 at 1.5 -> 20
+    assert a["damages"]["d0"]["successes"] == 3 and a["damages"]["d0"]["actions"] == {
+        "count": 3, "median": 20.0, "p25": 10.0, "p75": 20.0}
+    assert a["damages"]["d1"]["actions"]["median"] == 14.0  # 12 14 16
+    # seed 0: 10 20 12 (3 of 4), median 12; seed 1: 30 14 16, median 16
+    assert a["seeds"]["0"]["rate"] == a["seeds"]["1"]["rate"] == 0.75
+    assert (a["seeds"]["0"]["actions"]["median"], a["seeds"]["1"]["actions"]["median"]) == (12.0, 16.0)
+    c = rates["c"]["pooled"]
+    assert c["successes"] == 0 and c["rate"] == 0 and c["ci95"][0] == 0.0 and c["actions"]["median"] is None
+    assert seed_values(_three_variants(), "median_actions") == {"a": {0: 12.0, 1: 16.0}, "b": {0: None, 1: 40.0},
+                                                                "c": {0: None, 1: None}}
+
+
+def test_episode_level_tests_by_hand():
+    records = _three_variants()
+    success = episode_success_tests(records)
+    assert success["bonferroni_pairs"] == 3 and "Fisher" in success["test"]
+    ab = success["pairs"][0]
+    # a 6 of 8, b 1 of 8: margins 8, 8 and 7, 9 of 16. P(X = k successes of a) = C(8, k) C(8, 7 - k) / C(16, 7), the
+    # terms k = 0..7 being 8 224 1568 3920 3920 1568 224 8 / 11440; observed k = 6 (224): the two-sided p sums the
+    # terms no larger, k = 0, 1, 6, 7: 464 / 11440 = 0.04056
+    terms = [math.comb(8, k) * math.comb(8, 7 - k) for k in range(8)]
+    assert terms == [8, 224, 1568, 3920, 3920, 1568, 224, 8] and sum(terms) == math.comb(16, 7) == 11440
+    assert (ab["a"], ab["b"], ab["successes_a"], ab["episodes_a"], ab["successes_b"]) == ("a", "b", 6, 8, 1)
+    assert ab["p"] == pytest.approx(464 / 11440) and ab["p_bonferroni"] == pytest.approx(3 * 464 / 11440)
+    actions = episode_action_tests(records)
+    ab, ac, bc = actions["pairs"]
+    # a's 6 successful episodes all need fewer actions than b's one (40): U = 0; of the 7 equally likely ranks of
+    # b's value only the largest gives U = 0, so the two-sided p = 2/7
+    assert ab["u"] == 0 and ab["p"] == pytest.approx(2 / 7) and ab["p_bonferroni"] == pytest.approx(6 / 7)
+    assert (ab["n_a"], ab["n_b"], ab["median_a"], ab["median_b"]) == (6, 1, 15.0, 40.0)
+    # c has no successful episode: no test, still one of the 3 pairs corrected for
+    assert ac["p"] is None and ac["p_bonferroni"] is None and ac["n_b"] == 0 and bc["u"] is None
+    assert actions["bonferroni_pairs"] == 3
+
+
+def test_seed_level_tests_on_the_seed_as_the_unit():
+    records = _three_variants()
+    rates = seed_level_tests(records, "success_rate")
+    ab, ac, bc = rates["pairs"]
+    # a - b per seed: 0.75 - 0 and 0.75 - 0.25, both positive: W+ = 1 + 2 = 3, p = 2 * 1/4 = 0.5 = the 2 seeds' min p
+    assert (ab["seeds"], ab["seed_ids"], ab["w_plus"], ab["p"], ab["min_p"]) == (2, [0, 1], 3.0, 0.5, 0.5)
+    assert ab["values_a"] == [0.75, 0.75] and ab["values_b"] == [0.0, 0.25] and ab["p_bonferroni"] == 1.0
+    assert ab["min_p_bonferroni"] == 1.0  # 2 seeds over 3 pairs cannot reach significance
+    # b - c: 0 on seed 0 (a tie, dropped), 0.25 on seed 1: one ranked seed, p = 1 = its min p
+    assert (bc["seeds"], bc["zero_differences"], bc["p"], bc["min_p"]) == (2, 1, 1.0, 1.0)
+    medians = seed_level_tests(records, "median_actions")
+    ab, ac, bc = medians["pairs"]
+    # b has no successful episode on seed 0: only seed 1 compared, 16 - 40 < 0: W+ = 0, p = 1
+    assert (ab["seeds"], ab["seeds_without_success"], ab["w_plus"], ab["p"]) == (1, 1, 0.0, 1.0)
+    # c never succeeds: no seed left, no test
+    assert (ac["seeds"], ac["seeds_without_success"], ac["p"], ac["p_bonferroni"], ac["min_p"]) == (
+        0, 2, None, None, 1.0)
+    assert medians["bonferroni_pairs"] == 3 and "signed-rank" in medians["test"]
+    with pytest.raises(ValueError, match="seed quantity"):
+        seed_level_tests(records, "actions")
+
+
+def test_four_seeds_all_favouring_one_variant_give_p_0_125():
+    # per seed s, 'x' reaches 9 - s of 10 episodes and 'y' 5 - s: x is ahead on all 4 seeds, the exact p is 2/16
+    records = [_episode(v, "d0", s, r, 20 if r < top - s else None)
+               for v, top in (("x", 9), ("y", 5)) for s in range(4) for r in range(10)]
+    (test,) = seed_level_tests(records, "success_rate")["pairs"]
+    assert test["values_a"] == [0.9, 0.8, 0.7, 0.6] and test["values_b"] == [0.5, 0.4, 0.3, 0.2]
+    assert (test["seeds"], test["w_plus"], test["p"], test["min_p"]) == (4, 10.0, 0.125, 0.125)
+    assert test["p_bonferroni"] == 0.125  # one pair
+
+
+def test_protocol_statistics_layout_and_summary_lines():
+    statistics = protocol_statistics(_three_variants())
+    assert set(statistics) == {"paper_method", "variants", "tests", "medians", "success", "episode_tests", "seed_tests"}
+    assert "independent" in statistics["episode_tests"]["sample"] and "unit" in statistics["seed_tests"]["sample"]
+    assert set(statistics["episode_tests"]) == {"sample", "success", "actions"}
+    assert set(statistics["seed_tests"]) == {"sample", "success_rate", "median_actions"}
+    assert [t["method"] for t in statistics["tests"]] == ["paper"] * 3
+    assert statistics["success"]["a"]["pooled"]["successes"] == 6
+    lines = success_lines(statistics)
+    assert lines[0].split() == ["a", "success", "75.0", "%", "[40.9,", "92.9]", "6/8,", "actions", "15", "(12-20);",
+                                "per", "seed", "75", "/", "75", "%"]
+    assert "actions -;" in lines[2]  # c: no successful episode
+    pairs = pair_lines(statistics)
+    assert len(pairs) == 3 and pairs[0].startswith("  a vs b: paper U = ")
+    assert "episodes: success 0.12, actions 0.86 | seeds: success 1 (2, min 1), actions 1 (1, min 1)" in pairs[0]
+    assert "actions - (0, min 1)" in pairs[1] and "seed" in PAIR_LEGEND
+
+
+def test_statistics_of_bad_records_say_what_is_wrong():
+    with pytest.raises(ValueError, match="got none"):
+        protocol_statistics([])
+    with pytest.raises(ValueError, match="record 1 lacks reached"):
+        protocol_statistics([_episode("a", "d0", 0, 0, 10),
+                             {"variant": "a", "damage": "d0", "replicate": 1, "actions": 3}])

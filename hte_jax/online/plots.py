@@ -76,8 +76,8 @@ def plot_prediction_error(path, curves: dict[str, np.ndarray]) -> None:
 
 
 def plot_protocol_box(path, statistics: dict, max_actions: int, paper: dict | None = None) -> None:
-    """The paper's Fig. 6: per variant, a box of its replication medians with the nearest-data-point
-    quartiles (whiskers: the extreme values), and the paper's quartiles as markers."""
+    """The paper's Fig. 6 by the paper's method: per variant, a box of its replication medians with the
+    nearest-data-point quartiles (whiskers: the extreme values), and the paper's quartiles as markers."""
     variants, medians = list(statistics["variants"]), statistics["medians"]
     boxes = [{"label": name, "q1": v["p25"], "med": v["p50"], "q3": v["p75"], "whislo": float(np.min(medians[name])),
               "whishi": float(np.max(medians[name])), "fliers": []} for name, v in statistics["variants"].items()]
@@ -90,22 +90,30 @@ def plot_protocol_box(path, statistics: dict, max_actions: int, paper: dict | No
         handles = [plt.Line2D([], [], color="tab:red", marker="_", ls="", ms=12, mew=2)]
         ax.legend(handles, ["paper's 25 / 50 / 75 %"], fontsize=7, loc="upper left")
     ax.axhline(max_actions, color="0.5", ls=":", lw=1)
-    ax.set(ylabel="median actions per replication", title="actions to reach the goal (failures count as the cap)")
+    ax.set(ylabel="median actions per replication (paper's method)",
+           title="actions to reach the goal (failures count as the cap)")
     save_figure(fig, path)
 
 
 def plot_failures(path, statistics: dict) -> None:
-    """The paper's Fig. 7: percentage of failed episodes per variant (hatched: the robot flipped)."""
+    """The paper's Fig. 7: percentage of failed episodes per variant (hatched: the robot flipped), with the
+    95 % Wilson interval of the failure rate (1 - the success rate's) where `statistics` has "success"
+    (statistics.json files written before it have none)."""
     variants = list(statistics["variants"])
     v = statistics["variants"]
     failed = [v[n]["failure_percent"] for n in variants]
     flipped = [100.0 * v[n]["flipped"] / v[n]["episodes"] for n in variants]
     fig, ax = plt.subplots(figsize=(1.3 * len(variants) + 2, 3.5))
     x = np.arange(len(variants))
-    ax.bar(x, failed, color="tab:blue", label="failed (80 actions or flipped)")
+    error = None
+    if "success" in statistics:
+        bounds = np.array([[100.0 * (1.0 - hi), 100.0 * (1.0 - lo)] for lo, hi in
+                           (statistics["success"][n]["pooled"]["ci95"] for n in variants)])
+        error = np.abs(bounds - np.asarray(failed)[:, None]).T  # below, above the bar
+    ax.bar(x, failed, color="tab:blue", label="failed (80 actions or flipped)", yerr=error, capsize=3)
     ax.bar(x, flipped, color="none", edgecolor="k", hatch="//", label="of which flipped")
     ax.set_xticks(x, variants)
-    ax.set_ylabel("failed episodes (%)")
+    ax.set_ylabel("failed episodes (%)" if error is None else "failed episodes (%, 95 % Wilson interval)")
     ax.legend(fontsize=7)
     save_figure(fig, path)
 
