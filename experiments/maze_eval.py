@@ -8,6 +8,7 @@
     python -m experiments.maze_eval --protocol paper --preset gpu    # the paper's Fig. 6 / 7 experiment
     python -m experiments.maze_eval --protocol paper --damage-model locked
     python -m experiments.maze_eval --damage leg0:removed,leg2:shortened=0.5:friction=0.6,none:friction=0.5
+    python -m experiments.maze_eval --damage suite --damage-model removed   # the held-out damage suite
     python -m experiments.maze_eval --protocol hte-jax --preset gpu  # our HTE (hte-spare) against RTE and 2D-RTE
     python -m experiments.maze_eval --protocol paper --preset gpu --repertoire-dir runs/seeds  # R seeds
     python -m experiments.maze_eval --protocol paper --preset gpu --repertoire-dir runs/seeds --resume  # after a kill

@@ -132,6 +132,21 @@ def test_all_is_the_papers_seven_under_the_runs_model_or_the_items():
     np.testing.assert_array_equal(np.stack([d.legs for d in spelled.values()])[:7], damage.paper_damage_masks())
 
 
+def test_suite_is_the_held_out_conditions_beside_the_papers_seven():
+    suite = damage.parse_damages("suite", "removed")
+    assert list(suite) == list(damage.DAMAGE_SUITE) and not set(suite) & set(damage.PAPER_DAMAGES)
+    parts = list(damage.DAMAGE_PARTS)
+    pairs = [suite[name] for name in ("legs0+3", "legs2+5", "legs0+5", "legs1+2")]
+    assert [np.flatnonzero(d.legs).tolist() for d in pairs] == [[0, 3], [2, 5], [0, 5], [1, 2]]
+    assert {int(d.model) for d in pairs} == {parts.index("removed")}  # the run's damage model
+    short, weak = suite["leg0:shortened=0.5"], suite["leg1:weak=0.5"]
+    assert (int(short.model), float(short.fraction)) == (parts.index("shortened"), 0.5)
+    assert (int(weak.model), float(weak.fraction), np.flatnonzero(weak.legs).tolist()) == (parts.index("weak"), 0.5, [1])
+    slippery = suite["none:friction=0.5"]
+    assert not slippery.legs.any() and float(slippery.friction) == 0.5
+    assert list(damage.parse_damages("all,suite")) == [*damage.PAPER_DAMAGES, *damage.DAMAGE_SUITE]
+
+
 @pytest.mark.parametrize("text, fragment", [
     ("leg2:shortened=0", "fraction must be in (0, 1], got 0"),
     ("leg2:weak=1.5", "fraction must be in (0, 1], got 1.5"),

@@ -13,7 +13,8 @@ import pytest
 from experiments.maze_eval import main as maze_main
 from hte_jax.online.recording import load_replay, recorded_episodes, replay_path
 from hte_jax.qd.io import read_checkpoint
-from hte_jax.sim.damage import parse_damages
+from hte_jax.online.evaluation import EvalConfig
+from hte_jax.sim.damage import DAMAGE_SUITE, parse_damages
 from hte_jax.sim.robot import FOOT_RADIUS, NUM_LEGS
 from hte_jax.viz import gl
 from hte_jax.viz.episode import episode_model
@@ -128,3 +129,10 @@ def test_the_stored_configuration_keeps_the_spelling_and_the_model(capsys):
     assert maze_main(["--damage", "all:locked,none:friction=0.5", "--damage-model", "removed", "--show-config"]) == 0
     config = json.loads(capsys.readouterr().out)
     assert config["damages"] == "all:locked,none:friction=0.5" and config["damage_model"] == "removed"
+
+
+def test_the_damage_suite_is_one_word_on_the_command_line(capsys):
+    assert maze_main(["--damage", "suite", "--damage-model", "locked", "--show-config"]) == 0
+    config = json.loads(capsys.readouterr().out)
+    assert config["damages"] == "suite" and config["damage_model"] == "locked"
+    assert EvalConfig.from_dict(config).damage_list == DAMAGE_SUITE

@@ -61,7 +61,8 @@ class EvalConfig:
     """An adaptation experiment. Every field can be overridden from the CLI.
 
     variants: comma-separated variant names. damages: the damages, as `sim.damage.parse_damages` spells
-    them: "all" (the paper's 7), or comma-separated items `<legs>[:<model>[=<fraction>]][:friction=<scale>]`
+    them: "all" (the paper's 7), "suite" (`DAMAGE_SUITE`: leg pairs, shortened, weak, a slippery floor), or
+    comma-separated items `<legs>[:<model>[=<fraction>]][:friction=<scale>]`
     (legs "none", "leg1", "legs1+4", the original's indices -1..6 or "all"; e.g. "leg0:removed",
     "leg2:shortened=0.5:friction=0.6", "none:friction=0.5"); an item without a model is under
     `damage_model`. Episodes, summaries and statistics name each damage by its canonical label

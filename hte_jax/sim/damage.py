@@ -11,6 +11,7 @@ conditions: each single leg and the middle legs 1+4.
 A damage as the command lines spell it (`parse_damages`): comma-separated items, each
 `<legs>[:<model>[=<fraction>]][:friction=<scale>]`. <legs>: none, leg<i>, legs<i>+<j> (i < j), an index of the
 original's -l (-1: none, 0..5: leg<i>, 6: legs1+4), or all (the paper's seven, each with the rest of the item).
+The item "suite" stands for `DAMAGE_SUITE`, the held-out conditions beside the paper's seven.
 <model>: a registered damage model (default: the run's damage model); =<fraction> in (0, 1] for a model that takes
 one (shortened: of the tibia's length, weak: of the torque), and only for it. friction=<scale> > 0: the floor's
 friction scale. `leg0:removed`, `leg2:shortened=0.5:friction=0.6`, `none:friction=0.5` (the intact robot on a
@@ -35,6 +36,12 @@ DAMAGED_POSE = (0.0, -np.pi / 2, np.pi / 2)
 
 PAPER_DAMAGES: dict[str, tuple[int, ...]] = {**{f"leg{i}": (i,) for i in range(NUM_LEGS)}, "legs1+4": (1, 4)}
 DAMAGE_NAMES = ("none", *PAPER_DAMAGES)
+# The damage suite beside the paper's seven (`--damage suite`), never tuned on: leg pairs under the run's damage
+# model (the two diagonal corner pairs, both front legs, a middle leg with the rear leg beside it), a corner and a
+# middle leg's tibia at half its length, the same legs' servos at half their torque, and the intact robot on a
+# floor of half the friction.
+DAMAGE_SUITE = ("legs0+3", "legs2+5", "legs0+5", "legs1+2", "leg0:shortened=0.5", "leg1:shortened=0.5",
+                "leg0:weak=0.5", "leg1:weak=0.5", "none:friction=0.5")
 # APROL's prior conditions (paper section 5): the 6 single-leg and the 15 two-leg damages.
 APROL_DAMAGES: dict[str, tuple[int, ...]] = {f"leg{i}": (i,) for i in range(NUM_LEGS)} | {
     f"legs{i}+{j}": (i, j) for i in range(NUM_LEGS) for j in range(i + 1, NUM_LEGS)}
@@ -377,11 +384,12 @@ def _parse_item(item: str, model: str) -> list[tuple[str, Damage]]:
 
 def parse_damages(text: str, model: str = "raised") -> dict[str, Damage]:
     """label -> unbatched NumPy `Damage` of each damage that `text` spells (the module's docstring: comma-separated
-    items, "all" the paper's seven), in order, under the run's damage model `model` where an item names none;
+    items, "all" the paper's seven, "suite" `DAMAGE_SUITE`), in order, under the run's damage model `model` where an item names none;
     labels are canonical (`damage_label`). ConfigError, one line, for a bad item or a damage named twice."""
     damage_model(model)
     damages: dict[str, Damage] = {}
-    for item in (i.strip() for i in text.split(",")):
+    items = [i.strip() for i in text.split(",")]
+    for item in [part for i in items for part in (DAMAGE_SUITE if i == "suite" else (i,))]:
         if not item:
             continue
         for label, damage in _parse_item(item, model):
