@@ -29,8 +29,6 @@ from hte_jax.qd.io import CheckpointError, read_checkpoint, save_checkpoint
 from hte_jax.sim.robot import load_robot
 from hte_jax.sim.rollout import RolloutSpec, rollout, standing_state
 
-# Bit for bit: measured steps against a direct rollout (two differently compiled paths).
-pytestmark = pytest.mark.exact_numerics
 
 TASK = MiddleTask()
 YAW_WEIGHT = 0.25
