@@ -94,7 +94,14 @@ def test_killed_run_resumes_bit_identical(tiny_run, tmp_path):
     with pytest.raises(Killed):
         train_hbr(preset("tiny"), out, progress=False, on_block=kill, plots=False)
     assert (out / "middle" / "checkpoint.npz").exists() and not (out / "top").exists()
-    train_hbr(preset("tiny"), out, resume_run=True, progress=False, plots=False)
+    first = {layer: [float(r["wall_time_s"]) for r in _rows(out / layer / "metrics.csv")] for layer in ("bottom", "middle")}
+    outcome = train_hbr(preset("tiny"), out, resume_run=True, progress=False, plots=False)
+    # Wall times count every session: the bottom layer, done before the kill, keeps the first session's
+    # seconds; the middle layer's rows count on from its kept block 0.
+    layers = outcome.summary["layers"]
+    assert layers["bottom"]["wall_time_s"] == first["bottom"][-1] > 0
+    middle = [float(r["wall_time_s"]) for r in _rows(out / "middle" / "metrics.csv")]
+    assert middle[:2] == first["middle"][:2] and np.all(np.diff(middle) > 0) and layers["middle"]["wall_time_s"] == middle[-1]
     resumed, _ = read_checkpoint(out / "hbr.npz")
     reference, _ = read_checkpoint(tiny_run / "hbr.npz")
     assert resumed.keys() == reference.keys()

@@ -23,7 +23,7 @@ from hte_jax.flat.task import QD_OFFSET, FlatTask, evaluate_flat, flat_spec
 from hte_jax.hbr.training import StoredConfig
 from hte_jax.qd import io
 from hte_jax.qd.batched import BatchedMapElites
-from hte_jax.qd.loop import MapElitesConfig, QDState, run_to_end
+from hte_jax.qd.loop import MapElitesConfig, QDState, layer_seconds, run_to_end
 from hte_jax.qd.metrics import projected_statistics
 from hte_jax.sim.damage import APROL_DAMAGES, damage_masks
 from hte_jax.sim.mjx_import import require_impl
@@ -143,7 +143,7 @@ def train_flat(config: FlatConfig, out_dir: str | Path, *, resume_run: bool = Fa
     flat = FlatRepertoires(task=config.task, damages=config.damages, repertoire=state.repertoire)
     statistics = flat_statistics(flat)
     summary = {"config": config.to_dict(), "evaluations": algo.evaluations(state),
-               "wall_time_s": time.perf_counter() - began, "statistics": statistics,
+               "wall_time_s": layer_seconds(out / "metrics.csv", began), "statistics": statistics,
                "elites": {name: s["size"] for name, s in statistics.items()},
                "mean_elites": float(np.mean([s["size"] for s in statistics.values()])),
                "devices": [str(d) for d in jax.devices()]}

@@ -29,7 +29,7 @@ from hte_jax.hbr.spare import SPARE_L, SPARE_STREAM, STRICT_CONTACT
 from hte_jax.hbr.store import LAYERS, SPARE_FILE, bottom_fingerprint, save_hbr, save_spare
 from hte_jax.hbr.top import TopTask, evaluate_top, top_spec
 from hte_jax.qd import io
-from hte_jax.qd.loop import MapElites, MapElitesConfig, QDState, run_to_end
+from hte_jax.qd.loop import MapElites, MapElitesConfig, QDState, layer_seconds, run_to_end
 from hte_jax.sim.mjx_import import require_impl
 from hte_jax.sim.robot import Robot, RobotConfig, SolverConfig, load_robot, stored_solver
 from hte_jax.sim.rollout import standing_state
@@ -219,7 +219,7 @@ def train_hbr(config: HBRConfig, out_dir: str | Path, *, resume_run: bool = Fals
             "evaluations": algo.evaluations(state), "filled": int(metrics.filled),
             "capacity": state.repertoire.capacity, "mean_fitness": float(metrics.mean_fitness),
             "max_fitness": float(metrics.max_fitness), "qd_score": float(metrics.qd_score),
-            "wall_time_s": time.perf_counter() - began}
+            "wall_time_s": layer_seconds(out / layer / "metrics.csv", began)}
     hbr = HBR.build(lower["bottom"], lower["middle"], lower["top"], config.middle_task, top_task=config.top_task)
     if config.step_starts:
         began = time.perf_counter()

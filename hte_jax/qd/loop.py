@@ -176,23 +176,28 @@ class MapElites(OnMesh):
 
 def run(algo: MapElites, state: QDState, generations: int, *, block_size: int = 10, log_path: str | Path | None = None,
         checkpoint_path: str | Path | None = None, progress: bool = True,
-        on_block: Callable[[int, QDState, dict], None] | None = None, description: str | None = None) -> QDState:
+        on_block: Callable[[int, QDState, dict], None] | None = None, description: str | None = None,
+        started: float | None = None) -> QDState:
     """Run until `state.generation == generations` in jitted blocks (at multiples of block_size), each followed by a
-    replica check, a CSV row, an atomic checkpoint (process 0), the progress bar and `on_block(block, state, row)`."""
+    replica check, a CSV row, an atomic checkpoint (process 0), the progress bar and `on_block(block, state, row)`.
+    A row's wall_time_s counts from `started` (a `time.perf_counter()`; default now), on from the last kept row's
+    when the run resumes."""
     require_int("block_size", block_size)
     log = MetricsLog(log_path) if log_path is not None and jax.process_index() == 0 else None
     done = int(state.generation)
+    earlier = 0.0  # seconds of the sessions before this one
     if log is not None:  # drop rows written after the checkpoint we start from
         log.truncate_after(done // block_size - 1 if done else -2)
+        earlier = log.last_wall_time() if done else 0.0
     total_blocks = -(-generations // block_size)
     bar = tqdm(total=total_blocks, initial=done // block_size, disable=not progress, unit="block", desc=description)
-    start = time.perf_counter()
+    start = time.perf_counter() if started is None else started
 
     def record(block, accepted):
         metrics = jax.device_get(algo.metrics(state))
         row = {"block": block, "generation": int(state.generation), "evaluations": algo.evaluations(state),
                **dataclasses.asdict(metrics), "accepted": metrics.filled if accepted is None else accepted,
-               "wall_time_s": time.perf_counter() - start}
+               "wall_time_s": earlier + time.perf_counter() - start}
         if log is not None:
             log.append(row)
         return metrics, row
@@ -238,12 +243,22 @@ def start_or_resume(algo: MapElites, key: jax.Array, checkpoint_path: str | Path
 def run_to_end(algo: MapElites, key: jax.Array, out_dir: Path, generations: int, block_size: int, *,
                progress: bool = True, on_block: Callable[[int, QDState, dict], None] | None = None,
                description: str | None = None, write: bool = True) -> QDState:
-    """`start_or_resume` then `run` with out_dir/checkpoint.npz and out_dir/metrics.csv; if no block ran
-    (generations = 0), the checkpoint is written here (when `write`)."""
+    """`start_or_resume` then `run` with out_dir/checkpoint.npz and out_dir/metrics.csv (its wall times counting
+    the initial batch or the resume too); if no block ran (generations = 0), the checkpoint is written here (when
+    `write`)."""
     checkpoint = out_dir / "checkpoint.npz"
+    started = time.perf_counter()
     state = start_or_resume(algo, key, checkpoint, progress=progress, description=description)
     state = run(algo, state, generations, block_size=block_size, log_path=out_dir / "metrics.csv",
-                checkpoint_path=checkpoint, progress=progress, on_block=on_block, description=description)
+                checkpoint_path=checkpoint, progress=progress, on_block=on_block, description=description,
+                started=started)
     if write and not checkpoint.exists():
         io.save_checkpoint(checkpoint, state, algo.checkpoint_metadata())
     return state
+
+
+def layer_seconds(log_path: str | Path, began: float) -> float:
+    """A trained layer's wall seconds over every session of its run: the last row of its metrics log (written by
+    `run_to_end`, process 0), else those since `began` (a `time.perf_counter()` of this session)."""
+    path = Path(log_path)
+    return MetricsLog(path).last_wall_time() if path.exists() else time.perf_counter() - began

@@ -39,7 +39,8 @@ def repertoire_metrics(repertoire: Repertoire, offset: float) -> RepertoireMetri
 
 
 class MetricsLog:
-    """Appends one CSV row per block; a resumed run keeps appending to the same file."""
+    """Appends one CSV row per block; a resumed run keeps appending to the same file (its wall_time_s column
+    counting on from the last kept row: the seconds of every session together)."""
 
     def __init__(self, path: str | Path):
         self.path = Path(path)
@@ -49,6 +50,11 @@ class MetricsLog:
         """Drop rows of blocks > `block` (written after the checkpoint a run resumes from)."""
         if self.path.exists():
             self._write([r for r in self.read() if int(r["block"]) <= block], mode="w")
+
+    def last_wall_time(self) -> float:
+        """The wall_time_s of the last row (0.0 without one)."""
+        rows = self.read() if self.path.exists() else []
+        return float(rows[-1]["wall_time_s"]) if rows else 0.0
 
     def append(self, row: dict) -> None:
         self._write([row], mode="a")
