@@ -39,10 +39,13 @@ def _context(hbr, batch, seed=0, t=1):
 
 def test_the_table_holds_the_paper_variants_and_ours():
     assert list(variants.VARIANTS) == ["hte", "perfect-hte", "random-hte", "rte", "hte-spare", "perfect-spare",
-                                       "2d-rte", "8d-rte", "aprol"]
+                                       "hte-sense", "2d-rte", "8d-rte", "aprol"]
     for name, entry in variants.VARIANTS.items():
         assert entry.name == name and entry.summary and entry.hierarchical == (entry.repertoire == "hbr")
     assert [name for name, v in variants.VARIANTS.items() if v.spares] == ["hte-spare", "perfect-spare"]
+    # the ablation: hte-spare's sensing without its spare sets, a rule of its own in a batch beside hte-spare
+    assert variants.variant("hte-sense").rule == SensedLegs() != variants.variant("hte-spare").rule
+    assert variants.batch_rules(["hte-spare", "hte-sense", "hte-spare"])[1] == [0, 1, 0]
     with pytest.raises(ConfigError, match="unknown variant"):
         variants.variant("hte-psychic")
     with pytest.raises(ConfigError, match="already defined"):

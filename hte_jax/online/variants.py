@@ -66,6 +66,8 @@ for _variant in (
                     "keeping those off the floor really off it"),
     Variant("perfect-spare", Oracle(spare=True),
             summary="the true damage's legs kept really off the floor (an upper bound for hte-spare)"),
+    Variant("hte-sense", SensedLegs(),
+            summary="hte-spare's leg sensing on the HBR alone, without the spare sets (an ablation of hte-spare)"),
     Variant("2d-rte", repertoire="2d", summary="RTE on the flat x-y repertoire"),
     Variant("8d-rte", repertoire="8d", summary="RTE on the flat 8-D repertoire"),
     Variant("aprol", repertoire="aprol", summary="APROL's choice among 21 damage repertoires"),
