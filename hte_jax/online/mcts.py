@@ -169,18 +169,20 @@ def uct_child(config: PlannerConfig, tree: Tree, node: jax.Array) -> jax.Array:
 
 
 def select(config: PlannerConfig, tree: Tree) -> Path:
-    """Descend from the root by `uct_child` until a leaf or a node that should widen (the path's `last`)."""
+    """Descend from the root by `uct_child` until a leaf or a node that should widen (the path's `last`).
+    A loop of `config.depth` steps that stand still once stopped: a fixed trip count, so that on a GPU the
+    descent never waits for the host to test whether it is done (a node at the depth limit is a leaf)."""
     capacity, depth_limit = config.iterations + 1, config.depth
 
-    def descend(carry):
-        node, _, nodes, length = carry
-        stop = is_leaf(config, tree, node) | should_widen(config, tree, node)
+    def descend(_, carry):
+        node, stopped, nodes, length = carry
+        stop = stopped | is_leaf(config, tree, node) | should_widen(config, tree, node)
         node_next = jnp.where(stop, node, uct_child(config, tree, node))
         nodes = nodes.at[jnp.where(stop, depth_limit + 1, length)].set(node_next, mode="drop")
         return node_next, stop, nodes, length + (~stop).astype(jnp.int32)
 
     nodes = jnp.full((depth_limit + 1,), capacity, jnp.int32).at[0].set(0)
-    _, _, nodes, length = jax.lax.while_loop(lambda c: ~c[1], descend, (jnp.int32(0), False, nodes, jnp.int32(1)))
+    _, _, nodes, length = jax.lax.fori_loop(0, depth_limit, descend, (jnp.int32(0), False, nodes, jnp.int32(1)))
     return Path(nodes=nodes, length=length)
 
 
