@@ -10,6 +10,7 @@
     python -m experiments.maze_eval --damage leg0:removed,leg2:shortened=0.5:friction=0.6,none:friction=0.5
     python -m experiments.maze_eval --damage suite --damage-model removed   # the held-out damage suite
     python -m experiments.maze_eval --protocol hte-jax --preset gpu  # our HTE (hte-spare) against RTE and 2D-RTE
+    python -m experiments.maze_eval --protocol ablations --preset gpu --maze random:3 --damage suite  # what pays
     python -m experiments.maze_eval --protocol paper --preset gpu --repertoire-dir runs/seeds  # R seeds
     python -m experiments.maze_eval --protocol paper --preset gpu --repertoire-dir runs/seeds --resume  # after a kill
     python -m experiments.maze_eval --variant hte --damage leg1 --video 1   # and a video of the episode
@@ -89,7 +90,8 @@ def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--preset", default="cpu", help=f"one of {', '.join(PRESETS)} (default cpu)")
     p.add_argument("--protocol", default=None, help=f"one of {', '.join(PROTOCOLS)}: its variants on every damage (hte-jax: "
-                   "ours against the baselines, with the tilt reflex); other flags override it")
+                   "ours against the baselines, with the tilt reflex; ablations: each half of hte-spare beside it); other "
+                   "flags override it")
     p.add_argument("--out", default="runs/maze-eval", help="output folder (default runs/maze-eval)")
     p.add_argument("--resume", action="store_true",
                    help="continue the run in --out: its finished batches (episodes_<k>.npz) are read, not run again")

@@ -52,7 +52,7 @@ def commands(out: Path, render: bool) -> list[tuple[str, str, list[str]]]:
         ("measure_steps", "measure_steps", ["--hbr", str(hbr), "--out", str(out / "measure_steps" / "hbr.npz"),
                                             "--starts", "2", *quiet]),
         ("seed_folder", "", []),  # not a command: the repertoire seed folder maze_eval reads
-        ("maze_eval", "maze_eval", ["--repertoire-dir", str(seeds.parent), "--variant", "hte-spare,2d-rte",
+        ("maze_eval", "maze_eval", ["--repertoire-dir", str(seeds.parent), "--variant", "hte-spare,rte-spare,2d-rte",
                                     *planner, "--out", str(out / "maze_eval"), *quiet]),
         ("modulation", "modulation", ["--hbr", str(hbr), "--skills", "2", "--patterns", "candidates",
                                       "--chunk", "16", "--out", str(out / "modulation"), *quiet]),

@@ -114,4 +114,5 @@ def test_maze_eval_ran_several_episodes_under_the_default_action_cap(commands):
     assert summary["max_actions"] == EvalConfig().max_actions == 80
     records = json.loads((out / "maze_eval" / "episodes.json").read_text())["episodes"]
     assert len(records) >= 3 and all(1 <= r["actions_taken"] <= 80 for r in records)
+    assert {r["variant"] for r in records} == {"hte-spare", "rte-spare", "2d-rte"}
     assert all(r["reached"] or r["broken"] for r in records)

@@ -84,3 +84,10 @@ def test_hte_jax_protocol_fixes_the_reflex_and_flags_override_it(capsys):
                       "--show-config"]) == 0
     config = json.loads(capsys.readouterr().out)
     assert config["reflex_release"] == 0 and config["reflex_tilt"] == 0.3 and config["variants"] == "hte-spare,rte"
+
+
+def test_the_ablations_protocol_runs_each_half_of_hte_spare_beside_it(capsys):
+    assert maze_main(["--protocol", "ablations", "--show-config"]) == 0
+    config = json.loads(capsys.readouterr().out)
+    assert config["variants"] == "hte-spare,hte-sense,rte-spare,rte,perfect-spare"
+    assert config["damages"] == "all" and (config["reflex_tilt"], config["reflex_release"]) == (0.3, 0.15)

@@ -65,6 +65,27 @@ def test_spare_elites_join_only_the_spare_sets(shipped_hbr):
 
 
 @pytest.mark.slow
+def test_rows_that_see_the_spare_slots_choose_among_them_too(shipped_hbr):
+    """rte-spare's lookup: the spare archive's elites join the nearest-elite search of the rows that ask."""
+    hbr, _ = shipped_hbr
+    own = int(hbr.middle.capacity)
+    spare = jax.tree.map(lambda x: x[:own], hbr.middle)
+    descriptors = np.asarray(spare.descriptors).copy()
+    descriptors[:, 0] += 0.0123  # stand-ins a little beside the HBR's own elites
+    spare = spare.replace(descriptors=jnp.asarray(descriptors))
+    joined = with_spare(hbr, spare, hbr.middle_params, None)
+    rows = np.flatnonzero(np.asarray(hbr.middle.filled) & (descriptors[:, 0] < 0.9))[:16]
+    queries = jnp.asarray(descriptors[rows, :3])  # exactly where 16 stand-ins are
+    anywhere = jnp.full(16, -1, jnp.int32)
+    plain = np.asarray(select_middle(joined, queries, anywhere)[0])
+    seeing = np.asarray(select_middle(joined, queries, anywhere, spare=jnp.ones(16, bool))[0])
+    assert (plain < own).all() and (seeing >= own).all()
+    np.testing.assert_allclose(np.asarray(joined.middle.descriptors)[seeing, :3], queries)
+    half = np.arange(16) % 2 == 0
+    mixed = np.asarray(select_middle(joined, queries, anywhere, spare=jnp.asarray(half))[0])
+    np.testing.assert_array_equal(mixed, np.where(half, seeing, plain))
+
+
 def test_simulated_spare_steps_keep_the_lifted_legs_mostly_off_the_floor(shipped_hbr):
     """Six skills held at a pattern that lifts leg 1 (or leg 4), run in MJX from standing with their
     steps planned among the pattern's spare set: the lifted leg's foot is down about 5 % of each

@@ -39,10 +39,10 @@ def _context(hbr, batch, seed=0, t=1):
 
 def test_the_table_holds_the_paper_variants_and_ours():
     assert list(variants.VARIANTS) == ["hte", "perfect-hte", "random-hte", "rte", "hte-spare", "perfect-spare",
-                                       "hte-sense", "2d-rte", "8d-rte", "aprol"]
+                                       "rte-spare", "hte-sense", "2d-rte", "8d-rte", "aprol"]
     for name, entry in variants.VARIANTS.items():
         assert entry.name == name and entry.summary and entry.hierarchical == (entry.repertoire == "hbr")
-    assert [name for name, v in variants.VARIANTS.items() if v.spares] == ["hte-spare", "perfect-spare"]
+    assert [name for name, v in variants.VARIANTS.items() if v.spares] == ["hte-spare", "perfect-spare", "rte-spare"]
     # the ablation: hte-spare's sensing without its spare sets, a rule of its own in a batch beside hte-spare
     assert variants.variant("hte-sense").rule == SensedLegs() != variants.variant("hte-spare").rule
     assert variants.batch_rules(["hte-spare", "hte-sense", "hte-spare"])[1] == [0, 1, 0]
@@ -65,18 +65,20 @@ def test_a_batch_holds_each_distinct_rule_once():
 def test_every_rule_chooses_in_the_documented_shapes(shipped_hbr):
     hbr, _ = shipped_hbr
     damages = paper_damage_masks()[:5]
-    rules = (AnyPattern(), GpUcb(), Oracle(), RandomPattern(), SensedLegs(spare=True))
-    batch = start_rules(rules, np.arange(5), damages, max_actions=4)
-    assert batch.states[1].gp.mask.shape == (5, 12)  # three steps per action
-    pattern, spare = choose_patterns(batch, _context(hbr, 5))
-    chex.assert_shape([pattern, spare], [(5,), (5,)])
+    rules = (AnyPattern(), GpUcb(), Oracle(), RandomPattern(), SensedLegs(spare=True), AnyPattern(spare=True))
+    damages = np.concatenate([damages, damages[:1]])
+    batch = start_rules(rules, np.arange(6), damages, max_actions=4)
+    assert batch.states[1].gp.mask.shape == (6, 12)  # three steps per action
+    pattern, spare = choose_patterns(batch, _context(hbr, 6))
+    chex.assert_shape([pattern, spare], [(6,), (6,)])
     chex.assert_type([pattern, spare], [jnp.int32, bool])
     pattern = np.asarray(pattern)
-    assert pattern[0] == -1 and pattern[2] == oracle_pattern(damages[2]) and pattern[4] == -1
+    assert pattern[0] == -1 and pattern[2] == oracle_pattern(damages[2]) and pattern[4] == -1 and pattern[5] == -1
     assert pattern[1] in CANDIDATE_PATTERNS and pattern[3] in CANDIDATE_PATTERNS
-    assert not np.asarray(spare).any()  # nothing sensed yet; the plain oracle does not spare
+    # nothing sensed yet; the plain oracle does not spare; rte-spare's rule always looks among the spare elites
+    assert np.asarray(spare).tolist() == [False] * 5 + [True]
     with pytest.raises(ValueError, match="rule indices"):
-        start_rules(rules, np.array([5]), damages[:1], 4)
+        start_rules(rules, np.array([6]), damages[:1], 4)
 
 
 def test_gp_ucb_starts_at_the_lowest_pattern_and_leaves_one_seen_to_fail(shipped_hbr):

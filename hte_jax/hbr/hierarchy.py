@@ -86,27 +86,32 @@ def state_pose(state: SimState) -> jax.Array:
     return planar_pose(state.qpos[:, :3], state.qpos[:, 3:7])
 
 
-def select_middle(hbr: HBR, desired: jax.Array, pattern: jax.Array, chunk: int = 1024):
+def select_middle(hbr: HBR, desired: jax.Array, pattern: jax.Array, chunk: int = 1024,
+                  spare: jax.Array | None = None):
     """(index (B,) int32, found (B,) bool): the nearest middle elite in primary descriptor to `desired`
-    (B, 3) among elites with `pattern` (B,) (-1: any); where none has it, the nearest of any (found False)."""
+    (B, 3) among elites with `pattern` (B,) (-1: any); where none has it, the nearest of any (found False).
+    spare: (B,) bool rows that also choose among the spare slots (`spare_count`, unfilled, so else unseen)."""
     points = hbr.middle.descriptors[:, :PRIMARY]
+    spare_slots = jnp.arange(hbr.middle.capacity) >= hbr.middle.capacity - hbr.spare_count
 
     def block(args):
-        q, p = args
-        anywhere = jnp.where(hbr.middle.filled[None, :], squared_distance(q, points), jnp.inf)
+        q, p, s = args
+        usable = hbr.middle.filled[None, :] if spare is None else hbr.middle.filled[None, :] | (spare_slots & s[:, None])
+        anywhere = jnp.where(usable, squared_distance(q, points), jnp.inf)
         matching = jnp.where((p[:, None] < 0) | (hbr.middle_patterns[None, :] == p[:, None]), anywhere, jnp.inf)
         found = jnp.isfinite(matching).any(axis=-1)
         index = jnp.where(found, jnp.argmin(matching, axis=-1), jnp.argmin(anywhere, axis=-1))
         return index.astype(jnp.int32), found
 
-    return map_rows(block, (desired, pattern.astype(jnp.int32)), (0.0, ANY_PATTERN), chunk)
+    rows = jnp.zeros(pattern.shape, bool) if spare is None else jnp.asarray(spare, bool)
+    return map_rows(block, (desired, pattern.astype(jnp.int32), rows), (0.0, ANY_PATTERN, False), chunk)
 
 
 def step_elite(hbr: HBR, here: jax.Array, target: jax.Array, pattern: jax.Array,
-               elite: jax.Array | None = None) -> tuple[jax.Array, jax.Array]:
-    """`select_middle`'s (index, found) for a step from world pose `here` (B, 3) towards `target` (B, 3);
-    elite (B,) int32: run instead where >= 0 (a planner's choice)."""
-    index, found = select_middle(hbr, hbr.middle_task.normalise(relative_pose(here, target)), pattern)
+               elite: jax.Array | None = None, spare: jax.Array | None = None) -> tuple[jax.Array, jax.Array]:
+    """`select_middle`'s (index, found) for a step from world pose `here` (B, 3) towards `target` (B, 3), the
+    spare slots seen by the rows of `spare`; elite (B,) int32: run instead where >= 0 (a planner's choice)."""
+    index, found = select_middle(hbr, hbr.middle_task.normalise(relative_pose(here, target)), pattern, spare=spare)
     if elite is not None:
         index, found = jnp.where(elite >= 0, elite, index), found | (elite >= 0)
     return index, found

@@ -138,9 +138,11 @@ def choose_step(skills: Skills, rules: RuleBatch, here: jax.Array, target: jax.A
     pattern = jnp.where(alive, pattern, ANY_PATTERN)
     left = STEPS_PER_SKILL - step  # steps of the plan towards `goal`
     elite = None if skills.table is None else plan_batch(skills.table, task, here, goal, pattern, left)
+    sees_spare = None
     if skills.spare is not None:
         elite = jnp.where(spare, plan_batch(skills.spare, task, here, goal, pattern, left), elite)
-    index, found = step_elite(hbr, here, target, pattern, elite=elite)
+        sees_spare = spare & (pattern < 0) & alive  # no pattern to plan for: the nearest elite, spare ones included
+    index, found = step_elite(hbr, here, target, pattern, elite=elite, spare=sees_spare)
     return pattern, index, found
 
 

@@ -48,11 +48,14 @@ RETIRED = {"optimism": 0.0, "pattern_ends": "", "reflex_rate": 0.0}
 SEED_FILES = {"hbr": "hbr.npz", "2d": "flat2d.npz", "8d": "flat8d.npz", "aprol": "aprol.npz"}  # in a seed folder
 # Named protocols: the EvalConfig values each fixes. paper: the paper's Fig. 6 variants, in its order,
 # on the paper's robot; hte-jax: our HTE against the baselines, on the robot with the tilt reflex that
-# lets go (docs/design.md, the tilt reflex; its measurements in docs/levers.md).
+# lets go (docs/design.md, the tilt reflex; its measurements in docs/levers.md); ablations: what each half of
+# hte-spare pays (its sensing alone, the spare archive alone) beside it, its oracle and RTE, on that robot.
 PROTOCOLS = {
     "paper": {"variants": "perfect-hte,hte,2d-rte,8d-rte,aprol,random-hte", "damages": "all"},
     "hte-jax": {"variants": "perfect-hte,hte-spare,perfect-spare,hte,rte,2d-rte", "damages": "all",
                 "reflex_tilt": 0.3, "reflex_release": 0.15},
+    "ablations": {"variants": "hte-spare,hte-sense,rte-spare,rte,perfect-spare", "damages": "all",
+                  "reflex_tilt": 0.3, "reflex_release": 0.15},
 }
 
 

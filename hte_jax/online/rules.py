@@ -90,10 +90,13 @@ def candidate_elites(hbr: HBR, desired: jax.Array, patterns: np.ndarray = CANDID
 
 @dataclasses.dataclass(frozen=True)
 class AnyPattern(PatternRule):
-    """RTE on an HBR: the nearest elite in primary descriptor, any pattern, exactly as in training."""
+    """RTE on an HBR: the nearest elite in primary descriptor, any pattern, exactly as in training. spare: among
+    the HBR's elites and the spare archive's together (`hbr.spare`), still any pattern and nothing sensed."""
+
+    spare: bool = False
 
     def choose(self, state, context):
-        return jnp.full(context.desired.shape[0], ANY_PATTERN, jnp.int32), _never(context)
+        return jnp.full(context.desired.shape[0], ANY_PATTERN, jnp.int32), jnp.full(context.desired.shape[0], self.spare)
 
 
 @struct.dataclass
