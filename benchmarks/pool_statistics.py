@@ -23,7 +23,7 @@ import gzip
 import json
 from pathlib import Path
 
-from hte_jax.online.statistics import PAIR_LEGEND, pair_lines, protocol_statistics, success_lines
+from hte_jax.online.statistics import PAPER_METHOD_HEADER, level_lines, protocol_statistics
 
 
 def read_episodes(folder: Path) -> list[dict]:
@@ -67,13 +67,11 @@ def main(argv: list[str] | None = None) -> None:
     data = json.loads(args.out.read_text()) if args.out.is_file() else {}
     data[args.key] = stats
     args.out.write_text(json.dumps(data, indent=1) + "\n")
-    print("the paper's method: quartiles of the replication medians (actions, a failure counting as the cap)")
+    print(PAPER_METHOD_HEADER)
     for name, v in stats["variants"].items():
         print(f"{name:24s} p25/p50/p75 {v['p25']:5.1f} {v['p50']:5.1f} {v['p75']:5.1f}  failed {v['failure_percent']:5.1f} %"
               f"  ({v['replications']} replications, {v['episodes']} episodes)")
-    print("\n".join(success_lines(stats)))
-    print(PAIR_LEGEND)
-    print("\n".join(pair_lines(stats)))
+    print("\n".join(level_lines(stats)))
 
 
 if __name__ == "__main__":

@@ -74,8 +74,8 @@ from hte_jax.online.evaluation import (PRESETS, PROTOCOLS, EvalConfig, batch_lab
 from hte_jax.online.plots import (episode_track, plot_episodes, plot_failures, plot_prediction_error, plot_protocol_box,
                                   plot_variant_mazes)
 from hte_jax.online.recording import replay_path, save_replay
-from hte_jax.online.statistics import (PAIR_LEGEND, PAPER_FAILURE_REDUCTION, PAPER_QUARTILES, failure_reduction,
-                                       failure_reductions, pair_lines, protocol_statistics, success_lines)
+from hte_jax.online.statistics import (PAPER_FAILURE_REDUCTION, PAPER_METHOD_HEADER, PAPER_QUARTILES, failure_reduction,
+                                       failure_reductions, level_lines, protocol_statistics)
 from hte_jax.qd.io import prepare_run_dir, read_checkpoint, save_checkpoint, write_json
 from hte_jax.sim.damage import DAMAGE_PARTS
 from hte_jax.sim.mjx_import import require_impl
@@ -257,15 +257,13 @@ def _not_rendered(out: Path, missing: list[tuple[str, int]], why: str) -> str:
 def _print_statistics(statistics: dict) -> None:
     """The protocol table (ours beside the paper's), each variant's success rate with its interval and per-seed
     rates, and the pairwise tests at the three levels."""
-    print("the paper's method: quartiles of the replication medians (actions, a failure counting as the cap)")
+    print(PAPER_METHOD_HEADER)
     print(f"{'variant':<12} {'replications':>12} {'25 / 50 / 75 % (actions)':>26} {'paper':>14} {'failed':>8} {'flipped':>8}")
     for name, v in statistics["variants"].items():
         ours = f"{v['p25']:.0f} / {v['p50']:.0f} / {v['p75']:.0f}"
         paper = " / ".join(str(q) for q in PAPER_QUARTILES[name]) if name in PAPER_QUARTILES else "-"
         print(f"{name:<12} {v['replications']:>12} {ours:>26} {paper:>14} {v['failure_percent']:>7.1f}% {v['flipped']:>8}")
-    print("\n".join(success_lines(statistics)))
-    print(PAIR_LEGEND)
-    print("\n".join(pair_lines(statistics)))
+    print("\n".join(level_lines(statistics)))
     reduction = statistics.get("failure_reduction")
     if reduction and reduction["percent"] is not None:
         print(f"{reduction['variant']} has {reduction['percent']:.0f} % fewer failures than {reduction['baseline']} "

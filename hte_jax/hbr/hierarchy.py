@@ -95,16 +95,20 @@ def select_middle(hbr: HBR, desired: jax.Array, pattern: jax.Array, chunk: int =
     spare_slots = jnp.arange(hbr.middle.capacity) >= hbr.middle.capacity - hbr.spare_count
 
     def block(args):
-        q, p, s = args
-        usable = hbr.middle.filled[None, :] if spare is None else hbr.middle.filled[None, :] | (spare_slots & s[:, None])
+        q, p, *asks = args  # asks: (the rows' spare flags,) where `spare` is given
+        usable = hbr.middle.filled[None, :]
+        if asks:
+            usable = usable | (spare_slots & asks[0][:, None])
         anywhere = jnp.where(usable, squared_distance(q, points), jnp.inf)
         matching = jnp.where((p[:, None] < 0) | (hbr.middle_patterns[None, :] == p[:, None]), anywhere, jnp.inf)
         found = jnp.isfinite(matching).any(axis=-1)
         index = jnp.where(found, jnp.argmin(matching, axis=-1), jnp.argmin(anywhere, axis=-1))
         return index.astype(jnp.int32), found
 
-    rows = jnp.zeros(pattern.shape, bool) if spare is None else jnp.asarray(spare, bool)
-    return map_rows(block, (desired, pattern.astype(jnp.int32), rows), (0.0, ANY_PATTERN, False), chunk)
+    rows, fills = (desired, pattern.astype(jnp.int32)), (0.0, ANY_PATTERN)
+    if spare is not None:
+        rows, fills = (*rows, jnp.asarray(spare, bool)), (*fills, False)
+    return map_rows(block, rows, fills, chunk)
 
 
 def step_elite(hbr: HBR, here: jax.Array, target: jax.Array, pattern: jax.Array,

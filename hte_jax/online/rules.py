@@ -96,7 +96,8 @@ class AnyPattern(PatternRule):
     spare: bool = False
 
     def choose(self, state, context):
-        return jnp.full(context.desired.shape[0], ANY_PATTERN, jnp.int32), jnp.full(context.desired.shape[0], self.spare)
+        rows = context.desired.shape[0]
+        return jnp.full(rows, ANY_PATTERN, jnp.int32), jnp.full(rows, self.spare)
 
 
 @struct.dataclass

@@ -365,6 +365,12 @@ def pair_lines(statistics: dict) -> list[str]:
     return lines
 
 
+PAPER_METHOD_HEADER = "the paper's method: quartiles of the replication medians (actions, a failure counting as the cap)"
 PAIR_LEGEND = ("pairs, Bonferroni p: paper = Mann-Whitney on replication medians; episodes = Fisher (success) and\n"
                "  Mann-Whitney (successful actions), episodes as independent; seeds = exact signed-rank per seed\n"
                "  (seeds compared, min: the smallest p they can give)")
+
+
+def level_lines(statistics: dict) -> list[str]:
+    """What a command prints below its paper's-method table: `success_lines`, then `PAIR_LEGEND` and `pair_lines`."""
+    return [*success_lines(statistics), PAIR_LEGEND, *pair_lines(statistics)]

@@ -67,7 +67,8 @@ for _variant in (
     Variant("perfect-spare", Oracle(spare=True),
             summary="the true damage's legs kept really off the floor (an upper bound for hte-spare)"),
     Variant("rte-spare", AnyPattern(spare=True),
-            summary="RTE on the HBR's and the spare archive's elites together, nothing sensed (an ablation of hte-spare)"),
+            summary="RTE on the HBR's and the spare archive's elites together, nothing sensed "
+                    "(an ablation of hte-spare)"),
     Variant("hte-sense", SensedLegs(),
             summary="hte-spare's leg sensing on the HBR alone, without the spare sets (an ablation of hte-spare)"),
     Variant("2d-rte", repertoire="2d", summary="RTE on the flat x-y repertoire"),

@@ -384,8 +384,8 @@ def _parse_item(item: str, model: str) -> list[tuple[str, Damage]]:
 
 def parse_damages(text: str, model: str = "raised") -> dict[str, Damage]:
     """label -> unbatched NumPy `Damage` of each damage that `text` spells (the module's docstring: comma-separated
-    items, "all" the paper's seven, "suite" `DAMAGE_SUITE`), in order, under the run's damage model `model` where an item names none;
-    labels are canonical (`damage_label`). ConfigError, one line, for a bad item or a damage named twice."""
+    items, "all" the paper's seven, "suite" `DAMAGE_SUITE`), in order, under the run's damage model `model` where
+    an item names none; labels are canonical (`damage_label`). ConfigError, one line, for a bad item or a damage named twice."""
     damage_model(model)
     damages: dict[str, Damage] = {}
     items = [i.strip() for i in text.split(",")]
