@@ -253,8 +253,6 @@ def _checked(args) -> tuple:
         raise ConfigError(f"--setting: {error}") from None
     config = RobotConfig(**overrides, reflex_tilt=args.reflex_tilt, reflex_release=args.reflex_release,
                          body_floor_contact=ROBOTS[args.robot][0])
-    if config.impl == "warp":
-        raise ConfigError("--setting ...@impl=warp cannot change model values per robot (the Damage batch): use jax")
     items = conditions(parse_models(args.models), parse_legs(args.legs), args.fraction, args.friction)
     return items, kinds, config
 

@@ -59,7 +59,6 @@ def test_damage_skills_benchmark(tmp_path):
     (["--skills", "-1"], "--skills must be >= 0"),
     (["--repertoires", "hbr,8d"], "--repertoires 'hbr,8d'"),
     (["--setting", "4"], "--setting"),
-    (["--setting", "4/4@impl=warp"], "impl=warp cannot change model values per robot"),
 ])
 def test_bad_inputs_are_one_line_errors(args, message, tmp_path, capsys):
     out = tmp_path / "never.json"

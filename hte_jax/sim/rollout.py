@@ -165,9 +165,6 @@ def rollout(robot: Robot, params: jax.Array, damage: jax.Array, init: SimState, 
     if spec.num_steps % num_segments:
         raise ConfigError(f"{num_segments} controller segments do not divide num_steps={spec.num_steps}")
     edits = edits_model(damage, robot.config.damage_model)
-    if edits and robot.config.impl == "warp":
-        raise ConfigError("impl='warp' cannot change model values per robot (damage models removed, shortened, weak, "
-                          "floor friction): use impl='jax' or a raised / locked leg mask")
     damage = as_damage(damage, robot.config.damage_model)
     if damage.legs.shape[-1] != NUM_LEGS or damage.legs.ndim > 2:
         raise ConfigError(f"damage must have shape (6,) or (B, 6), got {damage.legs.shape}")
