@@ -30,6 +30,7 @@ from hte_jax.sim.robot import FOOT_RADIUS, RobotConfig, load_robot, mj_model
 from hte_jax.sim.env import InvalidReason
 from hte_jax.sim.rollout import RolloutSpec, empty_data, initial_state, rollout, standing_state
 from tests.commands_script import near_goal_maze
+from tests.processes import cpu_devices_env
 
 ROOT = Path(__file__).resolve().parents[1]
 needs_warp = pytest.mark.skipif(not warp_installed(), reason="MJX's Warp backend is not installed "
@@ -180,17 +181,25 @@ def test_warp_takes_model_edits_per_robot():
 
 @pytest.mark.slow
 @needs_warp
-def test_maze_eval_runs_model_editing_damages_under_warp(tmp_path):
-    """`maze_eval --impl warp` with damages that edit the model (a removed leg, a slippery floor): one RTE
-    episode per damage in a maze whose goal holds the start, each ends after its first valid action, and
-    the run's configuration, records and batch file name the backend and the damages."""
+@pytest.mark.parametrize("devices", [1, 2])
+def test_maze_eval_runs_model_editing_damages_under_warp(devices, tmp_path):
+    """`maze_eval --impl warp` with damages that edit the model (a removed leg, a slippery floor), in this
+    process and on 2 forced CPU devices: one RTE episode per damage in a maze whose goal holds the start,
+    each ends after its first valid action, and the run's configuration, records and batch file name the
+    backend and the damages."""
     maze = tmp_path / "maze.json"
     maze.write_text(json.dumps(near_goal_maze()))
     damages = "leg0:removed,none:friction=0.5"
     out = tmp_path / "run"
-    assert maze_main(["--impl", "warp", "--variant", "rte", "--damage", damages, "--replicates", "1",
-                      "--max-actions", "2", "--iterations", "10", "--roots", "1", "--depth", "3",
-                      "--candidates", "10", "--maze", str(maze), "--no-progress", "--out", str(out)]) == 0
+    args = ["--impl", "warp", "--variant", "rte", "--damage", damages, "--replicates", "1", "--max-actions", "2",
+            "--iterations", "10", "--roots", "1", "--depth", "3", "--candidates", "10", "--maze", str(maze),
+            "--no-progress", "--out", str(out)]
+    if devices == 1:
+        assert maze_main(args) == 0
+    else:
+        proc = subprocess.run([sys.executable, "-m", "experiments.maze_eval", *args, "--devices", "2"], cwd=ROOT,
+                              env=cpu_devices_env(2), capture_output=True, text=True, timeout=900)
+        assert proc.returncode == 0, proc.stderr[-3000:]
     config = json.loads((out / "config.json").read_text())
     assert config["impl"] == "warp" and config["damages"] == damages
     records = json.loads((out / "episodes.json").read_text())["episodes"]
