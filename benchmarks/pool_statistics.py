@@ -1,9 +1,10 @@
-"""Pool the episodes of several `maze_eval` runs into one set of statistics (the paper's, episode- and seed-level).
+"""Pool the episodes of several `maze_eval` runs into one set of statistics (the paper's; episode, seed, world level).
 
-Each --run is LABEL=DIR[:VARIANT][@SEEDS]: the episodes of run folder DIR (its episodes.json or
-episodes.json.gz), only VARIANT's if given, only the repertoire seeds SEEDS (comma-separated seed
-indices of that run) if given, all under the name LABEL. E.g. the budget-matched 2D-RTE control,
-whose runs cover seeds 1 and 3 only (`benchmarks/results/r4_matched_2d-rte_raised/`):
+Each --run is LABEL=DIR[+DIR...][:VARIANT][@SEEDS]: the episodes of run folder DIR (its episodes.json or
+episodes.json.gz; a run cut before its end, its finished batch files episodes_<k>.npz), only VARIANT's if
+given, only the repertoire seeds SEEDS (comma-separated seed indices of that run) if given, only the damages
+matching --damage (a regular expression, whole label) if given, all under the name LABEL. E.g. the
+budget-matched 2D-RTE control, whose runs cover seeds 1 and 3 only (`benchmarks/results/r4_matched_2d-rte_raised/`):
 
     python benchmarks/pool_statistics.py --out matched_statistics.json --key raised \\
         --run "2d-rte standard jax=R4_RAISED:2d-rte@1,3" --run "hte-spare=R4_RAISED:hte-spare@1,3" \\
@@ -11,67 +12,132 @@ whose runs cover seeds 1 and 3 only (`benchmarks/results/r4_matched_2d-rte_raise
 
 A replication's score is the median over the seeds it covers (`protocol_statistics`); the seeds of
 different runs are paired by position (also in the seed-level tests), so give every run the same
-number of seeds. Writes (or adds KEY to) --out and prints each label's quartiles (the paper's method)
-and failure rate, its success rate with a 95 % Wilson interval and per-seed rates, and the
-Bonferroni-corrected tests of each pair at the three levels.
+number of seeds. Folders joined by + are worlds (e.g. one run per maze) pooled under one label: each
+folder's replicates follow the folders' before it (different folders' episodes are different
+replications) and its episodes carry "world", the folder's position; every run then names the same
+number of folders, paired by position in "world_level" (the seed level's tests with the world in place of
+the seed). Writes (or adds KEY to) --out and prints each label's quartiles (the paper's method) and failure
+rate, its success rate with a 95 % Wilson interval and per-seed rates, and the Bonferroni-corrected tests
+of each pair at each level; --summary and --figure write `evaluation.summarise` and Fig. 6 of the episodes.
 """
 
 from __future__ import annotations
 
 import argparse
+import functools
 import gzip
 import json
+import re
+import sys
 from pathlib import Path
 
-from hte_jax.online.statistics import PAPER_METHOD_HEADER, level_lines, protocol_statistics
+from hte_jax.online.evaluation import summarise
+from hte_jax.online.plots import plot_protocol_box
+from hte_jax.online.statistics import (PAPER_METHOD_HEADER, SEED_QUANTITIES, _p, level_lines, protocol_statistics,
+                                       seed_level_tests, success_rates)
+from hte_jax.qd.io import read_checkpoint
+
+WORLD_SAMPLE = ("world level: the world (a run folder pooled with +, e.g. a maze) is the unit, each label's value per "
+                "world (its episodes of all damages and seeds there) compared over the worlds, paired by position; "
+                "exact two-sided Wilcoxon signed-rank (`seed_level_tests` with the world in place of the seed: "
+                "its seed fields count worlds), Bonferroni over the pairs; min_p is the smallest p the ranked "
+                "worlds can give")
 
 
+@functools.cache
 def read_episodes(folder: Path) -> list[dict]:
-    """The episode records of a maze_eval run folder."""
+    """The episode records of a maze_eval run folder (of its finished batches if the run did not finish)."""
     plain, packed = folder / "episodes.json", folder / "episodes.json.gz"
     if plain.is_file():
         return json.loads(plain.read_text())["episodes"]
     if packed.is_file():
         return json.loads(gzip.decompress(packed.read_bytes()))["episodes"]
-    raise SystemExit(f"error: {folder} holds no episodes.json(.gz)")
+    batches = sorted(folder.glob("episodes_*.npz"), key=lambda p: int(p.stem.removeprefix("episodes_")))
+    if not batches:
+        raise SystemExit(f"error: {folder} holds no episodes.json(.gz) or finished batch (episodes_<k>.npz)")
+    print(f"note: {folder}: a partial run, no episodes.json(.gz); read its {len(batches)} finished batch file(s)",
+          file=sys.stderr)
+    return [r for path in batches for r in read_checkpoint(path)[1]["metadata"]["records"]]
 
 
-def pooled(spec: str) -> list[dict]:
-    """The records of one --run LABEL=DIR[:VARIANT][@SEEDS], relabelled LABEL, seeds renumbered 0.."""
+def pooled(spec: str, damage: str | None = None) -> tuple[list[dict], int]:
+    """The records of one --run LABEL=DIR[+DIR...][:VARIANT][@SEEDS] (damages fully matching `damage`), relabelled
+    LABEL, seeds renumbered 0.., replicates of each folder after the folders' before it; and how many folders."""
     label, _, rest = spec.partition("=")
     rest, _, seeds = rest.partition("@")
-    folder, _, variant = rest.partition(":")
-    if not label or not folder:
-        raise SystemExit(f"error: --run {spec!r} is not LABEL=DIR[:VARIANT][@SEEDS]")
+    folders, _, variant = rest.partition(":")
+    if not label or not folders:
+        raise SystemExit(f"error: --run {spec!r} is not LABEL=DIR[+DIR...][:VARIANT][@SEEDS]")
     keep = [int(s) for s in seeds.split(",")] if seeds else None
-    out = []
-    for r in read_episodes(Path(folder)):
-        if (variant and r["variant"] != variant) or (keep is not None and r.get("seed", 0) not in keep):
-            continue
-        seed = keep.index(r.get("seed", 0)) if keep is not None else r.get("seed", 0)
-        out.append({**r, "variant": label, "seed": seed})
+    out, offset, folders = [], 0, folders.split("+")
+    for world, folder in enumerate(folders):
+        records = read_episodes(Path(folder))
+        for r in records:
+            if ((variant and r["variant"] != variant) or (keep is not None and r.get("seed", 0) not in keep)
+                    or (damage is not None and not re.fullmatch(damage, r["damage"]))):
+                continue
+            seed = keep.index(r.get("seed", 0)) if keep is not None else r.get("seed", 0)
+            worlds = {"world": world} if len(folders) > 1 else {}
+            out.append({**r, "variant": label, "seed": seed, "replicate": offset + r["replicate"], **worlds})
+        offset += 1 + max((r["replicate"] for r in records), default=-1)
     if not out:
         raise SystemExit(f"error: --run {spec!r} selects no episodes")
-    return out
+    return out, len(folders)
+
+
+def world_level(records: list[dict]) -> dict:
+    """The seed level's statistics with each record's world in place of its seed."""
+    by_world = [{**r, "seed": r["world"]} for r in records]
+    return {"sample": WORLD_SAMPLE, "per_world": {v: c["seeds"] for v, c in success_rates(by_world).items()},
+            **{q: seed_level_tests(by_world, q) for q in SEED_QUANTITIES}}
+
+
+def world_lines(level: dict) -> list[str]:
+    """Each label's success rate per world, then each pair's world-level Bonferroni p (worlds compared, min p)."""
+    width = max(12, *(len(name) for name in level["per_world"]))
+    lines = ["world level, exact signed-rank over the worlds paired by position (Bonferroni p, worlds compared, min p):"]
+    lines += [f"{name:<{width}} success per world "
+              + " / ".join(f"{100 * worlds[k]['rate']:.0f}" for k in sorted(worlds, key=int)) + " %"
+              for name, worlds in level["per_world"].items()]
+    for rate, actions in zip(level["success_rate"]["pairs"], level["median_actions"]["pairs"]):
+        lines.append(f"  {rate['a']} vs {rate['b']}: success {_p(rate['p_bonferroni'])} ({rate['seeds']}, min "
+                     f"{_p(rate['min_p_bonferroni'])}), median actions {_p(actions['p_bonferroni'])} "
+                     f"({actions['seeds']}, min {_p(actions['min_p_bonferroni'])})")
+    return lines
 
 
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--run", action="append", required=True, help="LABEL=DIR[:VARIANT][@SEEDS]")
+    parser.add_argument("--run", action="append", required=True, help="LABEL=DIR[+DIR...][:VARIANT][@SEEDS]")
     parser.add_argument("--out", type=Path, required=True, help="JSON file to write (KEY added if it exists)")
     parser.add_argument("--key", default="pooled", help="the entry of --out to write (default pooled)")
+    parser.add_argument("--damage", help="only the damages whose label fully matches this regular expression")
+    parser.add_argument("--summary", type=Path, help="also write `evaluation.summarise` of the episodes here")
+    parser.add_argument("--figure", type=Path, help="also draw Fig. 6 (the paper's method) of the episodes here")
+    parser.add_argument("--max-actions", type=int, default=80, help="the runs' action cap (default 80, maze_eval's)")
     args = parser.parse_args(argv)
-    records = [r for spec in args.run for r in pooled(spec)]
+    runs = [pooled(spec, args.damage) for spec in args.run]
+    worlds = {count for _, count in runs}
+    if len(worlds) > 1:
+        raise SystemExit("error: the runs pool different numbers of folders (worlds): "
+                         + ", ".join(f"{spec.partition('=')[0]!r} {count}" for spec, (_, count) in zip(args.run, runs)))
+    records = [r for run, _ in runs for r in run]
     stats = protocol_statistics(records)
+    if args.figure:
+        plot_protocol_box(args.figure, stats, args.max_actions)
     stats.pop("medians")
+    if worlds != {1}:
+        stats["world_level"] = world_level(records)
     data = json.loads(args.out.read_text()) if args.out.is_file() else {}
     data[args.key] = stats
     args.out.write_text(json.dumps(data, indent=1) + "\n")
+    if args.summary:
+        args.summary.write_text(json.dumps(summarise(records, args.max_actions), indent=1) + "\n")
     print(PAPER_METHOD_HEADER)
     for name, v in stats["variants"].items():
         print(f"{name:24s} p25/p50/p75 {v['p25']:5.1f} {v['p50']:5.1f} {v['p75']:5.1f}  failed {v['failure_percent']:5.1f} %"
               f"  ({v['replications']} replications, {v['episodes']} episodes)")
-    print("\n".join(level_lines(stats)))
+    print("\n".join(level_lines(stats) + (world_lines(stats["world_level"]) if "world_level" in stats else [])))
 
 
 if __name__ == "__main__":

@@ -176,6 +176,96 @@ def test_pool_statistics_script_pools_runs_with_a_seed_subset_under_labels(tmp_p
     assert "x on 1,3" in printed and "success 100.0 %" in printed and "seeds: success 1 (2, min 1)" in printed
 
 
+def _episodes(rows, damage="d"):
+    """Episode records of (variant, replicate, actions) rows; 80 actions is a failure."""
+    return [{"variant": v, "seed": 0, "damage": damage, "replicate": r, "actions": a, "reached": a < 80, "broken": False}
+            for v, r, a in rows]
+
+
+def test_pool_statistics_reads_a_partial_run_from_its_batch_files(tmp_path, capsys):
+    """A run folder without episodes.json(.gz) is read from its finished episodes_<k>.npz (maze_eval's records in
+    their metadata), in batch order (2 before 10), with a note on stderr; --damage keeps the matching labels."""
+    import json
+
+    from hte_jax.qd.io import save_checkpoint
+    from tests.benchmark_runner import benchmark_module
+
+    run = tmp_path / "cut"
+    for k, actions in ((2, 10), (10, 30)):  # batch 2 reached in 10 actions, batch 10 in 30; each also a removed leg
+        records = _episodes([("x", 0, actions)], f"d{k}") + _episodes([("x", 0, 50)], f"d{k}:removed")
+        save_checkpoint(run / f"episodes_{k}.npz", {"taken": [actions, 50]}, {"seed": 0, "records": records})
+    out, summary = tmp_path / "pooled.json", tmp_path / "summary.json"
+    benchmark_module("pool_statistics").main(["--out", str(out), "--run", f"x={run}", "--damage", "d[0-9]+",
+                                              "--summary", str(summary)])
+    printed = capsys.readouterr()
+    assert printed.err.strip() == f"note: {run}: a partial run, no episodes.json(.gz); read its 2 finished batch file(s)"
+    stats = json.loads(out.read_text())["pooled"]
+    assert list(stats["success"]["x"]["damages"]) == ["d2", "d10"]  # batch order; the removed legs left out
+    assert stats["variants"]["x"]["episodes"] == 2 and (stats["variants"]["x"]["p25"], stats["variants"]["x"]["p75"]) == (
+        10, 30)
+    assert "world_level" not in stats and "x " in printed.out and "world level" not in printed.out
+    assert json.loads(summary.read_text())["variants"]["x"]["actions_median"] == 10  # numpy's nearest of 10, 30
+
+
+def test_pool_statistics_pools_worlds_and_tests_them_paired_by_position(tmp_path):
+    """Folders joined by + are worlds: each folder's replicates follow the folders' before it, and world_level runs
+    the seed level's signed-rank tests with the world in place of the seed."""
+    import json
+
+    from tests.benchmark_runner import run_benchmark
+
+    # per world (replicates 0, 1) a's actions and b's (80: b fails once in world 2)
+    actions = {0: ((10, 12), (20, 22)), 1: ((11, 13), (13, 15)), 2: ((12, 14), (16, 80))}
+    for world, (a, b) in actions.items():
+        (tmp_path / f"w{world}").mkdir()
+        rows = [("a", r, x) for r, x in enumerate(a)] + [("b", r, x) for r, x in enumerate(b)]
+        (tmp_path / f"w{world}" / "episodes.json").write_text(json.dumps({"episodes": _episodes(rows)}))
+    worlds = "+".join(str(tmp_path / f"w{world}") for world in actions)
+    out = tmp_path / "pooled.json"
+    printed = run_benchmark("pool_statistics.py", "--out", str(out), "--run", f"a={worlds}:a", "--run", f"b={worlds}:b")
+    pooled = json.loads(out.read_text())["pooled"]
+    a = pooled["variants"]["a"]
+    # replicates renumbered 0..5: 6 replications of one episode each, 10 11 12 12 13 14 (not 2 medians over worlds);
+    # p25 at position 1.25 -> 11, p50 at 2.5 -> 12 (halfway, the lower), p75 at 3.75 -> 13
+    assert (a["replications"], a["seeds_per_median"], a["p25"], a["p50"], a["p75"]) == (6, 1, 11, 12, 13)
+    level = pooled["world_level"]
+    assert "world" in level["sample"] and "unit" in level["sample"]
+    assert [level["per_world"]["b"][k]["rate"] for k in ("0", "1", "2")] == [1, 1, 0.5]
+    # median actions per world: a 11 12 13, b 21 14 16 (the failure left out): a - b = -10 -2 -3, all negative,
+    # ranks 3 1 2, W+ = 0: of the 2^3 sign assignments only all-negative reaches 0, p = 2/8 = 0.25 = min p
+    (test,) = level["median_actions"]["pairs"]
+    assert (test["seed_ids"], test["values_a"], test["values_b"]) == ([0, 1, 2], [11, 12, 13], [21, 14, 16])
+    assert (test["w_plus"], test["p"], test["min_p"], test["p_bonferroni"]) == (0, 0.25, 0.25, 0.25)
+    assert test["p"] == pytest.approx(stats.wilcoxon([-10, -2, -3], method="exact").pvalue)  # scipy agrees
+    # success rates a - b = 0 0 0.5: the two zeros dropped, one world ranked, p = 1
+    (test,) = level["success_rate"]["pairs"]
+    assert (test["seeds"], test["zero_differences"], test["w_plus"], test["p"]) == (3, 2, 1, 1)
+    assert "a vs b: success 1 (3, min 1), median actions 0.25 (3, min 0.25)" in printed
+    assert "success per world 100 / 100 / 50 %" in printed
+
+
+def test_pool_statistics_errors_are_one_line(tmp_path):
+    """A folder without episodes or batch files, and runs pooling different numbers of worlds, stop with one line."""
+    import json
+
+    from tests.benchmark_runner import benchmark_module
+
+    main = benchmark_module("pool_statistics").main
+    for name in ("w0", "w1"):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "episodes.json").write_text(json.dumps({"episodes": _episodes([("x", 0, 10)])}))
+    (tmp_path / "empty").mkdir()
+    out = str(tmp_path / "pooled.json")
+    cases = {f"{tmp_path / 'empty'} holds no episodes.json(.gz) or finished batch": ["--run", f"x={tmp_path / 'empty'}"],
+             "the runs pool different numbers of folders (worlds): 'x' 2, 'y' 1": [
+                 "--run", f"x={tmp_path / 'w0'}+{tmp_path / 'w1'}", "--run", f"y={tmp_path / 'w0'}"]}
+    for message, argv in cases.items():
+        with pytest.raises(SystemExit) as stop:
+            main(["--out", out, *argv])
+        assert message in str(stop.value.code) and "\n" not in str(stop.value.code)
+    assert not (tmp_path / "pooled.json").exists()
+
+
 def test_wilson_interval_by_hand():
     # 8 of 10, z = 1.959964, z^2 = 3.841459: scale = 1 + z^2/10 = 1.384146; centre = (0.8 + z^2/20) / scale = 0.716740;
     # half = z / scale * sqrt(0.8 * 0.2 / 10 + z^2 / 400) = 1.416010 * 0.160011 = 0.226578 -> [0.490162, 0.943318]
