@@ -79,3 +79,47 @@ def test_conditions_mix_models_in_one_batch():
     assert damage.fraction.tolist() == pytest.approx([1, 1, 1, 0.3, 0.3, 1])
     assert damage.friction.tolist() == pytest.approx([1, 1, 1, 1, 1, 0.6])
     assert len(set(damage.model[1:5].tolist())) == 2  # locked and shortened rows: different models, one batch
+
+
+def _result(path, setting, rows):
+    """A damage_skills.py result holding `rows` (repertoire, model, leg, valid, distance_median_m)."""
+    keys = ("repertoire", "model", "leg", "valid", "distance_median_m")
+    full = [{**dict(zip(keys, row)), "flipped": 1.0 - row[3], "distance_p90_m": row[4], "contact_lost": 0.5}
+            for row in rows]
+    path.write_text(json.dumps({"environment": {"device": "cpu", "date": "2026-11-28"},
+                                "settings": {"setting": setting}, "rows": full}))
+    return path
+
+
+def test_two_damage_skills_results_are_compared_row_by_row(tmp_path, capsys):
+    """compare_damage_skills.py pairs the rows by (repertoire, model, leg): A - B of each measure (None where a
+    distance is missing), the largest |A - B| per measure, the rows only one result holds; bad input is one line."""
+    compare = benchmark_module("compare_damage_skills")
+    a = _result(tmp_path / "a.json", "4/4@impl=warp", [("hbr", "intact", None, 1.0, 0.0),
+                                                       ("hbr", "removed", 0, 0.75, 0.30),
+                                                       ("hbr", "weak", 1, 1.0, None)])
+    b = _result(tmp_path / "b.json", "4/4", [("hbr", "intact", None, 1.0, 0.0), ("hbr", "removed", 0, 0.80, 0.25),
+                                             ("hbr", "weak", 1, 1.0, 0.06), ("flat-2d", "intact", None, 1.0, 0.0)])
+    out = tmp_path / "c.json"
+    assert compare.main([str(a), str(b), "--out", str(out)]) == 0
+    result = json.loads(out.read_text())
+    assert result["a"]["setting"] == "4/4@impl=warp" and result["b"]["setting"] == "4/4"
+    rows = {(r["repertoire"], r["model"], r["leg"]): r for r in result["rows"]}
+    assert list(rows) == [("hbr", "intact", None), ("hbr", "removed", 0), ("hbr", "weak", 1)]
+    assert rows["hbr", "removed", 0]["valid"]["difference"] == pytest.approx(-0.05)
+    assert rows["hbr", "removed", 0]["flipped"]["difference"] == pytest.approx(0.05)
+    assert rows["hbr", "weak", 1]["distance_median_m"] == {"a": None, "b": 0.06, "difference": None}
+    largest = result["largest_abs_difference"]
+    assert largest["valid"] == pytest.approx(0.05) and largest["distance_median_m"] == pytest.approx(0.05)
+    assert largest["contact_lost"] == 0.0
+    assert result["only_in"] == {"a": [], "b": [["flat-2d", "intact", None]]}
+    assert "largest |A - B|: valid 0.0500" in capsys.readouterr().out
+
+    other = tmp_path / "other.json"
+    other.write_text(json.dumps({"rows": []}))
+    for args, message in (([str(a), str(tmp_path / "missing.json")], "not a damage_skills.py result"),
+                          ([str(a), str(other)], "share no (repertoire, model, leg) row")):
+        assert compare.main([*args, "--out", str(tmp_path / "never.json")]) == 2
+        error = capsys.readouterr().err
+        assert error.startswith("error: ") and message in error and error.count("\n") == 1
+    assert not (tmp_path / "never.json").exists()
