@@ -33,7 +33,7 @@ from pathlib import Path
 
 from hte_jax.online.evaluation import summarise
 from hte_jax.online.plots import plot_protocol_box
-from hte_jax.online.statistics import (PAPER_METHOD_HEADER, SEED_QUANTITIES, _p, level_lines, protocol_statistics,
+from hte_jax.online.statistics import (PAPER_METHOD_HEADER, SEED_QUANTITIES, level_lines, p_text, protocol_statistics,
                                        seed_level_tests, success_rates)
 from hte_jax.qd.io import read_checkpoint
 
@@ -100,9 +100,9 @@ def world_lines(level: dict) -> list[str]:
               + " / ".join(f"{100 * worlds[k]['rate']:.0f}" for k in sorted(worlds, key=int)) + " %"
               for name, worlds in level["per_world"].items()]
     for rate, actions in zip(level["success_rate"]["pairs"], level["median_actions"]["pairs"]):
-        lines.append(f"  {rate['a']} vs {rate['b']}: success {_p(rate['p_bonferroni'])} ({rate['seeds']}, min "
-                     f"{_p(rate['min_p_bonferroni'])}), median actions {_p(actions['p_bonferroni'])} "
-                     f"({actions['seeds']}, min {_p(actions['min_p_bonferroni'])})")
+        lines.append(f"  {rate['a']} vs {rate['b']}: success {p_text(rate['p_bonferroni'])} ({rate['seeds']}, min "
+                     f"{p_text(rate['min_p_bonferroni'])}), median actions {p_text(actions['p_bonferroni'])} "
+                     f"({actions['seeds']}, min {p_text(actions['min_p_bonferroni'])})")
     return lines
 
 

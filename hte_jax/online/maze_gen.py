@@ -43,9 +43,10 @@ def parse_random(spec: str) -> int:
     return int(text)
 
 
+@functools.lru_cache(maxsize=256)
 def start_steps(maze: Maze, grid: GridSpec = GridSpec()) -> int:
     """The planner's distance field on `grid` (its default: the planner's) at the start's node: grid steps to
-    the goal's node, -1 if unreachable."""
+    the goal's node, -1 if unreachable (kept per maze and grid: `solvable` and `detour` both ask)."""
     node = grid.node_of(maze, jnp.asarray(maze.start[:2], jnp.float32))
     return int(distance_field(maze, grid)[node[0], node[1]])
 

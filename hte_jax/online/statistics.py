@@ -322,7 +322,8 @@ def failure_reductions(statistics: dict, baseline: str) -> dict[str, float | Non
     return {name: failure_reduction(statistics, name, baseline) for name in statistics["variants"] if name != baseline}
 
 
-def _p(value: float | None) -> str:
+def p_text(value: float | None) -> str:
+    """A p-value as printed: two significant digits, "-" where there is none."""
     return "-" if value is None else f"{value:.2g}"
 
 
@@ -357,11 +358,11 @@ def pair_lines(statistics: dict) -> list[str]:
     for paper in statistics["tests"]:
         pair = (paper["a"], paper["b"])
         ss, sa = s_success[pair], s_actions[pair]
-        lines.append(f"  {paper['a']} vs {paper['b']}: paper U = {paper['u']:.0f}, p {_p(paper['p_bonferroni'])}"
-                     f" | episodes: success {_p(e_success[pair]['p_bonferroni'])}, actions "
-                     f"{_p(e_actions[pair]['p_bonferroni'])} | seeds: success {_p(ss['p_bonferroni'])} ({ss['seeds']}, "
-                     f"min {_p(ss['min_p_bonferroni'])}), actions {_p(sa['p_bonferroni'])} ({sa['seeds']}, "
-                     f"min {_p(sa['min_p_bonferroni'])})")
+        lines.append(f"  {paper['a']} vs {paper['b']}: paper U = {paper['u']:.0f}, p {p_text(paper['p_bonferroni'])}"
+                     f" | episodes: success {p_text(e_success[pair]['p_bonferroni'])}, actions "
+                     f"{p_text(e_actions[pair]['p_bonferroni'])} | seeds: success {p_text(ss['p_bonferroni'])} ({ss['seeds']}, "
+                     f"min {p_text(ss['min_p_bonferroni'])}), actions {p_text(sa['p_bonferroni'])} ({sa['seeds']}, "
+                     f"min {p_text(sa['min_p_bonferroni'])})")
     return lines
 
 
