@@ -350,8 +350,6 @@ def _parse_item(item: str, model: str) -> list[tuple[str, Damage]]:
             if friction is not None or not equals:
                 raise ConfigError(f"damage {item!r}: give friction once, as friction=<scale>")
             friction = _value(item, "friction", value.strip())
-            if not friction > 0.0:
-                raise ConfigError(f"damage {item!r}: floor friction scale must be > 0, got {value.strip()}")
             continue
         if chosen is not None:
             raise ConfigError(f"damage {item!r}: names two damage models ({chosen!r}, {key!r})")
@@ -363,8 +361,6 @@ def _parse_item(item: str, model: str) -> list[tuple[str, Damage]]:
             fraction = _value(item, "fraction", value.strip())
             if not damage_model(chosen).fraction:
                 raise ConfigError(f"damage {item!r}: damage model {chosen!r} takes no fraction")
-            if not 0.0 < fraction <= 1.0:
-                raise ConfigError(f"damage {item!r}: fraction must be in (0, 1], got {value.strip()}")
         elif damage_model(chosen).fraction:
             raise ConfigError(f"damage {item!r}: damage model {chosen!r} needs a fraction in (0, 1]: {chosen}=<fraction>")
     if legs == "all":
@@ -376,8 +372,11 @@ def _parse_item(item: str, model: str) -> list[tuple[str, Damage]]:
     part = damage_model(model) if chosen is None else damage_model(chosen)
     out = []
     for name in names:
-        damage = make_damage(parse_damage(name), part.name, 1.0 if fraction is None else fraction,
-                             1.0 if friction is None else friction, xp=np)
+        try:  # make_damage checks the fraction's and the friction's ranges
+            damage = make_damage(parse_damage(name), part.name, 1.0 if fraction is None else fraction,
+                                 1.0 if friction is None else friction, xp=np)
+        except ConfigError as error:
+            raise ConfigError(f"damage {item!r}: {error}") from None
         out.append((damage_label(damage, model), damage))
     return out
 
