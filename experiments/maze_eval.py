@@ -13,6 +13,7 @@
     python -m experiments.maze_eval --protocol ablations --preset gpu --maze random:3 --damage suite  # what pays
     python -m experiments.maze_eval --protocol paper --preset gpu --repertoire-dir runs/seeds  # R seeds
     python -m experiments.maze_eval --protocol paper --preset gpu --repertoire-dir runs/seeds --resume  # after a kill
+    python -m experiments.maze_eval --protocol paper --preset gpu --repertoire-dir runs/seeds --spread batches  # a batch per GPU
     python -m experiments.maze_eval --variant hte --damage leg1 --video 1   # and a video of the episode
     python -m experiments.maze_eval --maze two_rooms --variant hte,rte   # another world (assets/mazes/ or a JSON file)
     python -m experiments.maze_eval --maze random:3 --variant hte,rte    # the generated maze of seed 3 (K >= 0)
@@ -51,21 +52,29 @@ Bad values give a one-line error and exit status 2.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import json
 import os
+import queue
 import subprocess
 import sys
+import threading
 import warnings
+from collections.abc import Callable
 from pathlib import Path
 from types import SimpleNamespace
+from typing import Any
 
+import jax
 import numpy as np
+from jax.sharding import Mesh
 from tqdm.auto import tqdm
 
 from experiments.cli import (add_device_flags, add_setting_flags, device_mesh, input_errors,
                              interruptible, is_writer, resumable_run, resume_command, setting_overrides,
                              show_progress)
+from hte_jax import sharding
 from hte_jax.config import settings
 from hte_jax.errors import ConfigError, require_int
 from hte_jax.online.evaluation import (PRESETS, PROTOCOLS, EvalConfig, batch_labels, batches, episode_numbers,
@@ -82,6 +91,7 @@ from hte_jax.sim.mjx_import import require_impl
 from hte_jax.viz import gl
 
 SETTINGS = list(settings(EvalConfig))  # override keys, inlined settings (the planner's, the solver's) by their names
+SPREADS = ("episodes", "batches")  # --spread: what several devices split
 RECORD_EVERY = 4  # control steps between the recorded states of --video episodes (25 per simulated second)
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -96,6 +106,10 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--resume", action="store_true",
                    help="continue the run in --out: its finished batches (episodes_<k>.npz) are read, not run again")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--spread", default="episodes", metavar="WHAT",
+                   help="with several devices: 'episodes' (default) splits each batch's episodes over them, one batch "
+                        "after another; 'batches' runs whole batches on each device at once, dealt in turn (the "
+                        "planner's host round trips overlap; one process only)")
     p.add_argument("--show-config", action="store_true", help="print the resolved configuration and exit")
     p.add_argument("--video", default="0", metavar="N",
                    help="record the first N episodes of each variant and write their videos (default 0: none)")
@@ -109,6 +123,7 @@ def main(argv=None) -> int:
     with interruptible() as interrupt:
         with input_errors() as errors:
             mesh = device_mesh(args)  # first: --distributed must start before jax touches the devices
+            meshes = _batch_meshes(args.spread, mesh, args.distributed)
             writer = is_writer()  # only process 0 of a multi-host run writes files
             overrides = protocol_overrides(args.protocol) if args.protocol is not None else {}
             overrides.update(setting_overrides(args, SETTINGS))
@@ -133,14 +148,32 @@ def main(argv=None) -> int:
             maze = config.maze_task  # read once for every batch and plot
             records, curves, tracks = [], {}, {}
             earlier, recorded = {}, []  # episodes of each variant in earlier batches; (variant, episode) recorded
-            planned = batches(config)
-            for k, (seed, path, variants) in enumerate(planned):
+            planned, plans = batches(config), []
+            for seed, path, variants in planned:
                 labels = [v for v, _, _ in batch_labels(config, variants)]
-                to_record = rows_to_record(labels, videos, earlier)
-                numbers = episode_numbers(labels, earlier)
+                plans.append((labels, rows_to_record(labels, videos, earlier), episode_numbers(labels, earlier)))
                 earlier = {v: earlier.get(v, 0) + labels.count(v) for v in {*earlier, *labels}}
+
+            def run(k: int, on: Mesh):
+                """Batch k on the devices `on`, its replays and batch file written: (result, rows, recorded)."""
+                (seed, path, variants), (_, to_record, numbers) = planned[k], plans[k]
+                alone = len(meshes) == 1  # else the batch's unplaced work (its start states) runs on its device too
+                with contextlib.nullcontext() if alone else jax.default_device(on.devices.flat[0]):
+                    result = run_batch(config, path, variants, maze, progress=show_progress(args) and alone,
+                                       seed=seed, record=to_record, record_every=RECORD_EVERY, mesh=on)
+                rows = episode_records(result, config.max_actions)
+                if not writer:
+                    return result, rows, []
+                saved = _save_replays(out, result, numbers, k)  # before the batch file: a read batch has its replays
+                _save_batch(out / f"episodes_{k}.npz", result, rows)
+                return result, rows, saved
+
+            done = [args.resume and (out / f"episodes_{k}.npz").is_file() for k in range(len(planned))]
+            ran = run_batches([k for k in range(len(planned)) if not done[k]], run, meshes)
+            for k, (seed, path, variants) in enumerate(planned):
+                labels, to_record, numbers = plans[k]
                 batch_file = out / f"episodes_{k}.npz"
-                if args.resume and batch_file.is_file():
+                if done[k]:
                     result, rows = _load_batch(batch_file, seed, batch_labels(config, variants))
                     records += rows
                     recorded += [(labels[row], numbers[row]) for row in to_record]
@@ -148,14 +181,11 @@ def main(argv=None) -> int:
                         _plot_batch(out / "plots", result, curves, tracks, maze)
                         print(f"batch {k} ({'/'.join(variants)} on seed {seed}): read from {batch_file}")
                     continue
-                result = run_batch(config, path, variants, maze, progress=show_progress(args), seed=seed,
-                                   record=to_record, record_every=RECORD_EVERY, mesh=mesh)
-                rows = episode_records(result, config.max_actions)
+                result, rows, saved = ran(k)
                 records += rows
                 if not writer:
                     continue
-                recorded += _save_replays(out, result, numbers, k)  # before the batch file: a read batch has its replays
-                _save_batch(batch_file, result, rows)
+                recorded += saved
                 interrupt.saved = f"wrote {_batch_files(k + 1, len(planned))} in {out}, no summary"
                 _plot_batch(out / "plots", result, curves, tracks, maze)
                 print(f"batch {k} ({'/'.join(variants)} on seed {seed}: {result.repertoire['path']}, "
@@ -194,6 +224,45 @@ def main(argv=None) -> int:
             print(unrendered, file=sys.stderr)
         print(f"wrote {out}")
         return 0
+
+
+def _batch_meshes(spread: str, mesh: Mesh, distributed: bool) -> list[Mesh]:
+    """The meshes batches run on: `mesh` itself ("episodes"), or one per device of it ("batches")."""
+    if spread not in SPREADS:
+        raise ConfigError(f"--spread must be one of {', '.join(SPREADS)}, got {spread!r}")
+    if spread == "episodes":
+        return [mesh]
+    if distributed:
+        raise ConfigError("--spread batches runs in one process: leave out --distributed, or spread episodes")
+    return sharding.device_meshes(mesh)
+
+
+def run_batches(todo: list[int], run: Callable[[int, Mesh], Any], meshes: list[Mesh]) -> Callable[[int], Any]:
+    """`run(k, mesh)` for every batch k of `todo`; returns `ran(k)`, its value (or its exception, raised), asked
+    for in todo's order. One mesh: each batch runs when asked for. Several: at once, one daemon thread per mesh
+    running its share of `todo` in order (the i-th batch of todo on mesh i mod N, each whole on its devices)."""
+    if len(meshes) == 1:
+        return lambda k: run(k, meshes[0])
+    outcomes = {k: queue.Queue(maxsize=1) for k in todo}
+
+    def work(share: list[int], on: Mesh) -> None:
+        for k in share:
+            try:
+                outcomes[k].put((True, run(k, on)))
+            except BaseException as error:  # raised in the main thread when it asks for batch k
+                outcomes[k].put((False, error))
+                return
+
+    for i, on in enumerate(meshes):
+        threading.Thread(target=work, args=(todo[i::len(meshes)], on), name=f"batches-{i}", daemon=True).start()
+
+    def ran(k: int) -> Any:
+        ok, value = outcomes[k].get()
+        if not ok:
+            raise value
+        return value
+
+    return ran
 
 
 def _batch_files(count: int, total: int) -> str:

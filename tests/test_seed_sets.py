@@ -4,15 +4,21 @@
 import json
 import os
 import shutil
+import subprocess
+import sys
 
 import numpy as np
 import pytest
 
 from experiments.cli import EXIT_BAD_INPUT
+from experiments.maze_eval import _batch_meshes, run_batches
 from experiments.maze_eval import main as maze_main
+from hte_jax import sharding
+from hte_jax.errors import ConfigError
 from experiments.train_set import main as set_main
 from hte_jax.flat.store import load_flat, shipped_flat_path
-from hte_jax.qd.io import write_json
+from hte_jax.qd.io import read_checkpoint, write_json
+from tests.processes import ROOT, cpu_devices_env
 
 # With test_protocol, which runs these 2D-RTE episodes: one worker compiles their programs once.
 pytestmark = pytest.mark.xdist_group("rte_episodes")
@@ -81,6 +87,52 @@ def test_maze_eval_resumes_a_killed_run_to_the_same_results(tmp_path, capsys):
 
     assert maze_main([*args, "--out", str(tmp_path / "none"), "--resume"]) == EXIT_BAD_INPUT
     assert maze_main([*args[:-1], "--damage", "leg2", "--out", str(resumed), "--resume"]) == EXIT_BAD_INPUT
+    assert maze_main([*args, "--spread", "rows", "--out", str(tmp_path / "never")]) == EXIT_BAD_INPUT
     err = capsys.readouterr().err.splitlines()
     assert err[0].startswith(f"error: --resume: {tmp_path / 'none'} holds no run to resume")
     assert err[1] == f"error: {resumed} was started with a different configuration (differs in: damages)"
+    assert err[2] == "error: --spread must be one of episodes, batches, got 'rows'" and len(err) == 3
+    assert not (tmp_path / "never").exists()
+
+    # On 2 forced CPU devices, --spread batches runs the two batches at once, each whole on one device: the
+    # programs and results of one device, bit for bit.
+    spread = tmp_path / "spread"
+    done = subprocess.run([sys.executable, "-m", "experiments.maze_eval", *args, "--devices", "2", "--spread", "batches",
+                           "--out", str(spread)], cwd=ROOT, env=cpu_devices_env(2), capture_output=True, text=True,
+                          timeout=900)
+    assert done.returncode == 0, done.stderr[-3000:]
+    for name in ("episodes.json", "statistics.json", "summary.json"):
+        assert json.loads((spread / name).read_text()) == json.loads((whole / name).read_text()), name
+    for k in (0, 1):
+        ours, theirs = (read_checkpoint(run / f"episodes_{k}.npz")[0] for run in (spread, whole))
+        assert all(np.array_equal(ours[name], theirs[name]) for name in theirs), k
+
+
+def test_spread_batches_is_one_mesh_per_device_and_one_process():
+    """`--spread batches` runs a batch on each device's own mesh, dealt in turn; a multi-process run is refused."""
+    mesh = sharding.batch_mesh()
+    meshes = _batch_meshes("batches", mesh, distributed=False)
+    assert [m.devices.tolist() for m in meshes] == [[d] for d in mesh.devices.flat]
+    assert _batch_meshes("episodes", mesh, distributed=False) == [mesh]
+    with pytest.raises(ConfigError, match="--spread batches runs in one process"):
+        _batch_meshes("batches", mesh, distributed=True)
+    first, second = object(), object()  # stand-ins for two devices' meshes
+    ran = run_batches([0, 2, 3], lambda k, on: (k, on), [first, second])
+    assert [ran(k) for k in (0, 2, 3)] == [(0, first), (2, second), (3, first)]  # dealt in turn
+    assert run_batches([4], lambda k, on: (k, on), [mesh])(4) == (4, mesh)  # one mesh: run when asked
+
+
+def test_a_failed_batch_raises_when_its_turn_comes():
+    """With several meshes a batch's exception reaches the caller when it asks for that batch."""
+    meshes = [object(), object()]
+
+    def run(k, on):
+        if k == 1:
+            raise ValueError("batch 1 broke")
+        return k, on
+
+    ran = run_batches([0, 1, 2, 3], run, meshes)
+    assert ran(0) == (0, meshes[0])
+    with pytest.raises(ValueError, match="batch 1 broke"):
+        ran(1)
+    assert ran(2) == (2, meshes[0])  # batch 2 is the first mesh's second: it ran
