@@ -166,10 +166,16 @@ def main(argv=None) -> int:
                     return result, rows, []
                 saved = _save_replays(out, result, numbers, k)  # before the batch file: a read batch has its replays
                 _save_batch(out / f"episodes_{k}.npz", result, rows)
+                if bar is not None:
+                    bar.update(1)
                 return result, rows, saved
 
             done = [args.resume and (out / f"episodes_{k}.npz").is_file() for k in range(len(planned))]
-            ran = run_batches([k for k in range(len(planned)) if not done[k]], run, meshes)
+            todo = [k for k in range(len(planned)) if not done[k]]
+            # batches run at once: one bar counts them (each batch's own bar is the one-mesh run's)
+            bar = tqdm(total=len(todo), desc="batches", unit="batch") if len(meshes) > 1 and show_progress(args) else None
+            ran = run_batches(todo, run, meshes)
+            say = print if bar is None else bar.write  # lines above the bar
             for k, (seed, path, variants) in enumerate(planned):
                 labels, to_record, numbers = plans[k]
                 batch_file = out / f"episodes_{k}.npz"
@@ -179,7 +185,7 @@ def main(argv=None) -> int:
                     recorded += [(labels[row], numbers[row]) for row in to_record]
                     if writer:
                         _plot_batch(out / "plots", result, curves, tracks, maze)
-                        print(f"batch {k} ({'/'.join(variants)} on seed {seed}): read from {batch_file}")
+                        say(f"batch {k} ({'/'.join(variants)} on seed {seed}): read from {batch_file}")
                     continue
                 result, rows, saved = ran(k)
                 records += rows
@@ -188,9 +194,11 @@ def main(argv=None) -> int:
                 recorded += saved
                 interrupt.saved = f"wrote {_batch_files(k + 1, len(planned))} in {out}, no summary"
                 _plot_batch(out / "plots", result, curves, tracks, maze)
-                print(f"batch {k} ({'/'.join(variants)} on seed {seed}: {result.repertoire['path']}, "
+                say(f"batch {k} ({'/'.join(variants)} on seed {seed}: {result.repertoire['path']}, "
                       f"{result.repertoire['actions']} actions): {len(rows)} episodes in {result.timings.total:.1f} s, "
                       f"planning median {np.median(result.timings.plan):.2f} s per action")
+            if bar is not None:
+                bar.close()
         if errors.failed:
             return 2
         if not writer:
