@@ -33,8 +33,8 @@ from pathlib import Path
 
 from hte_jax.online.evaluation import summarise
 from hte_jax.online.plots import plot_protocol_box
-from hte_jax.online.statistics import (PAPER_METHOD_HEADER, SEED_QUANTITIES, level_lines, p_text, protocol_statistics,
-                                       seed_level_tests, success_rates)
+from hte_jax.online.statistics import (PAPER_METHOD_HEADER, SEED_QUANTITIES, level_lines, protocol_statistics,
+                                       rank_test_text, rates_text, seed_level_tests, success_rates)
 from hte_jax.qd.io import read_checkpoint
 
 WORLD_SAMPLE = ("world level: the world (a run folder pooled with +, e.g. a maze) is the unit, each label's value per "
@@ -96,13 +96,10 @@ def world_lines(level: dict) -> list[str]:
     """Each label's success rate per world, then each pair's world-level Bonferroni p (worlds compared, min p)."""
     width = max(12, *(len(name) for name in level["per_world"]))
     lines = ["world level, exact signed-rank over the worlds paired by position (Bonferroni p, worlds compared, min p):"]
-    lines += [f"{name:<{width}} success per world "
-              + " / ".join(f"{100 * worlds[k]['rate']:.0f}" for k in sorted(worlds, key=int)) + " %"
-              for name, worlds in level["per_world"].items()]
+    lines += [f"{name:<{width}} success per world {rates_text(worlds)} %" for name, worlds in level["per_world"].items()]
     for rate, actions in zip(level["success_rate"]["pairs"], level["median_actions"]["pairs"]):
-        lines.append(f"  {rate['a']} vs {rate['b']}: success {p_text(rate['p_bonferroni'])} ({rate['seeds']}, min "
-                     f"{p_text(rate['min_p_bonferroni'])}), median actions {p_text(actions['p_bonferroni'])} "
-                     f"({actions['seeds']}, min {p_text(actions['min_p_bonferroni'])})")
+        lines.append(f"  {rate['a']} vs {rate['b']}: success {rank_test_text(rate)}, median actions "
+                     f"{rank_test_text(actions)}")
     return lines
 
 

@@ -327,6 +327,18 @@ def p_text(value: float | None) -> str:
     return "-" if value is None else f"{value:.2g}"
 
 
+def rank_test_text(test: dict) -> str:
+    """A signed-rank pair test of `seed_level_tests` as printed: Bonferroni p (units compared, min: the smallest
+    Bonferroni p they can give)."""
+    return f"{p_text(test['p_bonferroni'])} ({test['seeds']}, min {p_text(test['min_p_bonferroni'])})"
+
+
+def rates_text(cells: dict) -> str:
+    """Per-unit success rates {unit: {"rate": ...}} as printed, "a / b / ..." in percent, in increasing unit
+    order (also where the units' keys were sorted as strings in a JSON file)."""
+    return " / ".join(f"{100 * cells[k]['rate']:.0f}" for k in sorted(cells, key=int))
+
+
 def success_lines(statistics: dict) -> list[str]:
     """One line per variant of `protocol_statistics`: the success rate with its 95 % Wilson interval, the
     successful episodes' median actions (p25-p75, nearest data point) and each seed's success rate, in
@@ -337,9 +349,8 @@ def success_lines(statistics: dict) -> list[str]:
         low, high = pooled["ci95"]
         spread = ("-" if actions["count"] == 0
                   else f"{actions['median']:.0f} ({actions['p25']:.0f}-{actions['p75']:.0f})")
-        seeds = " / ".join(f"{100 * cell['seeds'][k]['rate']:.0f}" for k in sorted(cell["seeds"], key=int))
         lines.append(f"{name:<{width}} success {100 * pooled['rate']:5.1f} % [{100 * low:.1f}, {100 * high:.1f}] "
-                     f"{pooled['successes']}/{pooled['episodes']}, actions {spread}; per seed {seeds} %")
+                     f"{pooled['successes']}/{pooled['episodes']}, actions {spread}; per seed {rates_text(cell['seeds'])} %")
     return lines
 
 
@@ -357,12 +368,10 @@ def pair_lines(statistics: dict) -> list[str]:
     lines = []
     for paper in statistics["tests"]:
         pair = (paper["a"], paper["b"])
-        ss, sa = s_success[pair], s_actions[pair]
         lines.append(f"  {paper['a']} vs {paper['b']}: paper U = {paper['u']:.0f}, p {p_text(paper['p_bonferroni'])}"
                      f" | episodes: success {p_text(e_success[pair]['p_bonferroni'])}, actions "
-                     f"{p_text(e_actions[pair]['p_bonferroni'])} | seeds: success {p_text(ss['p_bonferroni'])} ({ss['seeds']}, "
-                     f"min {p_text(ss['min_p_bonferroni'])}), actions {p_text(sa['p_bonferroni'])} ({sa['seeds']}, "
-                     f"min {p_text(sa['min_p_bonferroni'])})")
+                     f"{p_text(e_actions[pair]['p_bonferroni'])} | seeds: success {rank_test_text(s_success[pair])}, "
+                     f"actions {rank_test_text(s_actions[pair])}")
     return lines
 
 
