@@ -2,6 +2,7 @@
 failure rates, Bonferroni-corrected Wilcoxon-Mann-Whitney tests), the episode level (Wilson intervals,
 Fisher's exact test, Mann-Whitney on successful actions) and the seed level (exact signed-rank tests)."""
 
+import json
 import math
 
 import matplotlib.image
@@ -33,6 +34,8 @@ from hte_jax.online.statistics import (
     success_rates,
     wilson_interval,
 )
+from hte_jax.qd.io import save_checkpoint
+from tests.benchmark_runner import benchmark_module, run_benchmark
 
 
 def test_nearest_percentile_takes_a_data_point():
@@ -140,9 +143,6 @@ def test_pool_statistics_script_pools_runs_with_a_seed_subset_under_labels(tmp_p
     """benchmarks/pool_statistics.py: the chosen variant and seeds of each run, relabelled; a
     replication's median covers the kept seeds only, paired by position across runs."""
     import gzip
-    import json
-
-    from tests.benchmark_runner import run_benchmark
 
     def run(folder, rows, packed=False):
         folder.mkdir()
@@ -185,10 +185,6 @@ def _episodes(rows, damage="d"):
 def test_pool_statistics_reads_a_partial_run_from_its_batch_files(tmp_path, capsys):
     """A run folder without episodes.json(.gz) is read from its finished episodes_<k>.npz (maze_eval's records in
     their metadata), in batch order (2 before 10), with a note on stderr; --damage keeps the matching labels."""
-    import json
-
-    from hte_jax.qd.io import save_checkpoint
-    from tests.benchmark_runner import benchmark_module
 
     run = tmp_path / "cut"
     for k, actions in ((2, 10), (10, 30)):  # batch 2 reached in 10 actions, batch 10 in 30; each also a removed leg
@@ -210,9 +206,6 @@ def test_pool_statistics_reads_a_partial_run_from_its_batch_files(tmp_path, caps
 def test_pool_statistics_pools_worlds_and_tests_them_paired_by_position(tmp_path):
     """Folders joined by + are worlds: each folder's replicates follow the folders' before it, and world_level runs
     the seed level's signed-rank tests with the world in place of the seed."""
-    import json
-
-    from tests.benchmark_runner import run_benchmark
 
     # per world (replicates 0, 1) a's actions and b's (80: b fails once in world 2)
     actions = {0: ((10, 12), (20, 22)), 1: ((11, 13), (13, 15)), 2: ((12, 14), (16, 80))}
@@ -246,9 +239,6 @@ def test_pool_statistics_pools_worlds_and_tests_them_paired_by_position(tmp_path
 
 def test_pool_statistics_errors_are_one_line(tmp_path):
     """A folder without episodes or batch files, and runs pooling different numbers of worlds, stop with one line."""
-    import json
-
-    from tests.benchmark_runner import benchmark_module
 
     main = benchmark_module("pool_statistics").main
     for name in ("w0", "w1"):
