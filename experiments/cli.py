@@ -99,13 +99,47 @@ def add_device_flags(parser: argparse.ArgumentParser) -> None:
                              "(docs/design.md, \"Several processes\")")
     parser.add_argument("--distributed-timeout", type=int, default=120, metavar="S",
                         help="with --distributed: seconds to wait for every process to join (default 120)")
+    parser.add_argument("--compile-cache", default=None, metavar="DIR",
+                        help="keep the compiled programs in DIR, so a later run of the same shapes skips compiling "
+                             f"(default: ${CACHE_ENV} if set, else {default_compile_cache()}; 'none': off)")
 
 
 def device_mesh(args: argparse.Namespace) -> Mesh:
-    """The mesh --devices and --distributed ask for (call it before anything touches jax's devices)."""
+    """The mesh --devices and --distributed ask for (call it before anything touches jax's devices); turns on
+    the compilation cache --compile-cache names."""
+    use_compile_cache(getattr(args, "compile_cache", None))
     if args.distributed:
         join_processes(args.distributed_timeout)
     return sharding.batch_mesh(sharding.check_device_count(args.devices))
+
+
+CACHE_ENV = "JAX_COMPILATION_CACHE_DIR"  # jax's own setting of its persistent compilation cache
+
+
+def default_compile_cache() -> Path:
+    """$XDG_CACHE_HOME/hte_jax/xla, or ~/.cache/hte_jax/xla."""
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(base) / "hte_jax" / "xla"
+
+
+def use_compile_cache(flag: str | None) -> Path | None:
+    """jax's persistent compilation cache for this process, before its first compilation: in `flag`'s folder,
+    off for "none", else in ${CACHE_ENV} (jax reads it itself) or `default_compile_cache()`. Only programs that
+    take a second or more to compile are kept (jax's default). Returns the folder (None: off)."""
+    if flag is not None and flag.strip().lower() == "none":
+        jax.config.update("jax_enable_compilation_cache", False)
+        return None
+    if flag is not None and not flag.strip():
+        raise ConfigError("--compile-cache: give a folder, or 'none'")
+    folder = Path(flag) if flag is not None else Path(os.environ.get(CACHE_ENV) or default_compile_cache())
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as error:
+        raise ConfigError(f"--compile-cache: cannot make {folder} ({error.strerror}); name another or 'none'") from None
+    if jax.config.jax_compilation_cache_dir != str(folder):
+        jax.config.update("jax_compilation_cache_dir", str(folder))
+    jax.config.update("jax_enable_compilation_cache", True)
+    return folder
 
 
 def join_processes(timeout: int) -> None:
