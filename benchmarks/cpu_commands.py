@@ -103,8 +103,10 @@ def _children_cpu_s() -> float:
 def run_command(name: str, argv: list[str], cwd: Path, timeout: float, log: Path) -> dict:
     """Run argv in cwd with this checkout on PYTHONPATH, stdout and stderr into `log`; its wall time,
     CPU time (user + system, all threads), exit status (None on a timeout) and, when it failed, the
-    last line it printed."""
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")])))
+    last line it printed. The commands share a compilation cache in cwd/xla-cache, empty at first: a
+    newcomer's cache."""
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")])),
+               JAX_COMPILATION_CACHE_DIR=str(cwd / "xla-cache"))
     load_before = os.getloadavg()[0]
     cpu_before = _children_cpu_s()
     began = time.perf_counter()

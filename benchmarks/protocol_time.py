@@ -3,8 +3,9 @@
 Runs `python -m experiments.maze_eval ARGS --out WORK/LABEL --no-progress` for each `--run LABEL=ARGS`, one
 after another, each on the devices this process sees, and times it from start to exit (compilation
 included). `--read LABEL=DIR` reads a run made elsewhere (e.g. in parallel on another GPU, its wall time from
-DIR/wall_s.txt if written, as `--run` does). From each run's batch files: per batch the actions, the first
-action's seconds (compiling) and the planning and acting medians per action after it; from its episodes,
+DIR/wall_s.txt if written, as `--run` does). From each run's batch files: per batch the actions, its setup
+seconds (loading the repertoire, starting the episodes), the first action's seconds (compiling) and the
+planning and acting medians per action after it, and the batches' seconds in all; from its episodes,
 per variant the successes and the median actions of the successful episodes. `--compare A,B` (repeatable)
 tests whether runs A and B differ beyond run-to-run noise, per variant: Fisher's exact test on the successes
 and Mann-Whitney on the successful episodes' actions (episodes as the sample; Bonferroni over the variants).
@@ -70,10 +71,10 @@ def read_run(folder: Path) -> dict:
         labels = read_checkpoint(folder / f"episodes_{k}.npz")[1]["metadata"]
         plan, act = labels["plan_seconds"], labels["act_seconds"]
         batches.append({"variants": sorted(set(labels["variants"])), "episodes": len(labels["variants"]),
-                        "actions": len(plan), "first_action_s": plan[0] + act[0],
+                        "actions": len(plan), "setup_s": labels.get("setup_seconds"), "first_action_s": plan[0] + act[0],
                         "plan_median_s": float(np.median(plan[1:])) if len(plan) > 1 else None,
                         "act_median_s": float(np.median(act[1:])) if len(act) > 1 else None,
-                        "seconds": float(sum(plan) + sum(act))})
+                        "seconds": float(sum(plan) + sum(act) + (labels.get("setup_seconds") or 0.0))})
     variants = {}
     for variant in dict.fromkeys(r["variant"] for r in records):
         rows = [r for r in records if r["variant"] == variant]
@@ -148,12 +149,15 @@ def main(argv=None) -> int:
 
     env = environment()
     print(f"\nwhole maze_eval runs on {env['device']} ({env['date']})")
-    print(f"{'run':<14} {'wall s':>8} {'impl':>5} {'planner':>9}  batch: episodes, actions, first s, plan / act s")
+    print(f"{'run':<14} {'wall s':>8} {'batches s':>9} {'impl':>5} {'planner':>9}  "
+          "batch: episodes, actions, setup s, first action s, plan / act s")
     for label, result in results.items():
         planner = f"{result['planner']['iterations']}x{result['planner']['roots']}"
-        cells = "; ".join(f"{b['episodes']}, {b['actions']}, {b['first_action_s']:.1f}, {_seconds(b['plan_median_s'])}"
-                          f" / {_seconds(b['act_median_s'])}" for b in result["batches"])
-        print(f"{label:<14} {_seconds(result['wall_s']):>8} {result['impl'] or '-':>5} {planner:>9}  {cells}")
+        cells = "; ".join(f"{b['episodes']}, {b['actions']}, {_seconds(b['setup_s'])}, {b['first_action_s']:.1f}, "
+                          f"{_seconds(b['plan_median_s'])} / {_seconds(b['act_median_s'])}" for b in result["batches"])
+        in_batches = sum(b["seconds"] for b in result["batches"])
+        print(f"{label:<14} {_seconds(result['wall_s']):>8} {in_batches:>9.1f} {result['impl'] or '-':>5} {planner:>9}  "
+              f"{cells}")
     for name, comparison in comparisons.items():
         a, b = name.split(",")
         print(f"\n{a} vs {b}: {comparison['tests']}")

@@ -125,7 +125,8 @@ def default_compile_cache() -> Path:
 def use_compile_cache(flag: str | None) -> Path | None:
     """jax's persistent compilation cache for this process, before its first compilation: in `flag`'s folder,
     off for "none", else in ${CACHE_ENV} (jax reads it itself) or `default_compile_cache()`. Only programs that
-    take a second or more to compile are kept (jax's default). Returns the folder (None: off)."""
+    take a second or more to compile are kept (jax's default; a few MB each), and none leaves: delete the folder
+    to empty it. Returns the folder (None: off)."""
     if flag is not None and flag.strip().lower() == "none":
         jax.config.update("jax_enable_compilation_cache", False)
         return None

@@ -110,9 +110,6 @@ def parser() -> argparse.ArgumentParser:
                    help="with several devices: 'episodes' (default) splits each batch's episodes over them, one batch "
                         "after another; 'batches' runs whole batches on each device at once, dealt in turn (the "
                         "planner's host round trips overlap; one process only)")
-    p.add_argument("--batches-at-once", type=int, default=1, metavar="N",
-                   help="batches each device (or, spreading episodes, the devices together) runs at once, in threads "
-                        "whose compiling and host work overlap (default 1; one process only)")
     p.add_argument("--show-config", action="store_true", help="print the resolved configuration and exit")
     p.add_argument("--video", default="0", metavar="N",
                    help="record the first N episodes of each variant and write their videos (default 0: none)")
@@ -126,7 +123,7 @@ def main(argv=None) -> int:
     with interruptible() as interrupt:
         with input_errors() as errors:
             mesh = device_mesh(args)  # first: --distributed must start before jax touches the devices
-            meshes = _batch_meshes(args.spread, mesh, args.distributed, args.batches_at_once)
+            meshes = _batch_meshes(args.spread, mesh, args.distributed)
             writer = is_writer()  # only process 0 of a multi-host run writes files
             overrides = protocol_overrides(args.protocol) if args.protocol is not None else {}
             overrides.update(setting_overrides(args, SETTINGS))
@@ -237,18 +234,15 @@ def main(argv=None) -> int:
         return 0
 
 
-def _batch_meshes(spread: str, mesh: Mesh, distributed: bool, at_once: int = 1) -> list[Mesh]:
-    """The meshes batches run on, one thread each: `mesh` itself ("episodes"), or one per device of it ("batches"),
-    each `at_once` times (in turn: [m0, m1, m0, m1] for 2 devices, 2 at once)."""
+def _batch_meshes(spread: str, mesh: Mesh, distributed: bool) -> list[Mesh]:
+    """The meshes batches run on: `mesh` itself ("episodes"), or one per device of it ("batches")."""
     if spread not in SPREADS:
         raise ConfigError(f"--spread must be one of {', '.join(SPREADS)}, got {spread!r}")
-    if isinstance(at_once, bool) or not isinstance(at_once, int) or at_once < 1:
-        raise ConfigError(f"--batches-at-once must be an integer >= 1, got {at_once!r}")
-    if distributed and (spread == "batches" or at_once > 1):
-        raise ConfigError(f"--{'spread batches' if spread == 'batches' else 'batches-at-once'} runs in one process: "
-                          "leave out --distributed, or spread episodes one batch at a time")
-    meshes = [mesh] if spread == "episodes" else sharding.device_meshes(mesh)
-    return meshes * at_once
+    if spread == "episodes":
+        return [mesh]
+    if distributed:
+        raise ConfigError("--spread batches runs in one process: leave out --distributed, or spread episodes")
+    return sharding.device_meshes(mesh)
 
 
 def run_batches(todo: list[int], run: Callable[[int, Mesh], Any], meshes: list[Mesh]) -> Callable[[int], Any]:
@@ -381,7 +375,8 @@ def _save_batch(path: Path, result, records: list[dict]) -> None:
     models = [list(DAMAGE_PARTS)[int(index)] for index in damage.model]
     labels = {"seed": result.seed, "variants": result.variants, "damages": result.damages, "replicates": result.replicates,
               "damage_models": models,
-              "repertoire": result.repertoire, "plan_seconds": result.timings.plan, "act_seconds": result.timings.act,
+              "repertoire": result.repertoire, "setup_seconds": result.timings.setup, "plan_seconds": result.timings.plan,
+              "act_seconds": result.timings.act,
               "records": records}
     save_checkpoint(path, arrays, labels, compress=True)
 

@@ -196,8 +196,8 @@ def test_configurations_stored_flat_read_as_the_nested_ones():
     """A configuration stored before the nesting (flat) reads as the same nested configuration as the
     nested layout does, and is stored again as it was (with the settings added since: the planner's two
     rewards, the tilt reflex's release and rate, the maze, MJX's implementation)."""
-    evaluation_config = with_overrides(evaluation.preset("gpu"), {"planner.iterations": 50, "solver.solver_iterations": 2,
-                                                                  "reflex_tilt": 0.3})
+    evaluation_config = with_overrides(evaluation.preset("gpu"), {"planner.iterations": 50, "planner.roots": 4,
+                                                                  "solver.solver_iterations": 2, "reflex_tilt": 0.3})
     hbr = with_overrides(PRESETS["tiny"], {"solver_iterations": 6})
     flat = with_overrides(flat_training.preset("tiny", "8d"), {"solver_iterations": 3})
     for cls, old, config in ((evaluation.EvalConfig, OLD_EVAL, evaluation_config), (hbr_training.HBRConfig, OLD_HBR, hbr),

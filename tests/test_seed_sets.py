@@ -94,14 +94,6 @@ def test_maze_eval_resumes_a_killed_run_to_the_same_results(tmp_path, capsys):
     assert err[2] == "error: --spread must be one of episodes, batches, got 'rows'" and len(err) == 3
     assert not (tmp_path / "never").exists()
 
-    # Two batches at once on one device, in two threads: the same results.
-    together = tmp_path / "together"
-    assert maze_main([*args, "--batches-at-once", "2", "--out", str(together)]) == 0
-    for name in ("episodes.json", "statistics.json", "summary.json"):
-        assert json.loads((together / name).read_text()) == json.loads((whole / name).read_text()), name
-    assert maze_main([*args, "--batches-at-once", "0", "--out", str(tmp_path / "never")]) == EXIT_BAD_INPUT
-    assert capsys.readouterr().err.splitlines()[-1] == "error: --batches-at-once must be an integer >= 1, got 0"
-
     # On 2 forced CPU devices, --spread batches runs the two batches at once, each whole on one device: the
     # programs and results of one device, bit for bit.
     spread = tmp_path / "spread"
@@ -122,13 +114,8 @@ def test_spread_batches_is_one_mesh_per_device_and_one_process():
     meshes = _batch_meshes("batches", mesh, distributed=False)
     assert [m.devices.tolist() for m in meshes] == [[d] for d in mesh.devices.flat]
     assert _batch_meshes("episodes", mesh, distributed=False) == [mesh]
-    assert _batch_meshes("episodes", mesh, distributed=False, at_once=2) == [mesh, mesh]
-    twice = _batch_meshes("batches", mesh, distributed=False, at_once=2)
-    assert [m.devices.tolist() for m in twice] == [[d] for d in mesh.devices.flat] * 2  # each device's in turn
     with pytest.raises(ConfigError, match="--spread batches runs in one process"):
         _batch_meshes("batches", mesh, distributed=True)
-    with pytest.raises(ConfigError, match="--batches-at-once runs in one process"):
-        _batch_meshes("episodes", mesh, distributed=True, at_once=2)
     first, second = object(), object()  # stand-ins for two devices' meshes
     ran = run_batches([0, 2, 3], lambda k, on: (k, on), [first, second])
     assert [ran(k) for k in (0, 2, 3)] == [(0, first), (2, second), (3, first)]  # dealt in turn

@@ -236,11 +236,13 @@ def record_action(maze: Maze, config: AdaptationConfig, skills: Skills, episodes
 
 @dataclasses.dataclass
 class RunTimings:
-    """Wall-clock seconds of each call of a run (the first of each includes compilation)."""
+    """Wall-clock seconds of each call of a run (the first of each includes compilation); setup: before the
+    first action (what `evaluation.run_batch` spent loading the repertoire and starting the episodes)."""
 
     plan: list[float] = dataclasses.field(default_factory=list)
     act: list[float] = dataclasses.field(default_factory=list)
     total: float = 0.0
+    setup: float = 0.0
 
 
 def pad_episodes(episodes: Episodes, size: int) -> Episodes:

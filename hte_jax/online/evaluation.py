@@ -17,6 +17,7 @@ are the one seed.
 from __future__ import annotations
 
 import dataclasses
+import time
 from pathlib import Path
 
 import jax
@@ -177,11 +178,13 @@ def protocol_overrides(name: str) -> dict:
     return dict(lookup("protocol", name, PROTOCOLS))
 
 
-# cpu: 7 episodes per variant, 154 s on 2 cores (benchmarks/cpu_commands.py); gpu: the paper's 30
-# replicates with RTE's original planner (1000 iterations x 4 trees); paper: HTE's original 6000 iterations x 32 trees.
+# cpu: 7 episodes per variant, 154 s on 2 cores (benchmarks/cpu_commands.py); gpu: the paper's 30 replicates with
+# the simulations of RTE's original planner (1000 iterations x 4 trees) in 16 trees of 250: a GPU plans the trees
+# at once, so a quarter of the sequential iterations plan 2.4x faster at the same results (docs/results.md, "Speed");
+# paper: HTE's original 6000 iterations x 32 trees.
 PRESETS = {
     "cpu": EvalConfig(),
-    "gpu": EvalConfig(replicates=30, planner=PlannerConfig(iterations=1000, roots=4)),
+    "gpu": EvalConfig(replicates=30, planner=PlannerConfig(iterations=250, roots=16)),
     "paper": EvalConfig(replicates=30, planner=PlannerConfig(iterations=6000, roots=32)),
 }
 
@@ -280,6 +283,7 @@ def run_batch(config: EvalConfig, path: str | None, variants: list[str], maze: M
     the episodes are spread over (`episode.run_episodes`; None: all visible). maze: the world
     (None: the configuration's, `EvalConfig.maze_task`). The episodes' robots carry a `Damage`, or its leg
     mask where that says the same (`damage.mask_if_plain`: the rollout's program without model edits)."""
+    began = time.perf_counter()
     maze = config.maze_task if maze is None else maze
     maps = len(variants) == 1 and variant_named(variants[0]).repertoire == "aprol"
     labels = batch_labels(config, variants)
@@ -298,8 +302,10 @@ def run_batch(config: EvalConfig, path: str | None, variants: list[str], maze: M
     episodes = start_episodes(adaptation, skills, start, simulated, rules, np.asarray(which), key)
     robot = maze_robot(maze, config.robot)
     recorder = Recorder(tuple(record), record_every) if record else None
+    setup = time.perf_counter() - began
     episodes, timings = run_episodes(maze, adaptation, robot, skills, episodes, progress=progress,
                                      description="/".join(variants), recorder=recorder, mesh=mesh)
+    timings.setup = setup
     replays = [replay_of(recorder, episodes, row, {
         "variant": labels[row][0], "damage": labels[row][1], "replicate": labels[row][2], "seed": seed,
         "repertoire": info["path"], "hierarchical": skills.hierarchical, **damage_info(conditions[labels[row][1]]),
