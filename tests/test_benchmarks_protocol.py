@@ -51,10 +51,12 @@ def test_protocol_time_runs_maze_eval_and_compares_two_runs(tmp_path, capsys):
 
 @pytest.mark.slow
 def test_compile_cache_keeps_a_commands_programs_for_the_next_run(tmp_path):
-    """--compile-cache DIR: the first run writes its programs there, a second run of the same shapes adds none;
-    'none' writes nowhere (not even to the folder JAX_COMPILATION_CACHE_DIR names); a bad folder is one line, 2."""
+    """--compile-cache DIR: the first run writes its programs there (small ones too), a second run of the same
+    shapes adds none; 'none' writes nowhere (not even to the folder JAX_COMPILATION_CACHE_DIR names); a bad
+    folder is one line and exit status 2."""
     cache, elsewhere = tmp_path / "cache", tmp_path / "elsewhere"
     env = {**os.environ, "JAX_COMPILATION_CACHE_DIR": str(elsewhere)}
+    env.pop("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", None)  # the commands' own default: every program kept
 
     def run(*args):
         command = [sys.executable, "-m", "experiments.train_flat", "--variant", "2d", "--preset", "tiny",
@@ -64,7 +66,9 @@ def test_compile_cache_keeps_a_commands_programs_for_the_next_run(tmp_path):
     first = run("--compile-cache", str(cache), "--out", str(tmp_path / "a"))
     assert first.returncode == 0, first.stderr[-2000:]
     written = sorted(p.name for p in cache.iterdir())
-    assert written and not elsewhere.exists()
+    assert not elsewhere.exists()
+    assert any(name.startswith("jit_rollout") for name in written)  # the simulation
+    assert any(name.startswith("jit_broadcast_in_dim") for name in written)  # and a small op outside jit
     second = run("--compile-cache", str(cache), "--out", str(tmp_path / "b"))
     assert second.returncode == 0, second.stderr[-2000:]
     assert sorted(p.name for p in cache.iterdir()) == written  # every program read back, none compiled anew

@@ -122,8 +122,8 @@ def elite_controllers(bottom: Repertoire, genotypes: jax.Array, filled: jax.Arra
     genes = np.asarray(bottom.genotypes)
     out = np.zeros((genotypes.shape[0], NUM_LEGS * genes.shape[-1]), genes.dtype)
     if rows.size:
-        points = jnp.asarray(np.asarray(bottom.descriptors)[keep])
-        index = nearest_index(points, jnp.ones(keep.size, bool), decode(jnp.asarray(np.asarray(genotypes)[rows])))
+        points = jax.device_put(np.asarray(bottom.descriptors)[keep])
+        index = nearest_index(points, jnp.ones(keep.size, bool), decode(jax.device_put(np.asarray(genotypes)[rows])))
         out[rows] = genes[keep[np.asarray(index)]].reshape(rows.size, -1)
     out.flags.writeable = False
     _elite_cache[key] = out

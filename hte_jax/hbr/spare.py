@@ -4,6 +4,7 @@ trained at that threshold (`experiments.train_spare`) appended after its slots (
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -50,7 +51,7 @@ def with_spare(hbr: HBR, spare: Repertoire, spare_params: jnp.ndarray, spare_ste
     descriptors[:, PRIMARY:] = np.asarray(spare.extras["contact_fraction"]) > hbr.middle_task.contact_threshold
 
     def append(own, added):  # own's rows, then the spare's filled rows
-        return jnp.concatenate([own, jnp.asarray(np.asarray(added)[rows])])
+        return jax.device_put(np.concatenate([np.asarray(own), np.asarray(added)[rows]]))  # on the host: no program
 
     main, own = hbr.middle, hbr_steps(hbr)
     added = spare_steps if spare_steps is not None else descriptor_steps(spare.descriptors)

@@ -51,7 +51,7 @@ def action_set(repertoire: Repertoire, extent: float, pad_to: int | None = None)
     def pad(values, fill=0):
         out = np.full((size, *values.shape[1:]), fill, values.dtype)
         out[: len(values)] = values
-        return jnp.asarray(out)
+        return jax.device_put(out)
 
     return ActionSet(slots=pad(filled.astype(np.int32), -1), inputs=pad(descriptors.astype(np.float32)),
                      prior=pad(prior.astype(np.float32)), mask=jnp.asarray(np.arange(size) < filled.size))

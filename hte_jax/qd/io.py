@@ -275,7 +275,7 @@ def rebuild_repertoire(path, arrays: dict, prefix: str, capacity: int, genes: in
     def scatter(values, fill):
         store = np.full((capacity, *values.shape[1:]), fill, values.dtype)
         store[slots] = values
-        return jnp.asarray(store)
+        return jax.device_put(store)  # jnp.asarray would compile a program per shape
 
     return Repertoire(genotypes=scatter(columns["genotypes"], 0), descriptors=scatter(columns["descriptors"], 0),
                       fitnesses=scatter(columns["fitnesses"], EMPTY_FITNESS), filled=scatter(np.ones(rows, bool), 0),
