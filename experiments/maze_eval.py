@@ -133,6 +133,7 @@ def main(argv=None) -> int:
                 print(json.dumps(config.to_dict(), indent=2))
                 return 0
             require_impl(config.robot.impl)  # its backend, here
+            _check_warp_spread(config.robot.impl, meshes)
             out = Path(args.out)
             stored = {"preset": args.preset, "protocol": args.protocol, **config.to_dict()}
             if args.resume:
@@ -243,6 +244,15 @@ def _batch_meshes(spread: str, mesh: Mesh, distributed: bool) -> list[Mesh]:
     if distributed:
         raise ConfigError("--spread batches runs in one process: leave out --distributed, or spread episodes")
     return sharding.device_meshes(mesh)
+
+
+def _check_warp_spread(impl: str, meshes: list[Mesh]) -> None:
+    """ConfigError for MJX's Warp backend with a batch's episodes split over several GPUs: XLA died compiling
+    those programs on 2 H200s (SIGSEGV, 2026-11-28; docs/design.md, Warp on several devices); whole batches per
+    GPU run."""
+    if impl == "warp" and any(sharding.mesh_size(m) > 1 and m.devices.flat[0].platform == "gpu" for m in meshes):
+        raise ConfigError("--impl warp splits no batch over several GPUs (XLA crashes compiling it): add --spread "
+                          "batches (whole batches on each GPU) or use one GPU (--devices 1)")
 
 
 def run_batches(todo: list[int], run: Callable[[int, Mesh], Any], meshes: list[Mesh]) -> Callable[[int], Any]:

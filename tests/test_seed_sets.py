@@ -6,12 +6,13 @@ import os
 import shutil
 import subprocess
 import sys
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
 from experiments.cli import EXIT_BAD_INPUT
-from experiments.maze_eval import _batch_meshes, run_batches
+from experiments.maze_eval import _batch_meshes, _check_warp_spread, run_batches
 from experiments.maze_eval import main as maze_main
 from hte_jax import sharding
 from hte_jax.errors import ConfigError
@@ -120,6 +121,21 @@ def test_spread_batches_is_one_mesh_per_device_and_one_process():
     ran = run_batches([0, 2, 3], lambda k, on: (k, on), [first, second])
     assert [ran(k) for k in (0, 2, 3)] == [(0, first), (2, second), (3, first)]  # dealt in turn
     assert run_batches([4], lambda k, on: (k, on), [mesh])(4) == (4, mesh)  # one mesh: run when asked
+
+
+def test_warp_splits_no_batch_over_several_gpus():
+    """Several GPUs under one batch with --impl warp: a one-line ConfigError (XLA crashed compiling it); one GPU per
+    batch, CPU devices (where it runs) and the JAX backend pass."""
+    gpu, cpu = SimpleNamespace(platform="gpu"), SimpleNamespace(platform="cpu")
+
+    def mesh(*devices):
+        return SimpleNamespace(devices=np.array(devices, dtype=object), axis_sizes=(len(devices),))
+
+    with pytest.raises(ConfigError, match=r"^--impl warp splits no batch over several GPUs .* --spread batches"):
+        _check_warp_spread("warp", [mesh(gpu, gpu)])
+    _check_warp_spread("warp", [mesh(gpu), mesh(gpu)])
+    _check_warp_spread("warp", [mesh(cpu, cpu)])
+    _check_warp_spread("jax", [mesh(gpu, gpu)])
 
 
 def test_a_failed_batch_raises_when_its_turn_comes():
