@@ -56,8 +56,10 @@ def run_command(args: list[str], out: Path) -> float:
     return wall
 
 
-def read_run(folder: Path) -> dict:
-    """A finished run's wall seconds (None if not recorded), batches' timings and per-variant results."""
+def read_run(folder: Path) -> tuple[dict, list[dict]]:
+    """A finished run's wall seconds (None if not recorded), batches' timings and per-variant results, and its
+    episode records."""
+    from hte_jax.online.statistics import success_summary
     from hte_jax.qd.io import read_checkpoint
 
     try:
@@ -77,12 +79,12 @@ def read_run(folder: Path) -> dict:
                         "seconds": float(sum(plan) + sum(act) + (labels.get("setup_seconds") or 0.0))})
     variants = {}
     for variant in dict.fromkeys(r["variant"] for r in records):
-        rows = [r for r in records if r["variant"] == variant]
-        reached = [r["actions"] for r in rows if r["reached"]]
-        variants[variant] = {"episodes": len(rows), "successes": len(reached),
-                             "actions_median": float(np.median(reached)) if reached else None}
-    return {"folder": str(folder), "wall_s": wall, "impl": config.get("impl"),
-            "planner": {k: config.get(k) for k in ("iterations", "roots")}, "batches": batches, "variants": variants}
+        cell = success_summary([r for r in records if r["variant"] == variant])
+        variants[variant] = {"episodes": cell["episodes"], "successes": cell["successes"],
+                             "actions_median": cell["actions"]["median"]}
+    result = {"folder": str(folder), "wall_s": wall, "impl": config.get("impl"),
+              "planner": {k: config.get(k) for k in ("iterations", "roots")}, "batches": batches, "variants": variants}
+    return result, records
 
 
 def compare_runs(a: dict, b: dict, records_a: list[dict], records_b: list[dict]) -> dict:
@@ -135,13 +137,11 @@ def main(argv=None) -> int:
             folders[label].mkdir(parents=True, exist_ok=True)
             wall = run_command(shlex.split(text), folders[label])
             print(f"{label}: {wall:.1f} s", flush=True)
-        results = {label: read_run(folders[label]) for label in labels}
+        read = {label: read_run(folders[label]) for label in labels}
+        results = {label: result for label, (result, _) in read.items()}
         for label, text in runs:
             results[label]["args"] = text
-        comparisons = {}
-        for a, b in pairs:
-            records = [json.loads((folders[x] / "episodes.json").read_text())["episodes"] for x in (a, b)]
-            comparisons[f"{a},{b}"] = compare_runs(results[a], results[b], *records)
+        comparisons = {f"{a},{b}": compare_runs(results[a], results[b], read[a][1], read[b][1]) for a, b in pairs}
     except ValueError as error:
         print(f"error: {error}", file=sys.stderr)
         return 2
