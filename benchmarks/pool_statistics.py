@@ -1,9 +1,9 @@
 """Pool the episodes of several `maze_eval` runs into one set of statistics (the paper's; episode, seed, world level).
 
-Each --run is LABEL=DIR[+DIR...][:VARIANT][@SEEDS]: the episodes of run folder DIR (its episodes.json or
-episodes.json.gz; a run cut before its end, its finished batch files episodes_<k>.npz), only VARIANT's if
-given, only the repertoire seeds SEEDS (comma-separated seed indices of that run) if given, only the damages
-matching --damage (a regular expression, whole label) if given, all under the name LABEL. E.g. the
+Each --run is LABEL=DIR[&DIR...][+DIR[&DIR...]...][:VARIANT][@SEEDS]: the episodes of run folder DIR (its
+episodes.json or episodes.json.gz; a run cut before its end, its finished batch files episodes_<k>.npz), only
+VARIANT's if given, only the repertoire seeds SEEDS (comma-separated seed indices of that run) if given, only
+the damages matching --damage (a regular expression, whole label) if given, all under the name LABEL. E.g. the
 budget-matched 2D-RTE control, whose runs cover seeds 1 and 3 only (`benchmarks/results/r4_matched_2d-rte_raised/`):
 
     python benchmarks/pool_statistics.py --out matched_statistics.json --key raised \\
@@ -12,13 +12,18 @@ budget-matched 2D-RTE control, whose runs cover seeds 1 and 3 only (`benchmarks/
 
 A replication's score is the median over the seeds it covers (`protocol_statistics`); the seeds of
 different runs are paired by position (also in the seed-level tests), so give every run the same
-number of seeds. Folders joined by + are worlds (e.g. one run per maze) pooled under one label: each
-folder's replicates follow the folders' before it (different folders' episodes are different
-replications) and its episodes carry "world", the folder's position; every run then names the same
-number of folders, paired by position in "world_level" (the seed level's tests with the world in place of
-the seed). Writes (or adds KEY to) --out and prints each label's quartiles (the paper's method) and failure
-rate, its success rate with a 95 % Wilson interval and per-seed rates, and the Bonferroni-corrected tests
-of each pair at each level; --summary and --figure write `evaluation.summarise` and Fig. 6 of the episodes.
+number of seeds. Folders joined by & hold different seeds of the same replications (e.g. `maze_eval
+--seeds 0 --impl jax` and `--seeds 1,2,3 --impl warp` over one --repertoire-dir): their episodes are
+merged as they are, each keeping its seed, sorted by seed; two folders holding the same (variant, seed,
+damage, replicate) stop the script. Parts joined by + (a folder, or folders joined by &) are worlds
+(e.g. one run per maze) pooled under one label: each part's replicates follow the parts' before it
+(different worlds' episodes are different replications) and its episodes carry "world", the part's
+position; every run then names the same number of worlds, paired by position in "world_level" (the seed
+level's tests with the world in place of the seed). & binds tighter than +: "A&B+C&D" is two worlds, the
+seeds of A and B then those of C and D. Writes (or adds KEY to) --out and prints each label's quartiles
+(the paper's method) and failure rate, its success rate with a 95 % Wilson interval and per-seed rates,
+and the Bonferroni-corrected tests of each pair at each level; --summary and --figure write
+`evaluation.summarise` and Fig. 6 of the episodes.
 """
 
 from __future__ import annotations
@@ -29,6 +34,7 @@ import gzip
 import json
 import re
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 from hte_jax.online.evaluation import summarise
@@ -61,28 +67,49 @@ def read_episodes(folder: Path) -> list[dict]:
 
 
 def pooled(spec: str, damage: str | None = None) -> tuple[list[dict], int]:
-    """The records of one --run LABEL=DIR[+DIR...][:VARIANT][@SEEDS] (damages fully matching `damage`), relabelled
-    LABEL, seeds renumbered 0.., replicates of each folder after the folders' before it; and how many folders."""
+    """The records of one --run (damages fully matching `damage`), relabelled LABEL, seeds renumbered 0.. (with
+    SEEDS), the folders joined by & merged (`merged_episodes`), the replicates of each world (a part joined by +)
+    after the worlds' before it; and how many worlds."""
     label, _, rest = spec.partition("=")
     rest, _, seeds = rest.partition("@")
     folders, _, variant = rest.partition(":")
     if not label or not folders:
-        raise SystemExit(f"error: --run {spec!r} is not LABEL=DIR[+DIR...][:VARIANT][@SEEDS]")
+        raise SystemExit(f"error: --run {spec!r} is not LABEL=DIR[&DIR...][+DIR[&DIR...]...][:VARIANT][@SEEDS]")
     keep = [int(s) for s in seeds.split(",")] if seeds else None
-    out, offset, folders = [], 0, folders.split("+")
-    for world, folder in enumerate(folders):
-        records = read_episodes(Path(folder))
+
+    def selected(r: dict) -> bool:
+        return not ((variant and r["variant"] != variant) or (keep is not None and r.get("seed", 0) not in keep)
+                    or (damage is not None and not re.fullmatch(damage, r["damage"])))
+
+    out, offset, worlds = [], 0, folders.split("+")
+    for world, group in enumerate(worlds):
+        records = merged_episodes(group.split("&"), selected, spec)
         for r in records:
-            if ((variant and r["variant"] != variant) or (keep is not None and r.get("seed", 0) not in keep)
-                    or (damage is not None and not re.fullmatch(damage, r["damage"]))):
-                continue
             seed = keep.index(r.get("seed", 0)) if keep is not None else r.get("seed", 0)
-            worlds = {"world": world} if len(folders) > 1 else {}
-            out.append({**r, "variant": label, "seed": seed, "replicate": offset + r["replicate"], **worlds})
-        offset += 1 + max((r["replicate"] for r in records), default=-1)
+            where = {"world": world} if len(worlds) > 1 else {}
+            out.append({**r, "variant": label, "seed": seed, "replicate": offset + r["replicate"], **where})
+        offset += 1 + max((r["replicate"] for folder in group.split("&") for r in read_episodes(Path(folder))),
+                          default=-1)
     if not out:
         raise SystemExit(f"error: --run {spec!r} selects no episodes")
-    return out, len(folders)
+    return out, len(worlds)
+
+
+def merged_episodes(folders: list[str], selected: Callable[[dict], bool], spec: str) -> list[dict]:
+    """The `selected` episode records of run folders holding different seeds of the same replications, sorted by
+    seed (stable); SystemExit if two folders hold the same (variant, seed, damage, replicate)."""
+    holder, out = {}, []
+    for folder in folders:
+        records = [r for r in read_episodes(Path(folder)) if selected(r)]
+        keys = {(r["variant"], r.get("seed", 0), r["damage"], r["replicate"]): folder for r in records}
+        for key in keys:
+            if key in holder:
+                variant, seed, damage, replicate = key
+                raise SystemExit(f"error: --run {spec!r}: {holder[key]} and {folder} both hold variant {variant!r}, "
+                                 f"seed {seed}, damage {damage!r}, replicate {replicate} (& joins runs of other seeds)")
+        holder.update(keys)
+        out += records
+    return sorted(out, key=lambda r: r.get("seed", 0))
 
 
 def world_level(records: list[dict]) -> dict:
@@ -105,7 +132,9 @@ def world_lines(level: dict) -> list[str]:
 
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--run", action="append", required=True, help="LABEL=DIR[+DIR...][:VARIANT][@SEEDS]")
+    parser.add_argument("--run", action="append", required=True,
+                        help="LABEL=DIR[&DIR...][+DIR[&DIR...]...][:VARIANT][@SEEDS]: & joins runs of different "
+                             "seeds, + worlds")
     parser.add_argument("--out", type=Path, required=True, help="JSON file to write (KEY added if it exists)")
     parser.add_argument("--key", default="pooled", help="the entry of --out to write (default pooled)")
     parser.add_argument("--damage", help="only the damages whose label fully matches this regular expression")

@@ -237,6 +237,46 @@ def test_pool_statistics_pools_worlds_and_tests_them_paired_by_position(tmp_path
     assert "success per world 100 / 100 / 50 %" in printed
 
 
+def test_pool_statistics_merges_runs_of_other_seeds_joined_by_and(tmp_path):
+    """Folders joined by & hold different seeds of the same replications: merged as they are, in any order, they
+    give the statistics of one run holding every seed, also as the worlds of + ("A&B+C&D"); two folders holding
+    the same episode stop the script with one line."""
+
+    def write(folder, rows):
+        """A run folder of (variant, seed, replicate, actions) rows; 80 actions is a failure."""
+        folder.mkdir()
+        records = [{"variant": v, "seed": s, "damage": "d", "replicate": r, "actions": a, "reached": a < 80,
+                    "broken": False} for v, s, r, a in rows]
+        (folder / "episodes.json").write_text(json.dumps({"episodes": records}))
+        return str(folder)
+
+    def rows(world, seeds):
+        return [(v, s, r, 80 if (v, s, r, world) == ("b", 2, 1, 1) else base + world + step * s + r)
+                for v, base, step in (("a", 10, 1), ("b", 20, -2)) for s in seeds for r in range(3)]
+
+    both, first, rest = {}, {}, {}
+    for world in (0, 1):
+        both[world] = write(tmp_path / f"w{world}", rows(world, (0, 1, 2)))
+        first[world] = write(tmp_path / f"w{world}-seed0", rows(world, (0,)))
+        rest[world] = write(tmp_path / f"w{world}-seeds12", rows(world, (1, 2)))
+    out = tmp_path / "pooled.json"
+    runs = {"one": [both[0]], "parts": [f"{rest[0]}&{first[0]}"],
+            "worlds": [f"{both[0]}+{both[1]}"], "world parts": [f"{first[0]}&{rest[0]}+{rest[1]}&{first[1]}"]}
+    for key, (dirs,) in runs.items():
+        run_benchmark("pool_statistics.py", "--out", str(out), "--key", key, "--run", f"a={dirs}:a", "--run", f"b={dirs}:b")
+    pooled = json.loads(out.read_text())
+    assert pooled["parts"] == pooled["one"] and pooled["world parts"] == pooled["worlds"]
+    assert pooled["one"]["variants"]["a"]["seeds_per_median"] == 3 and pooled["one"]["seed_tests"]["success_rate"]
+    assert pooled["worlds"]["variants"]["b"]["replications"] == 6 and pooled["worlds"]["world_level"]["per_world"]["b"]
+
+    with pytest.raises(SystemExit) as stop:
+        benchmark_module("pool_statistics").main(["--out", str(out), "--run", f"a={both[0]}&{rest[0]}:a"])
+    assert stop.value.code == (f"error: --run 'a={both[0]}&{rest[0]}:a': {both[0]} and {rest[0]} both hold variant 'a', "
+                               "seed 1, damage 'd', replicate 0 (& joins runs of other seeds)")
+    benchmark_module("pool_statistics").main(["--out", str(out), "--key", "b only", "--run", f"b={both[0]}&{rest[0]}:b@0"])
+    assert json.loads(out.read_text())["b only"]["variants"]["b"]["episodes"] == 3  # @0 leaves out the shared seeds
+
+
 def test_pool_statistics_errors_are_one_line(tmp_path):
     """A folder without episodes or batch files, and runs pooling different numbers of worlds, stop with one line."""
 
