@@ -14,6 +14,7 @@
     python -m experiments.maze_eval --protocol paper --preset gpu --repertoire-dir runs/seeds  # R seeds
     python -m experiments.maze_eval --protocol paper --preset gpu --repertoire-dir runs/seeds --resume  # after a kill
     python -m experiments.maze_eval --protocol paper --preset gpu --repertoire-dir runs/seeds --spread batches  # a batch per GPU
+    python -m experiments.maze_eval --protocol paper --preset gpu --repertoire-dir runs/seeds --seeds 1,2,3 --impl warp
     python -m experiments.maze_eval --variant hte --damage leg1 --video 1   # and a video of the episode
     python -m experiments.maze_eval --maze two_rooms --variant hte,rte   # another world (assets/mazes/ or a JSON file)
     python -m experiments.maze_eval --maze random:3 --variant hte,rte    # the generated maze of seed 3 (K >= 0)
@@ -35,7 +36,9 @@ floor), all:locked. --damage-model: the model of the items that name none: raise
 blocked in the air), locked (in its standing pose) or removed. Each damage is named in the outputs by
 its canonical label (the model omitted where it is --damage-model, the friction where it is 1).
 --repertoire-dir: a subfolder per seed with hbr.npz, flat2d.npz, flat8d.npz, aprol.npz
-(from `experiments.train_set`); a replication's score is the median over seeds. --resume reads the
+(from `experiments.train_set`); a replication's score is the median over seeds. --seeds 1,2,3 runs only
+those seeds (indices of the subfolders in name order), each keeping its index and its episodes
+(benchmarks/pool_statistics.py --run "LABEL=DIR&DIR" pools such runs). --resume reads the
 batches a killed run finished and runs the others: the results equal an uninterrupted run's.
 
 Writes config.json, episodes.json, summary.json (per variant and damage), statistics.json (the
@@ -134,6 +137,7 @@ def main(argv=None) -> int:
                 return 0
             require_impl(config.robot.impl)  # its backend, here
             _check_warp_spread(config.robot.impl, meshes)
+            planned = batches(config)  # before anything is written: reads the seed folders
             out = Path(args.out)
             stored = {"preset": args.preset, "protocol": args.protocol, **config.to_dict()}
             if args.resume:
@@ -149,7 +153,7 @@ def main(argv=None) -> int:
             maze = config.maze_task  # read once for every batch and plot
             records, curves, tracks = [], {}, {}
             earlier, recorded = {}, []  # episodes of each variant in earlier batches; (variant, episode) recorded
-            planned, plans = batches(config), []
+            plans = []
             for seed, path, variants in planned:
                 labels = [v for v, _, _ in batch_labels(config, variants)]
                 plans.append((labels, rows_to_record(labels, videos, earlier), episode_numbers(labels, earlier)))
@@ -185,7 +189,7 @@ def main(argv=None) -> int:
                     records += rows
                     recorded += [(labels[row], numbers[row]) for row in to_record]
                     if writer:
-                        _plot_batch(out / "plots", result, curves, tracks, maze)
+                        _plot_batch(out / "plots", result, curves, tracks, maze, planned[0][0])
                         say(f"batch {k} ({'/'.join(variants)} on seed {seed}): read from {batch_file}")
                     continue
                 result, rows, saved = ran(k)
@@ -194,7 +198,7 @@ def main(argv=None) -> int:
                     continue
                 recorded += saved
                 interrupt.saved = f"wrote {_batch_files(k + 1, len(planned))} in {out}, no summary"
-                _plot_batch(out / "plots", result, curves, tracks, maze)
+                _plot_batch(out / "plots", result, curves, tracks, maze, planned[0][0])
                 say(f"batch {k} ({'/'.join(variants)} on seed {seed}: {result.repertoire['path']}, "
                       f"{result.repertoire['actions']} actions): {len(rows)} episodes in {result.timings.total:.1f} s, "
                       f"planning median {np.median(result.timings.plan):.2f} s per action")
@@ -391,7 +395,9 @@ def _save_batch(path: Path, result, records: list[dict]) -> None:
     save_checkpoint(path, arrays, labels, compress=True)
 
 
-def _plot_batch(plot_dir: Path, result, curves: dict, tracks: dict, maze) -> None:
+def _plot_batch(plot_dir: Path, result, curves: dict, tracks: dict, maze, first_seed: int) -> None:
+    """Add the batch's prediction errors to `curves`; for the run's first seed, plot its trajectories and keep them
+    in `tracks`."""
     ep = result.episodes
     errors = prediction_errors(ep)
     taken = np.asarray(ep.taken)
@@ -399,7 +405,7 @@ def _plot_batch(plot_dir: Path, result, curves: dict, tracks: dict, maze) -> Non
         rows = [i for i, v in enumerate(result.variants) if v == variant]
         first = [i for i in rows if result.replicates[i] == 0]  # one episode per damage
         labels = [f"{result.damages[i]}: {'goal' if bool(ep.reached[i]) else 'failed'} in {int(taken[i])}" for i in first]
-        if result.seed == 0:  # trajectories of the first repertoire seed
+        if result.seed == first_seed:  # trajectories of the run's first repertoire seed
             plot_episodes(plot_dir / f"maze_{variant}.png", maze, ep, first, labels,
                           f"{variant}: first replicate per damage", plan_of=first[0])
             tracks[variant] = [(label, episode_track(ep, i)) for label, i in zip(labels, first)]

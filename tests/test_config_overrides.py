@@ -195,7 +195,7 @@ OLD_FLAT = {"variant": "8d", "batch_size": 16, "init_size": 32, "generations": 2
 def test_configurations_stored_flat_read_as_the_nested_ones():
     """A configuration stored before the nesting (flat) reads as the same nested configuration as the
     nested layout does, and is stored again as it was (with the settings added since: the planner's two
-    rewards, the tilt reflex's release and rate, the maze, MJX's implementation)."""
+    rewards, the tilt reflex's release and rate, the maze, the seeds to run, MJX's implementation)."""
     evaluation_config = with_overrides(evaluation.preset("gpu"), {"planner.iterations": 50, "planner.roots": 4,
                                                                   "solver.solver_iterations": 2, "reflex_tilt": 0.3})
     hbr = with_overrides(PRESETS["tiny"], {"solver_iterations": 6})
@@ -205,7 +205,7 @@ def test_configurations_stored_flat_read_as_the_nested_ones():
         assert cls.from_dict(old) == config == cls.from_dict(dataclasses.asdict(config))
         assert cls.from_dict(config.to_dict()) == config
         added = {evaluation.EvalConfig: {"collision_reward": -1000.0, "goal_reward": 100.0, "reflex_release": 0.0,
-                                         "maze": ""},
+                                         "maze": "", "seeds": ""},
                  hbr_training.HBRConfig: HBR_ADDED}.get(cls, {})  # settings added since, at their defaults
         retired = evaluation.RETIRED if cls is evaluation.EvalConfig else {}  # settings of levers that left
         now = HBR_NOW if cls is hbr_training.HBRConfig else old

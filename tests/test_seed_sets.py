@@ -1,5 +1,6 @@
 """Seed sets through their commands: `train_set` (parts, resume, the budget-matched Flat-2D) and
-`maze_eval --resume` over a `--repertoire-dir` of seeds (a resumed run equals the whole run)."""
+`maze_eval` over a `--repertoire-dir` of seeds (a resumed run equals the whole run; a run of some seeds, `--seeds`,
+its batches of those seeds)."""
 
 import json
 import os
@@ -19,6 +20,7 @@ from hte_jax.errors import ConfigError
 from experiments.train_set import main as set_main
 from hte_jax.flat.store import load_flat, shipped_flat_path
 from hte_jax.qd.io import read_checkpoint, write_json
+from tests.benchmark_runner import run_benchmark
 from tests.processes import ROOT, cpu_devices_env
 
 # With test_protocol, which runs these 2D-RTE episodes: one worker compiles their programs once.
@@ -65,17 +67,33 @@ def test_train_set_parts_resume_and_matched_budget(tmp_path, capsys):
     assert (out / "matched" / "flat2d.npz").is_file()
 
 
-@pytest.mark.slow
-def test_maze_eval_resumes_a_killed_run_to_the_same_results(tmp_path, capsys):
-    seeds = tmp_path / "seeds"
-    for name in ("a", "b"):  # two seed folders holding one flat file: two batches of the same shapes
+def _seed_folders(seeds):
+    """Two seed folders holding one flat file each (the shipped 2D repertoire): two batches of the same shapes."""
+    for name in ("a", "b"):
         (seeds / name).mkdir(parents=True)
         shutil.copyfile(shipped_flat_path("2d"), seeds / name / "flat2d.npz")
+    return seeds
+
+
+@pytest.fixture(scope="module")
+def two_seed_run(tmp_path_factory):
+    """maze_eval's 2D-RTE episodes over two seed folders: its arguments (without --out) and its run folder."""
+    seeds = _seed_folders(tmp_path_factory.mktemp("two_seeds") / "seeds")
     # test_protocol.py's 2D-RTE batches (4 episodes of 2 actions, its planner): their compiled programs serve both
     args = ["--variant", "2d-rte", "--damage", "none,leg1", "--replicates", "2", "--max-actions", "2", "--iterations", "50",
             "--roots", "1", "--repertoire-dir", str(seeds), "--no-progress"]
-    whole, resumed = tmp_path / "whole", tmp_path / "resumed"
+    whole = seeds.parent / "whole"
     assert maze_main([*args, "--out", str(whole)]) == 0
+    return SimpleNamespace(args=args, whole=whole)
+
+
+def _records(run):
+    return json.loads((run / "episodes.json").read_text())["episodes"]
+
+
+@pytest.mark.slow
+def test_maze_eval_resumes_a_killed_run_to_the_same_results(two_seed_run, tmp_path, capsys):
+    args, whole, resumed = two_seed_run.args, two_seed_run.whole, tmp_path / "resumed"
     shutil.copytree(whole, resumed)
     for name in ("episodes_1.npz", "episodes.json", "statistics.json", "summary.json"):  # killed in batch 1
         (resumed / name).unlink()
@@ -84,7 +102,7 @@ def test_maze_eval_resumes_a_killed_run_to_the_same_results(tmp_path, capsys):
     assert f"batch 0 (2d-rte on seed 0): read from {resumed / 'episodes_0.npz'}" in capsys.readouterr().out
     for name in ("episodes.json", "statistics.json", "summary.json"):
         assert json.loads((resumed / name).read_text()) == json.loads((whole / name).read_text()), name
-    assert {r["seed"] for r in json.loads((resumed / "episodes.json").read_text())["episodes"]} == {0, 1}
+    assert {r["seed"] for r in _records(resumed)} == {0, 1}
 
     assert maze_main([*args, "--out", str(tmp_path / "none"), "--resume"]) == EXIT_BAD_INPUT
     assert maze_main([*args[:-1], "--damage", "leg2", "--out", str(resumed), "--resume"]) == EXIT_BAD_INPUT
@@ -107,6 +125,53 @@ def test_maze_eval_resumes_a_killed_run_to_the_same_results(tmp_path, capsys):
     for k in (0, 1):
         ours, theirs = (read_checkpoint(run / f"episodes_{k}.npz")[0] for run in (spread, whole))
         assert all(np.array_equal(ours[name], theirs[name]) for name in theirs), k
+
+
+@pytest.mark.slow
+def test_maze_eval_runs_some_seeds_as_the_run_over_all_does(two_seed_run, tmp_path):
+    """--seeds runs only those seed folders, each keeping its index: seed 1 alone is the whole run's seed-1 batch,
+    bit for bit; the runs of seed 0 and of seed 1 joined by & (benchmarks/pool_statistics.py) pool to the
+    whole run's statistics."""
+    args, whole = two_seed_run.args, two_seed_run.whole
+    parts = {seed: tmp_path / f"seed{seed}" for seed in (1, 0)}
+    for seed, out in parts.items():
+        assert maze_main([*args, "--seeds", str(seed), "--out", str(out)]) == 0
+    alone = _records(parts[1])
+    assert len(alone) == 4 and alone == [r for r in _records(whole) if r["seed"] == 1]
+    assert json.loads((parts[1] / "config.json").read_text())["seeds"] == "1"
+    ours, header = read_checkpoint(parts[1] / "episodes_0.npz")
+    theirs = read_checkpoint(whole / "episodes_1.npz")[0]
+    assert header["metadata"]["seed"] == 1 and not (parts[1] / "episodes_1.npz").exists()
+    assert (parts[1] / "plots" / "maze_2d-rte.png").is_file()  # the trajectories of the run's first seed
+    assert all(np.array_equal(ours[name], theirs[name]) for name in theirs)
+    # the seeds' episodes differ (their PRNG keys do): the comparison tells the seeds apart
+    assert not np.array_equal(read_checkpoint(whole / "episodes_0.npz")[0]["trajectory"], theirs["trajectory"])
+
+    pooled = tmp_path / "pooled.json"
+    run_benchmark("pool_statistics.py", "--out", str(pooled), "--key", "parts", "--run", f"x={parts[0]}&{parts[1]}")
+    run_benchmark("pool_statistics.py", "--out", str(pooled), "--key", "whole", "--run", f"x={whole}")
+    statistics = json.loads(pooled.read_text())
+    assert statistics["parts"] == statistics["whole"]
+    assert statistics["whole"]["variants"]["x"]["seeds_per_median"] == 2 and statistics["whole"]["seed_tests"]
+
+
+def test_maze_eval_refuses_bad_seeds_in_one_line(tmp_path, capsys):
+    """--seeds: integers, each once, among the seed folders of --repertoire-dir, which it needs; else one line, exit
+    status 2, nothing written."""
+    seeds = _seed_folders(tmp_path / "seeds")
+    out = tmp_path / "never"
+    cases = {"1,x": "error: seeds: '1,x' is not comma-separated seed indices (integers >= 0, e.g. 1,2,3)",
+             "-1": "error: seeds: '-1' is not comma-separated seed indices (integers >= 0, e.g. 1,2,3)",
+             "0,1,0": "error: seeds: '0,1,0' names seed 0 twice",
+             "1,2": f"error: seeds: repertoire_dir {seeds} has no seed 2 (its subfolders are seeds 0 to 1)"}
+    for value, line in cases.items():
+        assert maze_main(["--variant", "2d-rte", "--repertoire-dir", str(seeds), "--seeds", value, "--out", str(out)]) \
+            == EXIT_BAD_INPUT, value
+        assert capsys.readouterr().err.splitlines() == [line]
+    assert maze_main(["--variant", "2d-rte", "--seeds", "0", "--out", str(out)]) == EXIT_BAD_INPUT
+    assert capsys.readouterr().err.splitlines() == [
+        "error: seeds picks seed folders of repertoire_dir: give repertoire_dir too"]
+    assert not out.exists()
 
 
 def test_spread_batches_is_one_mesh_per_device_and_one_process():

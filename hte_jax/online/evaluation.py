@@ -10,13 +10,14 @@ The paper's protocol (`PROTOCOLS["paper"]`): its six variants, the seven damages
 seeds and `replicates` episodes each. `PROTOCOLS["hte-jax"]`: our
 HTE (`hte-spare`) beside the paper's rule, RTE on the same HBR, 2D-RTE and both oracles, every
 variant on the robot with the releasing tilt reflex. Seeds come from `repertoire_dir` (one subfolder per seed
-holding `hbr.npz`, `flat2d.npz`, `flat8d.npz`, `aprol.npz`); without it, the shipped repertoires
-are the one seed.
+holding `hbr.npz`, `flat2d.npz`, `flat8d.npz`, `aprol.npz`; `seeds` picks some, by index); without it,
+the shipped repertoires are the one seed.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import re
 import time
 from pathlib import Path
 
@@ -73,9 +74,10 @@ class EvalConfig:
     (`damage_list`). replicates: episodes per (variant, damage). repertoire: an HBR or single flat
     repertoire file for the HBR variants and "rte" ("" = the shipped HBR). repertoire_dir: a folder
     with one subfolder per repertoire seed (files `SEED_FILES`) used instead of the shipped
-    repertoires. damage_model: the model of the damages that name none: "raised" (a damaged leg
-    blocked in the air, the paper's words), "locked" (in the standing pose, the original code's) or
-    "removed". max_actions: the failure cap. planner: the MCTS settings (`PlannerConfig`,
+    repertoires. seeds: the seeds of `repertoire_dir` to run, comma-separated indices of its subfolders
+    in name order ("" = every seed); each keeps its index, so its episodes equal a run over every seed's.
+    damage_model: the model of the damages that name none: "raised" (a damaged leg blocked in the air,
+    the paper's words), "locked" (in the standing pose, the original code's) or "removed". max_actions: the failure cap. planner: the MCTS settings (`PlannerConfig`,
     inlined: settings iterations, roots, exploration, widening, gamma, depth, candidates,
     collision_reward, goal_reward; 200 x 2 trees by default). composition: how an HBR step with a chosen contact pattern picks its elite: "planned" (ours,
     `hbr.composition`: a plan among the pattern's elites to the skill's end) or "waypoints" (the
@@ -98,6 +100,7 @@ class EvalConfig:
     replicates: int = integer(1)
     repertoire: str = ""
     repertoire_dir: str = ""
+    seeds: str = ""
     damage_model: str = "raised"
     max_actions: int = 80
     planner: PlannerConfig = inline(PlannerConfig(iterations=200, roots=2))
@@ -115,6 +118,7 @@ class EvalConfig:
             variant_named(name)  # validates the name
         if self.repertoire and self.repertoire_dir:
             raise ConfigError("give either repertoire (one HBR file) or repertoire_dir (seed folders), not both")
+        self.seed_indices  # noqa: B018 (validates the seeds)
         self.robot  # noqa: B018 (RobotConfig validates the damage model)
         self.damage_conditions  # noqa: B018 (validates the damages)
         self.adaptation  # noqa: B018 (validates max_actions)
@@ -128,6 +132,20 @@ class EvalConfig:
         if len(set(names)) != len(names):
             raise ConfigError(f"variants: {self.variants!r} names a variant twice")
         return names
+
+    @property
+    def seed_indices(self) -> tuple[int, ...]:
+        """The repertoire seeds `seeds` names, increasing; () for every seed of `repertoire_dir`."""
+        items = [item.strip() for item in self.seeds.split(",")] if self.seeds.strip() else []
+        if not all(re.fullmatch(r"[0-9]+", item) for item in items):
+            raise ConfigError(f"seeds: {self.seeds!r} is not comma-separated seed indices (integers >= 0, e.g. 1,2,3)")
+        indices = [int(item) for item in items]
+        twice = sorted({i for i in indices if indices.count(i) > 1})
+        if twice:
+            raise ConfigError(f"seeds: {self.seeds!r} names seed {twice[0]} twice")
+        if indices and not self.repertoire_dir:
+            raise ConfigError("seeds picks seed folders of repertoire_dir: give repertoire_dir too")
+        return tuple(sorted(indices))
 
     @property
     def damage_conditions(self) -> dict[str, Damage]:
@@ -242,24 +260,30 @@ class BatchResult:
     replays: list[Replay] = dataclasses.field(default_factory=list)
 
 
-def seed_folders(config: EvalConfig) -> list[Path | None]:
-    """The repertoire seeds: subfolders of `repertoire_dir` in name order, or [None] (shipped)."""
+def seed_folders(config: EvalConfig) -> dict[int, Path | None]:
+    """The repertoire seeds to run, by index: the subfolders of `repertoire_dir` in name order (those `seeds`
+    names, or all), or {0: None} (the shipped repertoires)."""
     if not config.repertoire_dir:
-        return [None]
+        return {0: None}
     root = Path(config.repertoire_dir)
     if not root.is_dir():
         raise ConfigError(f"repertoire_dir {root} is not a folder")
-    seeds = sorted(p for p in root.iterdir() if p.is_dir())
-    if not seeds:
+    folders = sorted(p for p in root.iterdir() if p.is_dir())
+    if not folders:
         raise ConfigError(f"repertoire_dir {root} holds no seed subfolders")
-    return seeds
+    chosen = config.seed_indices or tuple(range(len(folders)))
+    missing = [str(i) for i in chosen if i >= len(folders)]
+    if missing:
+        held = "seed 0" if len(folders) == 1 else f"seeds 0 to {len(folders) - 1}"
+        raise ConfigError(f"seeds: repertoire_dir {root} has no seed{'s' * (len(missing) > 1)} {', '.join(missing)} (its subfolders are {held})")
+    return {i: folders[i] for i in chosen}
 
 
 def batches(config: EvalConfig) -> list[tuple[int, str | None, list[str]]]:
     """(seed index, repertoire path or None for the shipped HBR, variants) for each batch to run."""
     hbr = [v for v in config.variant_list if variant_named(v).hierarchical]
     out = []
-    for seed, folder in enumerate(seed_folders(config)):
+    for seed, folder in seed_folders(config).items():
         if hbr:
             out.append((seed, config.repertoire or None if folder is None else str(folder / SEED_FILES["hbr"]), hbr))
         for name in config.variant_list:
