@@ -13,7 +13,7 @@
     python -m experiments.maze_eval --protocol ablations --preset gpu --maze random:3 --damage suite  # what pays
     python -m experiments.maze_eval --protocol paper --preset gpu --repertoire-dir runs/seeds  # R seeds
     python -m experiments.maze_eval --protocol paper --preset gpu --repertoire-dir runs/seeds --resume  # after a kill
-    python -m experiments.maze_eval --protocol paper --preset gpu --repertoire-dir runs/seeds --spread batches  # a batch per GPU
+    python -m experiments.maze_eval --protocol paper --preset gpu --repertoire-dir runs/seeds --spread batches  # a process per GPU
     python -m experiments.maze_eval --protocol paper --preset gpu --repertoire-dir runs/seeds --seeds 1,2,3 --impl warp
     python -m experiments.maze_eval --variant hte --damage leg1 --video 1   # and a video of the episode
     python -m experiments.maze_eval --maze two_rooms --variant hte,rte   # another world (assets/mazes/ or a JSON file)
@@ -40,6 +40,8 @@ its canonical label (the model omitted where it is --damage-model, the friction 
 those seeds (indices of the subfolders in name order), each keeping its index and its episodes
 (benchmarks/pool_statistics.py --run "LABEL=DIR&DIR" pools such runs). --resume reads the
 batches a killed run finished and runs the others: the results equal an uninterrupted run's.
+--spread batches starts a worker process per device (each on that device alone, running the batches dealt
+to it in turn into their episodes_<k>.npz), waits for them, then summarises the batch files as --resume does.
 
 Writes config.json, episodes.json, summary.json (per variant and damage), statistics.json (the
 paper's method: quartiles of the replication medians, failure rates, Wilcoxon-Mann-Whitney tests with
@@ -59,24 +61,26 @@ import contextlib
 import dataclasses
 import json
 import os
-import queue
+import select
+import signal
+import stat
 import subprocess
 import sys
+import tempfile
 import threading
+import time
 import warnings
-from collections.abc import Callable
+from collections.abc import Iterator
 from pathlib import Path
 from types import SimpleNamespace
-from typing import Any
 
-import jax
 import numpy as np
 from jax.sharding import Mesh
 from tqdm.auto import tqdm
 
-from experiments.cli import (add_device_flags, add_setting_flags, device_mesh, input_errors,
-                             interruptible, is_writer, resumable_run, resume_command, setting_overrides,
-                             show_progress)
+from experiments.cli import (EXIT_BAD_INPUT, EXIT_INTERRUPTED, Interruption, add_device_flags, add_setting_flags,
+                             device_mesh, input_errors, interruptible, is_writer, resumable_run, resume_command,
+                             setting_overrides, show_progress)
 from hte_jax import sharding
 from hte_jax.config import settings
 from hte_jax.errors import ConfigError, require_int
@@ -95,6 +99,7 @@ from hte_jax.viz import gl
 
 SETTINGS = list(settings(EvalConfig))  # override keys, inlined settings (the planner's, the solver's) by their names
 SPREADS = ("episodes", "batches")  # --spread: what several devices split
+WORKER_POLL_S = 0.5  # how often --spread batches looks at its worker processes and counts their batch files
 RECORD_EVERY = 4  # control steps between the recorded states of --video episodes (25 per simulated second)
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -111,8 +116,11 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--spread", default="episodes", metavar="WHAT",
                    help="with several devices: 'episodes' (default) splits each batch's episodes over them, one batch "
-                        "after another; 'batches' runs whole batches on each device at once, dealt in turn (the "
-                        "planner's host round trips overlap; one process only)")
+                        "after another; 'batches' starts a worker process per device, each running whole batches "
+                        "dealt in turn (the planner's host round trips overlap), then summarises their batch files "
+                        "as --resume does (not with --distributed)")
+    # K,K,...: the batches a worker process of --spread batches runs (with --resume), and no summary
+    p.add_argument("--worker-batches", default=None, help=argparse.SUPPRESS)
     p.add_argument("--show-config", action="store_true", help="print the resolved configuration and exit")
     p.add_argument("--video", default="0", metavar="N",
                    help="record the first N episodes of each variant and write their videos (default 0: none)")
@@ -123,10 +131,14 @@ def parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     args = parser().parse_args(argv)
+    argv = sys.argv[1:] if argv is None else list(argv)
     with interruptible() as interrupt:
         with input_errors() as errors:
-            mesh = device_mesh(args)  # first: --distributed must start before jax touches the devices
-            meshes = _batch_meshes(args.spread, mesh, args.distributed)
+            share = _worker_batches(args.worker_batches, args.resume)  # None: this process runs the run's batches
+            worker_env = dict(os.environ)  # before this process's GPU setting below
+            with _gpu_memory_left_free(args.spread == "batches" and share is None and args.devices != 1):
+                mesh = device_mesh(args)  # first: --distributed must start before jax touches the devices
+            workers = _worker_devices(args.spread, mesh, args.distributed, share)
             writer = is_writer()  # only process 0 of a multi-host run writes files
             overrides = protocol_overrides(args.protocol) if args.protocol is not None else {}
             overrides.update(setting_overrides(args, SETTINGS))
@@ -136,8 +148,11 @@ def main(argv=None) -> int:
                 print(json.dumps(config.to_dict(), indent=2))
                 return 0
             require_impl(config.robot.impl)  # its backend, here
-            _check_warp_spread(config.robot.impl, meshes)
+            if not workers:
+                _check_warp_spread(config.robot.impl, mesh)
             planned = batches(config)  # before anything is written: reads the seed folders
+            if share is not None:
+                _check_batch_indices(share, len(planned))
             out = Path(args.out)
             stored = {"preset": args.preset, "protocol": args.protocol, **config.to_dict()}
             if args.resume:
@@ -159,28 +174,39 @@ def main(argv=None) -> int:
                 plans.append((labels, rows_to_record(labels, videos, earlier), episode_numbers(labels, earlier)))
                 earlier = {v: earlier.get(v, 0) + labels.count(v) for v in {*earlier, *labels}}
 
-            def run(k: int, on: Mesh):
-                """Batch k on the devices `on`, its replays and batch file written: (result, rows, recorded)."""
+            def run(k: int):
+                """Batch k, its replays and batch file written: (result, rows, recorded)."""
                 (seed, path, variants), (_, to_record, numbers) = planned[k], plans[k]
-                alone = len(meshes) == 1  # else the batch's unplaced work (its start states) runs on its device too
-                with contextlib.nullcontext() if alone else jax.default_device(on.devices.flat[0]):
-                    result = run_batch(config, path, variants, maze, progress=show_progress(args) and alone,
-                                       seed=seed, record=to_record, record_every=RECORD_EVERY, mesh=on)
+                result = run_batch(config, path, variants, maze, progress=show_progress(args), seed=seed,
+                                   record=to_record, record_every=RECORD_EVERY, mesh=mesh)
                 rows = episode_records(result, config.max_actions)
                 if not writer:
                     return result, rows, []
                 saved = _save_replays(out, result, numbers, k)  # before the batch file: a read batch has its replays
                 _save_batch(out / f"episodes_{k}.npz", result, rows)
-                if bar is not None:
-                    bar.update(1)
                 return result, rows, saved
 
             done = [args.resume and (out / f"episodes_{k}.npz").is_file() for k in range(len(planned))]
-            todo = [k for k in range(len(planned)) if not done[k]]
-            # batches run at once: one bar counts them (each batch's own bar is the one-mesh run's)
-            bar = tqdm(total=len(todo), desc="batches", unit="batch") if len(meshes) > 1 and show_progress(args) else None
-            ran = run_batches(todo, run, meshes)
-            say = print if bar is None else bar.write  # lines above the bar
+            if share is not None:  # a worker of --spread batches: its batches' files, no summary
+                interrupt.saved = lambda: _batches_written(out, len(planned))
+                for i, k in enumerate([k for k in share if not done[k]]):
+                    if i and _parent_gone():
+                        print(f"stopped before batch {k}: the process that started this worker stopped or asked it "
+                              "to", file=sys.stderr)
+                        return EXIT_INTERRUPTED
+                    result, rows, _ = run(k)
+                    print(_batch_line(k, planned[k], result, rows), flush=True)
+                return 0
+            by_workers = [k for k in range(len(planned)) if not done[k]] if workers else []
+            if by_workers:
+                interrupt.saved = lambda: _batches_written(out, len(planned))
+                processes = _workers(workers, by_workers, argv, worker_env)
+                try:
+                    _run_workers(processes, out, show_progress(args), interrupt)
+                except WorkerFailed as failure:
+                    print(f"error: {failure}; resume with: {interrupt.resume}", file=sys.stderr)
+                    return failure.status
+                done = [True] * len(planned)
             for k, (seed, path, variants) in enumerate(planned):
                 labels, to_record, numbers = plans[k]
                 batch_file = out / f"episodes_{k}.npz"
@@ -190,20 +216,17 @@ def main(argv=None) -> int:
                     recorded += [(labels[row], numbers[row]) for row in to_record]
                     if writer:
                         _plot_batch(out / "plots", result, curves, tracks, maze, planned[0][0])
-                        say(f"batch {k} ({'/'.join(variants)} on seed {seed}): read from {batch_file}")
+                        if k not in by_workers:  # a worker printed the line of each batch it ran
+                            print(f"batch {k} ({'/'.join(variants)} on seed {seed}): read from {batch_file}")
                     continue
-                result, rows, saved = ran(k)
+                result, rows, saved = run(k)
                 records += rows
                 if not writer:
                     continue
                 recorded += saved
                 interrupt.saved = f"wrote {_batch_files(k + 1, len(planned))} in {out}, no summary"
                 _plot_batch(out / "plots", result, curves, tracks, maze, planned[0][0])
-                say(f"batch {k} ({'/'.join(variants)} on seed {seed}: {result.repertoire['path']}, "
-                      f"{result.repertoire['actions']} actions): {len(rows)} episodes in {result.timings.total:.1f} s, "
-                      f"planning median {np.median(result.timings.plan):.2f} s per action")
-            if bar is not None:
-                bar.close()
+                print(_batch_line(k, planned[k], result, rows))
         if errors.failed:
             return 2
         if not writer:
@@ -239,52 +262,234 @@ def main(argv=None) -> int:
         return 0
 
 
-def _batch_meshes(spread: str, mesh: Mesh, distributed: bool) -> list[Mesh]:
-    """The meshes batches run on: `mesh` itself ("episodes"), or one per device of it ("batches")."""
+def _batch_line(k: int, batch: tuple, result, rows: list[dict]) -> str:
+    """The line a batch run prints: its variants, seed, repertoire, episodes and times."""
+    seed, _, variants = batch
+    return (f"batch {k} ({'/'.join(variants)} on seed {seed}: {result.repertoire['path']}, "
+            f"{result.repertoire['actions']} actions): {len(rows)} episodes in {result.timings.total:.1f} s, "
+            f"planning median {np.median(result.timings.plan):.2f} s per action")
+
+
+def _worker_batches(text: str | None, resume: bool) -> list[int] | None:
+    """The batches --worker-batches K,K,... names (a --spread batches worker's), in order; None when not given."""
+    if text is None:
+        return None
+    items = [item.strip() for item in text.split(",")]
+    if not all(item.isdecimal() for item in items):
+        raise ConfigError(f"--worker-batches must be comma-separated batch indices (integers >= 0), got {text!r}")
+    indices = [int(item) for item in items]
+    if len(set(indices)) < len(indices):
+        raise ConfigError(f"--worker-batches names a batch twice: {text!r}")
+    if not resume:
+        raise ConfigError("--worker-batches runs batches of a started run: give --resume too")
+    return indices
+
+
+def _check_batch_indices(indices: list[int], count: int) -> None:
+    """ConfigError unless every batch of --worker-batches is one of the run's `count` batches."""
+    outside = [k for k in indices if k >= count]
+    if outside:
+        raise ConfigError(f"--worker-batches: this run has batches 0 to {count - 1}, not {outside[0]}")
+
+
+def _worker_devices(spread: str, mesh: Mesh, distributed: bool, share: list[int] | None) -> list:
+    """The devices that each get a worker process: the mesh's under --spread batches with several devices;
+    none where this process runs the batches itself (over the whole mesh)."""
     if spread not in SPREADS:
         raise ConfigError(f"--spread must be one of {', '.join(SPREADS)}, got {spread!r}")
-    if spread == "episodes":
-        return [mesh]
+    if spread == "episodes" or share is not None:
+        return []
     if distributed:
-        raise ConfigError("--spread batches runs in one process: leave out --distributed, or spread episodes")
-    return sharding.device_meshes(mesh)
+        raise ConfigError("--spread batches starts a process per device itself: leave out --distributed, or spread "
+                          "episodes")
+    devices = list(mesh.devices.flat)
+    others = sorted({d.platform for d in devices} - {"cpu", "gpu"})
+    if others:
+        raise ConfigError(f"--spread batches runs a process per GPU or CPU device, not on {others[0]} devices: spread "
+                          "episodes")
+    return devices if len(devices) > 1 else []
 
 
-def _check_warp_spread(impl: str, meshes: list[Mesh]) -> None:
+@contextlib.contextmanager
+def _gpu_memory_left_free(free: bool) -> Iterator[None]:
+    """Within the block (where jax starts its backends), jax claims no GPU memory in advance if `free`: the
+    worker processes of --spread batches take it, this process only reads their batch files."""
+    name = "XLA_PYTHON_CLIENT_PREALLOCATE"
+    if not free:
+        yield
+        return
+    before = os.environ.get(name)
+    os.environ[name] = "false"
+    try:
+        yield
+    finally:
+        if before is None:
+            os.environ.pop(name, None)
+        else:
+            os.environ[name] = before
+
+
+def _check_warp_spread(impl: str, mesh: Mesh) -> None:
     """ConfigError for MJX's Warp backend with a batch's episodes split over several GPUs: XLA died compiling
     those programs on 2 H200s (SIGSEGV, 2026-11-28; docs/design.md, Warp on several devices); whole batches per
     GPU run."""
-    if impl == "warp" and any(sharding.mesh_size(m) > 1 and m.devices.flat[0].platform == "gpu" for m in meshes):
+    if impl == "warp" and sharding.mesh_size(mesh) > 1 and mesh.devices.flat[0].platform == "gpu":
         raise ConfigError("--impl warp splits no batch over several GPUs (XLA crashes compiling it): add --spread "
                           "batches (whole batches on each GPU) or use one GPU (--devices 1)")
 
 
-def run_batches(todo: list[int], run: Callable[[int, Mesh], Any], meshes: list[Mesh]) -> Callable[[int], Any]:
-    """`run(k, mesh)` for every batch k of `todo`; returns `ran(k)`, its value (or its exception, raised), asked
-    for in todo's order. One mesh: each batch runs when asked for. Several: at once, one daemon thread per mesh
-    running its share of `todo` in order (the i-th batch of todo on mesh i mod N, each whole on its devices)."""
-    if len(meshes) == 1:
-        return lambda k: run(k, meshes[0])
-    outcomes = {k: queue.Queue(maxsize=1) for k in todo}
+@dataclasses.dataclass
+class Worker:
+    """A process of --spread batches: `command` runs `batches` of the run on one device."""
+    index: int
+    name: str  # in messages: "worker 1 (gpu 1, CUDA_VISIBLE_DEVICES=3; batches 1, 3)"
+    batches: list[int]
+    command: list[str]
+    env: dict[str, str]
 
-    def work(share: list[int], on: Mesh) -> None:
-        for k in share:
-            try:
-                outcomes[k].put((True, run(k, on)))
-            except BaseException as error:  # raised in the main thread when it asks for batch k
-                outcomes[k].put((False, error))
-                return
 
-    for i, on in enumerate(meshes):
-        threading.Thread(target=work, args=(todo[i::len(meshes)], on), name=f"batches-{i}", daemon=True).start()
+class WorkerFailed(Exception):
+    """A worker process of --spread batches failed; `status` is the exit status the command ends with."""
 
-    def ran(k: int) -> Any:
-        ok, value = outcomes[k].get()
-        if not ok:
-            raise value
-        return value
+    def __init__(self, message: str, status: int):
+        super().__init__(message)
+        self.status = status
 
-    return ran
+
+def _workers(devices: list, todo: list[int], argv: list[str], env: dict[str, str]) -> list[Worker]:
+    """A worker per device, the i-th batch of `todo` on device i mod N (a device left without one gets no
+    worker): this command with the same flags, --resume, on its device alone, no progress bar."""
+    workers = []
+    for i, device in enumerate(devices):
+        share = todo[i::len(devices)]
+        if not share:
+            continue
+        where, visible = _device_env(device, env)
+        command = [sys.executable, "-m", "experiments.maze_eval", *argv, "--resume", "--devices", "1", "--no-progress",
+                   "--worker-batches", ",".join(map(str, share))]
+        path = os.pathsep.join(filter(None, [str(ROOT), env.get("PYTHONPATH")]))  # this checkout's code
+        workers.append(Worker(i, f"worker {i} ({where}; batch{'es' * (len(share) > 1)} {', '.join(map(str, share))})",
+                              share, command, {**env, **visible, "PYTHONPATH": path, "PYTHONUNBUFFERED": "1"}))
+    return workers
+
+
+def _device_env(device, env: dict[str, str]) -> tuple[str, dict[str, str]]:
+    """How messages name `device`, and the environment that shows a worker that device alone: on a GPU,
+    CUDA_VISIBLE_DEVICES set to its entry of `env`'s list, or its index where `env` has none; CPU devices share
+    the host's cores, the worker takes one (--devices 1) and keeps XLA_FLAGS."""
+    if device.platform != "gpu":
+        return f"cpu device {device.id}", {}
+    listed = [entry.strip() for entry in env.get("CUDA_VISIBLE_DEVICES", "").split(",") if entry.strip()]
+    index = device.local_hardware_id
+    entry = listed[index] if listed else str(index)
+    return f"gpu {device.id}, CUDA_VISIBLE_DEVICES={entry}", {"CUDA_VISIBLE_DEVICES": entry}
+
+
+def _run_workers(workers: list[Worker], out: Path, progress: bool, interrupt: Interruption) -> None:
+    """Run the workers at once and wait for all, printing their lines (above a bar counting their batch files
+    if `progress`); Ctrl-C ends them (`interrupt.start_child`). WorkerFailed naming the first that fails (the
+    others stop after their current batch: their standard input closes) or ends without its batch files."""
+    files = [out / f"episodes_{k}.npz" for w in workers for k in w.batches]
+    for old in out.glob("worker_*.stderr"):  # an earlier attempt's failure
+        old.unlink()
+    bar = tqdm(total=len(files), desc="batches", unit="batch", disable=not progress)
+    with contextlib.ExitStack() as stack:
+        stack.callback(bar.close)
+        started = []
+
+        @stack.callback
+        def end_all() -> None:  # none left running, whatever ends the block (a no-op for those that ended)
+            for _, process, _, _ in started:
+                process.terminate()
+
+        for worker in workers:
+            stderr = stack.enter_context(tempfile.TemporaryFile("w+"))
+            with _no_fork_warning():
+                process = interrupt.start_child(worker.command, env=worker.env, stdin=subprocess.PIPE,
+                                                stdout=subprocess.PIPE, stderr=stderr, text=True)
+            relay = threading.Thread(target=_relay, args=(process.stdout,), name=f"{worker.name} stdout")
+            relay.start()
+            started.append((worker, process, stderr, relay))
+        failed = None
+        running = list(started)
+        while running:
+            time.sleep(WORKER_POLL_S)
+            _show_count(bar, files)
+            for entry in [entry for entry in running if entry[1].poll() is not None]:
+                running.remove(entry)
+                worker, process, stderr, _ = entry
+                if process.returncode != 0 and failed is None:
+                    failed = WorkerFailed(_failure(worker, process.returncode, stderr, out),
+                                          EXIT_BAD_INPUT if process.returncode == EXIT_BAD_INPUT else 1)
+                    for _, other, _, _ in running:
+                        other.stdin.close()
+        for _, process, _, relay in started:
+            relay.join()
+            process.stdin.close()
+        _show_count(bar, files)
+    if failed is not None:
+        raise failed
+    for worker in workers:
+        missing = [k for k in worker.batches if not (out / f"episodes_{k}.npz").is_file()]
+        if missing:
+            raise WorkerFailed(f"{worker.name} ended without writing episodes_{missing[0]}.npz", 1)
+
+
+def _show_count(bar: tqdm, files: list[Path]) -> None:
+    """The bar at the number of `files` written, redrawn only when it grows."""
+    written = sum(f.is_file() for f in files)
+    if written > bar.n:
+        bar.update(written - bar.n)
+
+
+def _relay(stream) -> None:
+    """Print a worker's lines as they come, above the progress bar."""
+    for line in stream:
+        tqdm.write(line.rstrip("\n"))
+
+
+def _failure(worker: Worker, status: int, stderr, out: Path) -> str:
+    """The line saying `worker` failed: how, the last line of its stderr (all of it kept in out as
+    worker_<i>.stderr), and what is kept."""
+    stderr.seek(0)
+    text = stderr.read()
+    lines = [line for line in text.splitlines() if line.strip()]
+    last = lines[-1].removeprefix("error: ") if lines else "nothing on stderr"
+    if status < 0:
+        try:
+            how = f"killed by {signal.Signals(-status).name}"
+        except ValueError:
+            how = f"killed by signal {-status}"
+    else:
+        how = f"exit status {status}"
+    log = out / f"worker_{worker.index}.stderr"
+    log.write_text(text)
+    return f"{worker.name} failed ({how}): {last} (its stderr: {log}); the finished batches stay in {out}"
+
+
+def _parent_gone() -> bool:
+    """In a worker of --spread batches: whether its standard input, the pipe from the process that started it,
+    has closed (that process ended, or asks it to stop after its current batch)."""
+    try:
+        if not stat.S_ISFIFO(os.fstat(0).st_mode):
+            return False
+        return bool(select.select([0], [], [], 0)[0]) and os.read(0, 1) == b""
+    except OSError:
+        return False
+
+
+def _batches_written(out: Path, total: int) -> str:
+    """For Ctrl-C while batches run in any order: how many batch files the run folder holds."""
+    count = sum((out / f"episodes_{k}.npz").is_file() for k in range(total))
+    return f"wrote {count} of {total} batch files (episodes_<k>.npz) in {out}, no summary"
+
+
+@contextlib.contextmanager
+def _no_fork_warning() -> Iterator[None]:
+    """JAX's os.fork() warning does not apply to a subprocess that execs at once."""
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=r"os\.fork\(\) was called", category=RuntimeWarning)
+        yield
 
 
 def _batch_files(count: int, total: int) -> str:
@@ -327,8 +532,7 @@ def _write_videos(out: Path, recorded: list[tuple[str, int]], progress: bool) ->
     for k, (variant, number) in enumerate(tqdm(recorded, desc="videos", unit="video", disable=not progress)):
         command = [sys.executable, "-m", "experiments.render", "episode", str(out.resolve()), "--variant", variant,
                    "--episode", str(number), "--no-progress"]
-        with warnings.catch_warnings():  # JAX's fork warning does not apply to a subprocess that execs at once
-            warnings.filterwarnings("ignore", message=r"os\.fork\(\) was called", category=RuntimeWarning)
+        with _no_fork_warning():
             proc = subprocess.run(command, cwd=ROOT, env=env, capture_output=True, text=True)
         if proc.returncode != 0:
             lines = proc.stderr.strip().splitlines() or [f"exit status {proc.returncode}"]
