@@ -195,10 +195,11 @@ def empty_data(robot: Robot, rows: int) -> mjx.Data:
 
 def standing_state(robot: Robot, damage: jax.Array | Damage | None = None, settle_steps: int = 100) -> SimState:
     """A settled standing pose (zero controller, then x = y = 0), batched like `damage`: a (6,) or (B, 6) bool leg
-    mask, or a `Damage` unbatched or batched (B, ...). Three programs: the reference poses, the rollout, the move to
-    the origin."""
+    mask, or a `Damage` unbatched or batched (B, ...), concrete or traced. Three programs: the reference poses, the
+    rollout, the move to the origin."""
     damage = np.zeros(NUM_LEGS, bool) if damage is None else damage
-    damage = damage if isinstance(damage, Damage) else np.asarray(damage, bool)
+    if not isinstance(damage, Damage):  # traced (under a caller's jit) or concrete
+        damage = damage.astype(bool) if isinstance(damage, jax.Array) else np.asarray(damage, bool)
     legs = damage.legs if isinstance(damage, Damage) else damage
     batched = np.ndim(legs) == 2
     damage = jax.tree.map(lambda x: x.reshape(-1, *np.shape(x)[np.ndim(legs) - 1:]), damage)
