@@ -8,7 +8,8 @@
 Ctrl-C ends a command at once, also while the main thread waits in a long XLA call, with one line on
 stderr, `interrupted: <what was saved>[; resume with: <command>]` (or `interrupted: nothing written`),
 and exit status 130. Every command's `main` runs inside `interruptible` and keeps its `saved` up to
-date (text, or a function that reads the run folder when Ctrl-C comes).
+date (text, or a function that reads the run folder when Ctrl-C comes); the processes it starts with
+`Interruption.start_child` end with it.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ import json
 import os
 import shlex
 import signal
+import subprocess
 import sys
 import threading
 from collections.abc import Callable, Iterator, Sequence
@@ -237,11 +239,28 @@ def train_command(module: str, args, argv, out: str, checkpoints: dict[str, str]
 
 class Interruption:
     """What the line Ctrl-C prints says. saved: what was written so far (None: nothing), or a function
-    giving it, called from another thread (it must only read files). resume: the command that continues."""
+    giving it, called from another thread (it must only read files). resume: the command that continues.
+    The processes started with `start_child` end with the command."""
 
     def __init__(self, saved: str | Callable[[], str | None] | None = None, resume: str | None = None):
         self.saved = saved
         self.resume = resume
+        self._children: list[subprocess.Popen] = []
+        self._starting = threading.Lock()
+
+    def start_child(self, command: list[str], **popen) -> subprocess.Popen:
+        """`subprocess.Popen(command, **popen)`, a process that Ctrl-C ends too."""
+        with self._starting:  # Ctrl-C meanwhile waits for it, then ends it
+            child = subprocess.Popen(command, **popen)
+            self._children.append(child)
+        return child
+
+    def end_children(self) -> None:
+        """Terminate the processes `start_child` started; none starts after this (the command is ending)."""
+        self._starting.acquire()
+        for child in self._children:
+            with contextlib.suppress(OSError):
+                child.terminate()
 
     def line(self) -> str:
         try:
@@ -289,7 +308,9 @@ def _watch(woken: int, interruption: Interruption) -> None:
 
 
 def _stop(interruption: Interruption) -> None:
-    """Print the interruption's line and end the process now (stdout flushed first: a file or pipe keeps its lines)."""
+    """End the interruption's child processes, print its line and end the process now (stdout flushed first: a
+    file or pipe keeps its lines)."""
+    interruption.end_children()
     line = interruption.line()
     for stream in (sys.stdout, sys.stderr):
         with contextlib.suppress(Exception):

@@ -13,7 +13,7 @@
     python -m experiments.maze_eval --protocol ablations --preset gpu --maze random:3 --damage suite  # what pays
     python -m experiments.maze_eval --protocol paper --preset gpu --repertoire-dir runs/seeds  # R seeds
     python -m experiments.maze_eval --protocol paper --preset gpu --repertoire-dir runs/seeds --resume  # after a kill
-    python -m experiments.maze_eval --protocol paper --preset gpu --repertoire-dir runs/seeds --spread batches  # a batch per GPU
+    python -m experiments.maze_eval --protocol paper --preset gpu --repertoire-dir runs/seeds --spread batches  # a process per GPU
     python -m experiments.maze_eval --protocol paper --preset gpu --repertoire-dir runs/seeds --seeds 1,2,3 --impl warp
     python -m experiments.maze_eval --variant hte --damage leg1 --video 1   # and a video of the episode
     python -m experiments.maze_eval --maze two_rooms --variant hte,rte   # another world (assets/mazes/ or a JSON file)
@@ -40,6 +40,8 @@ its canonical label (the model omitted where it is --damage-model, the friction 
 those seeds (indices of the subfolders in name order), each keeping its index and its episodes
 (benchmarks/pool_statistics.py --run "LABEL=DIR&DIR" pools such runs). --resume reads the
 batches a killed run finished and runs the others: the results equal an uninterrupted run's.
+--spread batches starts a worker process per device (each on that device alone, running the batches dealt
+to it in turn into their episodes_<k>.npz), waits for them, then summarises the batch files as --resume does.
 
 Writes config.json, episodes.json, summary.json (per variant and damage), statistics.json (the
 paper's method: quartiles of the replication medians, failure rates, Wilcoxon-Mann-Whitney tests with
@@ -55,28 +57,22 @@ Bad values give a one-line error and exit status 2.
 from __future__ import annotations
 
 import argparse
-import contextlib
 import dataclasses
 import json
 import os
-import queue
 import subprocess
 import sys
-import threading
-import warnings
-from collections.abc import Callable
 from pathlib import Path
 from types import SimpleNamespace
-from typing import Any
 
-import jax
 import numpy as np
 from jax.sharding import Mesh
 from tqdm.auto import tqdm
 
-from experiments.cli import (add_device_flags, add_setting_flags, device_mesh, input_errors,
-                             interruptible, is_writer, resumable_run, resume_command, setting_overrides,
-                             show_progress)
+from experiments import batch_workers
+from experiments.cli import (EXIT_INTERRUPTED, add_device_flags, add_setting_flags,
+                             device_mesh, input_errors, interruptible, is_writer, resumable_run, resume_command,
+                             setting_overrides, show_progress)
 from hte_jax import sharding
 from hte_jax.config import settings
 from hte_jax.errors import ConfigError, require_int
@@ -111,8 +107,11 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--spread", default="episodes", metavar="WHAT",
                    help="with several devices: 'episodes' (default) splits each batch's episodes over them, one batch "
-                        "after another; 'batches' runs whole batches on each device at once, dealt in turn (the "
-                        "planner's host round trips overlap; one process only)")
+                        "after another; 'batches' starts a worker process per device, each running whole batches "
+                        "dealt in turn (the planner's host round trips overlap), then summarises their batch files "
+                        "as --resume does (not with --distributed)")
+    # K,K,...: the batches a worker process of --spread batches runs (with --resume), and no summary
+    p.add_argument("--worker-batches", default=None, help=argparse.SUPPRESS)
     p.add_argument("--show-config", action="store_true", help="print the resolved configuration and exit")
     p.add_argument("--video", default="0", metavar="N",
                    help="record the first N episodes of each variant and write their videos (default 0: none)")
@@ -123,10 +122,14 @@ def parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     args = parser().parse_args(argv)
+    argv = sys.argv[1:] if argv is None else list(argv)
     with interruptible() as interrupt:
         with input_errors() as errors:
-            mesh = device_mesh(args)  # first: --distributed must start before jax touches the devices
-            meshes = _batch_meshes(args.spread, mesh, args.distributed)
+            share = _worker_batches(args.worker_batches, args.resume)  # None: this process runs the run's batches
+            worker_env = dict(os.environ)  # before this process's GPU setting below
+            with batch_workers.gpu_memory_left_free(args.spread == "batches" and share is None and args.devices != 1):
+                mesh = device_mesh(args)  # first: --distributed must start before jax touches the devices
+            workers = _worker_devices(args.spread, mesh, args.distributed, share)
             writer = is_writer()  # only process 0 of a multi-host run writes files
             overrides = protocol_overrides(args.protocol) if args.protocol is not None else {}
             overrides.update(setting_overrides(args, SETTINGS))
@@ -136,8 +139,11 @@ def main(argv=None) -> int:
                 print(json.dumps(config.to_dict(), indent=2))
                 return 0
             require_impl(config.robot.impl)  # its backend, here
-            _check_warp_spread(config.robot.impl, meshes)
+            if not workers:
+                _check_warp_spread(config.robot.impl, mesh)
             planned = batches(config)  # before anything is written: reads the seed folders
+            if share is not None:
+                _check_batch_indices(share, len(planned))
             out = Path(args.out)
             stored = {"preset": args.preset, "protocol": args.protocol, **config.to_dict()}
             if args.resume:
@@ -159,28 +165,39 @@ def main(argv=None) -> int:
                 plans.append((labels, rows_to_record(labels, videos, earlier), episode_numbers(labels, earlier)))
                 earlier = {v: earlier.get(v, 0) + labels.count(v) for v in {*earlier, *labels}}
 
-            def run(k: int, on: Mesh):
-                """Batch k on the devices `on`, its replays and batch file written: (result, rows, recorded)."""
+            def run(k: int):
+                """Batch k, its replays and batch file written: (result, rows, recorded)."""
                 (seed, path, variants), (_, to_record, numbers) = planned[k], plans[k]
-                alone = len(meshes) == 1  # else the batch's unplaced work (its start states) runs on its device too
-                with contextlib.nullcontext() if alone else jax.default_device(on.devices.flat[0]):
-                    result = run_batch(config, path, variants, maze, progress=show_progress(args) and alone,
-                                       seed=seed, record=to_record, record_every=RECORD_EVERY, mesh=on)
+                result = run_batch(config, path, variants, maze, progress=show_progress(args), seed=seed,
+                                   record=to_record, record_every=RECORD_EVERY, mesh=mesh)
                 rows = episode_records(result, config.max_actions)
                 if not writer:
                     return result, rows, []
                 saved = _save_replays(out, result, numbers, k)  # before the batch file: a read batch has its replays
                 _save_batch(out / f"episodes_{k}.npz", result, rows)
-                if bar is not None:
-                    bar.update(1)
                 return result, rows, saved
 
             done = [args.resume and (out / f"episodes_{k}.npz").is_file() for k in range(len(planned))]
-            todo = [k for k in range(len(planned)) if not done[k]]
-            # batches run at once: one bar counts them (each batch's own bar is the one-mesh run's)
-            bar = tqdm(total=len(todo), desc="batches", unit="batch") if len(meshes) > 1 and show_progress(args) else None
-            ran = run_batches(todo, run, meshes)
-            say = print if bar is None else bar.write  # lines above the bar
+            if share is not None:  # a worker of --spread batches: its batches' files, no summary
+                interrupt.saved = lambda: _batches_written(out, len(planned))
+                for i, k in enumerate([k for k in share if not done[k]]):
+                    if i and batch_workers.parent_gone():
+                        print(f"stopped before batch {k}: the process that started this worker stopped or asked it "
+                              "to", file=sys.stderr)
+                        return EXIT_INTERRUPTED
+                    result, rows, _ = run(k)
+                    print(_batch_line(k, planned[k], result, rows), flush=True)
+                return 0
+            by_workers = [k for k in range(len(planned)) if not done[k]] if workers else []
+            if by_workers:
+                interrupt.saved = lambda: _batches_written(out, len(planned))
+                processes = batch_workers.plan_workers("experiments.maze_eval", workers, by_workers, argv, worker_env)
+                try:
+                    batch_workers.run_workers(processes, out, show_progress(args), interrupt)
+                except batch_workers.WorkerFailed as failure:
+                    print(f"error: {failure}; resume with: {interrupt.resume}", file=sys.stderr)
+                    return failure.status
+                done = [True] * len(planned)
             for k, (seed, path, variants) in enumerate(planned):
                 labels, to_record, numbers = plans[k]
                 batch_file = out / f"episodes_{k}.npz"
@@ -190,20 +207,17 @@ def main(argv=None) -> int:
                     recorded += [(labels[row], numbers[row]) for row in to_record]
                     if writer:
                         _plot_batch(out / "plots", result, curves, tracks, maze, planned[0][0])
-                        say(f"batch {k} ({'/'.join(variants)} on seed {seed}): read from {batch_file}")
+                        if k not in by_workers:  # a worker printed the line of each batch it ran
+                            print(f"batch {k} ({'/'.join(variants)} on seed {seed}): read from {batch_file}")
                     continue
-                result, rows, saved = ran(k)
+                result, rows, saved = run(k)
                 records += rows
                 if not writer:
                     continue
                 recorded += saved
                 interrupt.saved = f"wrote {_batch_files(k + 1, len(planned))} in {out}, no summary"
                 _plot_batch(out / "plots", result, curves, tracks, maze, planned[0][0])
-                say(f"batch {k} ({'/'.join(variants)} on seed {seed}: {result.repertoire['path']}, "
-                      f"{result.repertoire['actions']} actions): {len(rows)} episodes in {result.timings.total:.1f} s, "
-                      f"planning median {np.median(result.timings.plan):.2f} s per action")
-            if bar is not None:
-                bar.close()
+                print(_batch_line(k, planned[k], result, rows))
         if errors.failed:
             return 2
         if not writer:
@@ -239,52 +253,67 @@ def main(argv=None) -> int:
         return 0
 
 
-def _batch_meshes(spread: str, mesh: Mesh, distributed: bool) -> list[Mesh]:
-    """The meshes batches run on: `mesh` itself ("episodes"), or one per device of it ("batches")."""
+def _batch_line(k: int, batch: tuple, result, rows: list[dict]) -> str:
+    """The line a batch run prints: its variants, seed, repertoire, episodes and times."""
+    seed, _, variants = batch
+    return (f"batch {k} ({'/'.join(variants)} on seed {seed}: {result.repertoire['path']}, "
+            f"{result.repertoire['actions']} actions): {len(rows)} episodes in {result.timings.total:.1f} s, "
+            f"planning median {np.median(result.timings.plan):.2f} s per action")
+
+
+def _worker_batches(text: str | None, resume: bool) -> list[int] | None:
+    """The batches --worker-batches K,K,... names (a --spread batches worker's), in order; None when not given."""
+    if text is None:
+        return None
+    items = [item.strip() for item in text.split(",")]
+    if not all(item.isdecimal() for item in items):
+        raise ConfigError(f"--worker-batches must be comma-separated batch indices (integers >= 0), got {text!r}")
+    indices = [int(item) for item in items]
+    if len(set(indices)) < len(indices):
+        raise ConfigError(f"--worker-batches names a batch twice: {text!r}")
+    if not resume:
+        raise ConfigError("--worker-batches runs batches of a started run: give --resume too")
+    return indices
+
+
+def _check_batch_indices(indices: list[int], count: int) -> None:
+    """ConfigError unless every batch of --worker-batches is one of the run's `count` batches."""
+    outside = [k for k in indices if k >= count]
+    if outside:
+        raise ConfigError(f"--worker-batches: this run has batches 0 to {count - 1}, not {outside[0]}")
+
+
+def _worker_devices(spread: str, mesh: Mesh, distributed: bool, share: list[int] | None) -> list:
+    """The devices that each get a worker process: the mesh's under --spread batches with several devices;
+    none where this process runs the batches itself (over the whole mesh)."""
     if spread not in SPREADS:
         raise ConfigError(f"--spread must be one of {', '.join(SPREADS)}, got {spread!r}")
-    if spread == "episodes":
-        return [mesh]
+    if spread == "episodes" or share is not None:
+        return []
     if distributed:
-        raise ConfigError("--spread batches runs in one process: leave out --distributed, or spread episodes")
-    return sharding.device_meshes(mesh)
+        raise ConfigError("--spread batches starts a process per device itself: leave out --distributed, or spread "
+                          "episodes")
+    devices = list(mesh.devices.flat)
+    others = sorted({d.platform for d in devices} - {"cpu", "gpu"})
+    if others:
+        raise ConfigError(f"--spread batches runs a process per GPU or CPU device, not on {others[0]} devices: spread "
+                          "episodes")
+    return devices if len(devices) > 1 else []
 
 
-def _check_warp_spread(impl: str, meshes: list[Mesh]) -> None:
+def _check_warp_spread(impl: str, mesh: Mesh) -> None:
     """ConfigError for MJX's Warp backend with a batch's episodes split over several GPUs: XLA died compiling
     those programs on 2 H200s (SIGSEGV, 2026-11-28; docs/design.md, Warp on several devices); whole batches per
     GPU run."""
-    if impl == "warp" and any(sharding.mesh_size(m) > 1 and m.devices.flat[0].platform == "gpu" for m in meshes):
+    if impl == "warp" and sharding.mesh_size(mesh) > 1 and mesh.devices.flat[0].platform == "gpu":
         raise ConfigError("--impl warp splits no batch over several GPUs (XLA crashes compiling it): add --spread "
                           "batches (whole batches on each GPU) or use one GPU (--devices 1)")
 
 
-def run_batches(todo: list[int], run: Callable[[int, Mesh], Any], meshes: list[Mesh]) -> Callable[[int], Any]:
-    """`run(k, mesh)` for every batch k of `todo`; returns `ran(k)`, its value (or its exception, raised), asked
-    for in todo's order. One mesh: each batch runs when asked for. Several: at once, one daemon thread per mesh
-    running its share of `todo` in order (the i-th batch of todo on mesh i mod N, each whole on its devices)."""
-    if len(meshes) == 1:
-        return lambda k: run(k, meshes[0])
-    outcomes = {k: queue.Queue(maxsize=1) for k in todo}
-
-    def work(share: list[int], on: Mesh) -> None:
-        for k in share:
-            try:
-                outcomes[k].put((True, run(k, on)))
-            except BaseException as error:  # raised in the main thread when it asks for batch k
-                outcomes[k].put((False, error))
-                return
-
-    for i, on in enumerate(meshes):
-        threading.Thread(target=work, args=(todo[i::len(meshes)], on), name=f"batches-{i}", daemon=True).start()
-
-    def ran(k: int) -> Any:
-        ok, value = outcomes[k].get()
-        if not ok:
-            raise value
-        return value
-
-    return ran
+def _batches_written(out: Path, total: int) -> str:
+    """For Ctrl-C while batches run in any order: how many batch files the run folder holds."""
+    count = sum((out / f"episodes_{k}.npz").is_file() for k in range(total))
+    return f"wrote {count} of {total} batch files (episodes_<k>.npz) in {out}, no summary"
 
 
 def _batch_files(count: int, total: int) -> str:
@@ -327,8 +356,7 @@ def _write_videos(out: Path, recorded: list[tuple[str, int]], progress: bool) ->
     for k, (variant, number) in enumerate(tqdm(recorded, desc="videos", unit="video", disable=not progress)):
         command = [sys.executable, "-m", "experiments.render", "episode", str(out.resolve()), "--variant", variant,
                    "--episode", str(number), "--no-progress"]
-        with warnings.catch_warnings():  # JAX's fork warning does not apply to a subprocess that execs at once
-            warnings.filterwarnings("ignore", message=r"os\.fork\(\) was called", category=RuntimeWarning)
+        with batch_workers.no_fork_warning():
             proc = subprocess.run(command, cwd=ROOT, env=env, capture_output=True, text=True)
         if proc.returncode != 0:
             lines = proc.stderr.strip().splitlines() or [f"exit status {proc.returncode}"]

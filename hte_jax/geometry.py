@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 
 def wrap_angle(angle: jax.Array) -> jax.Array:
@@ -12,14 +13,18 @@ def wrap_angle(angle: jax.Array) -> jax.Array:
 
 
 def heading(quat: jax.Array) -> jax.Array:
-    """(..., 4) quaternion -> (...,) yaw of the body's x axis projected on the floor (rad)."""
+    """(..., 4) quaternion -> (...,) yaw of the body's x axis projected on the floor (rad). A NumPy quaternion
+    gives NumPy: its products and sums NumPy's (rounded as jax's eager ops round them), its arctangent XLA's (NumPy's
+    differs in the last bit)."""
     w, x, y, z = quat[..., 0], quat[..., 1], quat[..., 2], quat[..., 3]
-    return jnp.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+    yaw = jnp.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+    return np.asarray(yaw) if isinstance(quat, np.ndarray) else yaw
 
 
-def planar_pose(pos: jax.Array, quat: jax.Array) -> jax.Array:
-    """(..., 3) positions and (..., 4) quaternions -> (..., 3) planar poses (x, y, heading)."""
-    return jnp.concatenate([pos[..., :2], heading(quat)[..., None]], axis=-1)
+def planar_pose(pos: jax.Array, quat: jax.Array, xp=jnp) -> jax.Array:
+    """(..., 3) positions and (..., 4) quaternions -> (..., 3) planar poses (x, y, heading) (jax, or NumPy as
+    `heading` computes it)."""
+    return xp.concatenate([pos[..., :2], heading(quat)[..., None]], axis=-1)
 
 
 def relative_pose(start: jax.Array, end: jax.Array) -> jax.Array:

@@ -59,11 +59,6 @@ def mesh_size(mesh: Mesh) -> int:
     return int(mesh.devices.size)
 
 
-def device_meshes(mesh: Mesh) -> list[Mesh]:
-    """A one-device mesh for each of `mesh`'s devices: for work that runs whole on one device."""
-    return [Mesh(np.array([device]), (BATCH_AXIS,)) for device in mesh.devices.flat]
-
-
 def padded_size(batch: int, mesh: Mesh) -> int:
     """The smallest multiple of the mesh's device count that holds `batch` rows."""
     return -(-batch // mesh_size(mesh)) * mesh_size(mesh)

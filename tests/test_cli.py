@@ -79,6 +79,24 @@ def test_the_interrupted_line_says_what_was_saved_and_how_to_resume():
     assert Interruption(broken).line() == "interrupted: what was saved is unknown (OSError: disk gone)"
 
 
+def test_the_interruption_ends_the_processes_it_started():
+    """What Ctrl-C does before its line: every process `start_child` started is terminated (one that ended
+    already is left alone)."""
+    import signal
+    import subprocess
+    import sys
+
+    from experiments.cli import Interruption
+
+    interruption = Interruption()
+    done = interruption.start_child([sys.executable, "-c", "pass"])
+    assert done.wait(timeout=60) == 0
+    sleeping = interruption.start_child([sys.executable, "-c", "import time; time.sleep(600)"],
+                                        stdout=subprocess.DEVNULL)
+    interruption.end_children()
+    assert sleeping.wait(timeout=60) == -signal.SIGTERM and done.returncode == 0
+
+
 def test_the_resume_command_repeats_the_arguments_it_was_given():
     from experiments.cli import resume_command
 

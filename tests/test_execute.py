@@ -14,6 +14,7 @@ from hte_jax.online.action import SimulatedRobots, flat_action
 from hte_jax.online.skills import flat_skills
 from hte_jax.online.maze import PAPER_MAZE, Maze
 from hte_jax.sim.robot import load_robot
+from hte_jax.sim.env import SimState
 from hte_jax.sim.rollout import standing_state
 
 # Bit for bit: a flat action against its trained controller run directly.
@@ -37,6 +38,34 @@ def test_robots_start_standing_at_the_maze_start():
     moving = standing.replace(qvel=standing.qvel.at[:, 0].set(1.0))
     turned = place(moving, jnp.asarray([[0.0, 0.0, np.pi / 2]] * 4))
     np.testing.assert_allclose(turned.qvel[:, :2], [[0.0, 1.0]] * 4, atol=1e-3)  # the settled heading is ~0
+
+
+def test_place_on_the_host_agrees_with_eager_jax():
+    """`place` (NumPy's arithmetic around XLA's arctangent, cosines and sines) gives, bit for bit, what its formulas
+    give as eager jax operations."""
+    rng = np.random.default_rng(7)
+    quat = rng.normal(size=(64, 4))
+    qpos = np.concatenate([rng.uniform(-1, 1, (64, 3)), quat / np.linalg.norm(quat, axis=-1, keepdims=True),
+                           rng.uniform(-1, 1, (64, 18))], axis=-1).astype(np.float32)
+    qvel, warm = rng.normal(size=(2, 64, 24)).astype(np.float32)
+    pose = rng.uniform(-3, 3, (64, 3)).astype(np.float32)
+    placed = place(SimState(qpos=qpos, qvel=qvel, qacc_warmstart=warm), pose)
+
+    q, p = jnp.asarray(qpos), jnp.asarray(pose)
+    w, x, y, z = q[:, 3], q[:, 4], q[:, 5], q[:, 6]
+    turn = p[:, 2] - jnp.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+    c, s = jnp.cos(turn)[:, None], jnp.sin(turn)[:, None]
+    aw, ax, ay, az = jnp.cos(turn / 2), jnp.zeros_like(turn), jnp.zeros_like(turn), jnp.sin(turn / 2)
+    quat = jnp.stack([aw * w - ax * x - ay * y - az * z, aw * x + ax * w + ay * z - az * y,
+                      aw * y - ax * z + ay * w + az * x, aw * z + ax * y - ay * x + az * w], axis=-1)
+
+    def rotate(v):
+        v = jnp.asarray(v)
+        return jnp.concatenate([c * v[:, :1] - s * v[:, 1:2], s * v[:, :1] + c * v[:, 1:2], v[:, 2:]], axis=-1)
+
+    expected = (jnp.concatenate([p[:, :2], q[:, 2:3], quat, q[:, 7:]], axis=-1), rotate(qvel), rotate(warm))
+    for got, want in zip((placed.qpos, placed.qvel, placed.qacc_warmstart), expected):
+        assert np.asarray(got).tobytes() == np.asarray(want).tobytes()
 
 
 def _forward_controller():

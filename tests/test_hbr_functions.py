@@ -215,7 +215,7 @@ def test_elite_controllers_keep_their_last_results_by_input_digest(monkeypatch):
     moved = genotypes.copy()
     moved[np.flatnonzero(filled)[0]] = 1.0 - moved[np.flatnonzero(filled)[0]]
     expected = np.asarray(jnp.where(jnp.asarray(filled)[:, None], leg_controllers(bottom, decode(jnp.asarray(moved))), 0.0))
-    monkeypatch.setattr(middle, "nearest_index", counting)
+    monkeypatch.setattr(middle, "_nearest_index", counting)  # the jitted lookup of concrete inputs
     monkeypatch.setattr(middle, "_elite_cache", type(middle._elite_cache)())  # the process's own entries stay
 
     first = np.asarray(elite_controllers(bottom, jnp.asarray(genotypes), jnp.asarray(filled)))

@@ -56,6 +56,36 @@ def test_swept_disc_distance_matches_dense_sampling():
     assert not bool(move_collides(maze, p0, p1, 0.15)) and bool(move_collides(maze, p0, p1, 0.25))
 
 
+def _same_bits(host, device):
+    device = np.asarray(device)
+    assert host.dtype == device.dtype and host.shape == device.shape and host.tobytes() == device.tobytes()
+
+
+@pytest.mark.exact_numerics
+@pytest.mark.parametrize("obstacles", [PAPER_MAZE.obstacles, ((1.0, 0.8, 1.05, 2.2),)])
+def test_host_geometry_agrees_with_jax_bit_for_bit(obstacles):
+    """NumPy (xp=np: `edge_free` and the maze generator on the host) gives jax's values to the last bit, with one
+    box or several (XLA divides by a broadcast value as a product with its inverse: `numerics.quotient`)."""
+    maze = Maze(obstacles=obstacles)
+    rng = np.random.default_rng(3)
+    a = rng.uniform(-0.5, 4.5, (3000, 2)).astype(np.float32)
+    b = rng.uniform(-0.5, 4.5, (3000, 2)).astype(np.float32)
+    b[::3, 0], b[1::3, 1], b[2::7] = a[::3, 0], a[1::3, 1], a[2::7]  # axis-parallel and zero-length segments
+    _same_bits(segment_box_distance(a, b, maze.boxes, np),
+               segment_box_distance(jnp.asarray(a), jnp.asarray(b), maze.boxes))
+    _same_bits(point_box_distance(a, maze.boxes, np), point_box_distance(jnp.asarray(a), maze.boxes))
+    _same_bits(move_collides(maze, a, b, 0.3, np), move_collides(maze, jnp.asarray(a), jnp.asarray(b), 0.3))
+    _same_bits(point_collides(maze, a, xp=np), point_collides(maze, jnp.asarray(a)))
+    _same_bits(GridSpec().node_of(maze, a, np), GridSpec().node_of(maze, jnp.asarray(a)))
+    grid = GridSpec(cell=0.25)
+    nodes = grid.nodes(maze)
+    targets = (nodes[:, :, None, :] + NEIGHBOURS[None, None] * grid.cell).astype(np.float32)
+    start = np.broadcast_to(nodes[:, :, None, :], targets.shape)  # `edge_free`'s steps
+    radius = grid.radius_factor * maze.robot_radius
+    _same_bits(move_collides(maze, start, targets, radius, np),
+               move_collides(maze, jnp.asarray(start), jnp.asarray(targets), radius))
+
+
 def _numpy_bfs(free, goal):
     nx, ny = free.shape[:2]
     dist = -np.ones((nx, ny), int)

@@ -78,6 +78,22 @@ def test_grid_cell_index_bounds():
     np.testing.assert_array_equal(np.asarray(index), [639_999, 1])
 
 
+@pytest.mark.exact_numerics
+def test_grid_cell_index_on_the_host_agrees_with_jax():
+    """NumPy (xp=np: `cell_matches` on the host) finds jax's cells, in a batch and row by row, at the bin edges
+    too (XLA divides by a broadcast span as a product with its inverse, by a single row's exactly)."""
+    grid = Grid(bins=(100, 100, 2), low=(-1.5, -1.5, 0.0), high=(1.5, 1.5, 1.0))
+    rng = np.random.default_rng(5)
+    desc = rng.uniform(-1.6, 1.6, (4000, 3)).astype(np.float32)
+    desc[:1000, :2] = rng.choice(np.arange(101) * 0.03 - 1.5, (1000, 2))  # on the bin edges
+    desc[:1000, :2] += rng.choice([-1e-6, 0.0, 1e-6], (1000, 2))  # and beside them
+    desc = desc.astype(np.float32)
+    np.testing.assert_array_equal(grid.cell_index(desc, xp=np), np.asarray(grid.cell_index(jnp.asarray(desc))))
+    assert grid.cell_index(desc, xp=np).dtype == np.int32
+    one_by_one = [int(grid.cell_index(row[None], xp=np)[0]) for row in desc[:300]]
+    assert one_by_one == [int(grid.cell_index(jnp.asarray(row[None]))[0]) for row in desc[:300]]
+
+
 @pytest.mark.parametrize("kwargs", [{"bins": (0,)}, {"bins": (3,), "low": (1.0,), "high": (0.0,)}, {"bins": (3, 3)}])
 def test_grid_bad_config(kwargs):
     args = {"bins": (3,), "low": (0.0,), "high": (1.0,), **kwargs}

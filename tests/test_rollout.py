@@ -97,6 +97,16 @@ def test_standing_state(robot):
     assert float(jnp.abs(state.qvel).max()) < 0.05
 
 
+def test_standing_state_under_a_callers_jit_equals_its_eager_run(robot):
+    """A traced damage mask (standing_state inside a caller's jit, as the skill renderer calls it) settles the
+    robots as a concrete one does, to float32 rounding (one program against three)."""
+    damages = np.asarray(paper_damage_masks()[:2])
+    eager = standing_state(robot, damages)
+    traced = jax.jit(lambda d: standing_state(robot, d))(jnp.asarray(damages))
+    assert eager.qpos.shape == traced.qpos.shape == (2, 25)
+    np.testing.assert_allclose(np.asarray(traced.qpos), np.asarray(eager.qpos), atol=1e-5)  # one program vs three: float32 rounding
+
+
 def test_initial_state_places_damaged_legs():
     robot = load_robot()
     state = initial_state(robot, jnp.asarray([False, False, True, False, False, False]))

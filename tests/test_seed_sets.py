@@ -1,25 +1,29 @@
 """Seed sets through their commands: `train_set` (parts, resume, the budget-matched Flat-2D) and
 `maze_eval` over a `--repertoire-dir` of seeds (a resumed run equals the whole run; a run of some seeds, `--seeds`,
-its batches of those seeds)."""
+its batches of those seeds; `--spread batches`, a worker process per device, equals the one-process run)."""
 
 import json
 import os
+import shlex
 import shutil
+import signal
 import subprocess
 import sys
+import time
+from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
-from experiments.cli import EXIT_BAD_INPUT
-from experiments.maze_eval import _batch_meshes, _check_warp_spread, run_batches
+from experiments.cli import EXIT_BAD_INPUT, EXIT_INTERRUPTED
+from experiments.batch_workers import plan_workers
+from experiments.maze_eval import _check_warp_spread, _worker_devices
 from experiments.maze_eval import main as maze_main
-from hte_jax import sharding
 from hte_jax.errors import ConfigError
 from experiments.train_set import main as set_main
 from hte_jax.flat.store import load_flat, shipped_flat_path
-from hte_jax.qd.io import read_checkpoint, write_json
+from hte_jax.qd.io import PAUSE_BEFORE_RENAME, read_checkpoint, write_json
 from tests.benchmark_runner import run_benchmark
 from tests.processes import ROOT, cpu_devices_env
 
@@ -67,9 +71,10 @@ def test_train_set_parts_resume_and_matched_budget(tmp_path, capsys):
     assert (out / "matched" / "flat2d.npz").is_file()
 
 
-def _seed_folders(seeds):
-    """Two seed folders holding one flat file each (the shipped 2D repertoire): two batches of the same shapes."""
-    for name in ("a", "b"):
+def _seed_folders(seeds, names=("a", "b")):
+    """Seed folders (two by default) holding one flat file each (the shipped 2D repertoire): batches of the same
+    shapes."""
+    for name in names:
         (seeds / name).mkdir(parents=True)
         shutil.copyfile(shipped_flat_path("2d"), seeds / name / "flat2d.npz")
     return seeds
@@ -112,19 +117,6 @@ def test_maze_eval_resumes_a_killed_run_to_the_same_results(two_seed_run, tmp_pa
     assert err[1] == f"error: {resumed} was started with a different configuration (differs in: damages)"
     assert err[2] == "error: --spread must be one of episodes, batches, got 'rows'" and len(err) == 3
     assert not (tmp_path / "never").exists()
-
-    # On 2 forced CPU devices, --spread batches runs the two batches at once, each whole on one device: the
-    # programs and results of one device, bit for bit.
-    spread = tmp_path / "spread"
-    done = subprocess.run([sys.executable, "-m", "experiments.maze_eval", *args, "--devices", "2", "--spread", "batches",
-                           "--out", str(spread)], cwd=ROOT, env=cpu_devices_env(2), capture_output=True, text=True,
-                          timeout=900)
-    assert done.returncode == 0, done.stderr[-3000:]
-    for name in ("episodes.json", "statistics.json", "summary.json"):
-        assert json.loads((spread / name).read_text()) == json.loads((whole / name).read_text()), name
-    for k in (0, 1):
-        ours, theirs = (read_checkpoint(run / f"episodes_{k}.npz")[0] for run in (spread, whole))
-        assert all(np.array_equal(ours[name], theirs[name]) for name in theirs), k
 
 
 @pytest.mark.slow
@@ -174,46 +166,165 @@ def test_maze_eval_refuses_bad_seeds_in_one_line(tmp_path, capsys):
     assert not out.exists()
 
 
-def test_spread_batches_is_one_mesh_per_device_and_one_process():
-    """`--spread batches` runs a batch on each device's own mesh, dealt in turn; a multi-process run is refused."""
-    mesh = sharding.batch_mesh()
-    meshes = _batch_meshes("batches", mesh, distributed=False)
-    assert [m.devices.tolist() for m in meshes] == [[d] for d in mesh.devices.flat]
-    assert _batch_meshes("episodes", mesh, distributed=False) == [mesh]
-    with pytest.raises(ConfigError, match="--spread batches runs in one process"):
-        _batch_meshes("batches", mesh, distributed=True)
-    first, second = object(), object()  # stand-ins for two devices' meshes
-    ran = run_batches([0, 2, 3], lambda k, on: (k, on), [first, second])
-    assert [ran(k) for k in (0, 2, 3)] == [(0, first), (2, second), (3, first)]  # dealt in turn
-    assert run_batches([4], lambda k, on: (k, on), [mesh])(4) == (4, mesh)  # one mesh: run when asked
+def _spread_batches(args, out, **env):
+    """`maze_eval ARGS --spread batches` on 2 forced CPU devices, in a subprocess (started, not waited for)."""
+    return subprocess.Popen([sys.executable, "-m", "experiments.maze_eval", *args, "--devices", "2", "--spread",
+                             "batches", "--out", str(out)], cwd=ROOT, env=cpu_devices_env(2, **env),
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def _same_batch(ours, theirs):
+    """Whether two batch files hold the same arrays, bit for bit."""
+    return all(np.array_equal(a, read_checkpoint(theirs)[0][name]) for name, a in read_checkpoint(ours)[0].items())
+
+
+@pytest.mark.slow
+def test_spread_batches_runs_a_worker_per_device_as_one_process_would(two_seed_run, tmp_path):
+    """On 2 forced CPU devices, --spread batches runs each of the two batches in a worker process of its own
+    device: the batch files, bit for bit, and the summaries of the one-process run; each worker's batch line."""
+    args, whole, spread = two_seed_run.args, two_seed_run.whole, tmp_path / "spread"
+    run = _spread_batches(args, spread)
+    stdout, stderr = run.communicate(timeout=900)
+    assert run.returncode == 0, stderr[-3000:]
+    for name in ("episodes.json", "statistics.json", "summary.json"):
+        assert json.loads((spread / name).read_text()) == json.loads((whole / name).read_text()), name
+    assert all(_same_batch(spread / f"episodes_{k}.npz", whole / f"episodes_{k}.npz") for k in (0, 1))
+    batch_lines = sorted(line for line in stdout.splitlines() if line.startswith("batch "))
+    assert [line.split(":")[0] for line in batch_lines] == ["batch 0 (2d-rte on seed 0", "batch 1 (2d-rte on seed 1"]
+    assert "4 episodes in" in batch_lines[1] and "read from" not in stdout
+    assert not list(spread.glob("worker_*.stderr"))
+
+
+@pytest.mark.slow
+def test_spread_batches_stops_at_a_failed_worker_and_resumes(two_seed_run, tmp_path):
+    """Three seed folders, the second's file broken: worker 1 (batch 1) fails, the command ends with one line naming
+    it, its device and its error, exit status 2; worker 0 finishes batch 0 (its file kept, as the one-process run's)
+    and stops before batch 2. Its resume command, the file mended, runs batches 1 and 2 and summarises all three."""
+    seeds = _seed_folders(tmp_path / "seeds", ("a", "b", "c"))
+    broken = seeds / "b" / "flat2d.npz"
+    broken.write_text("not a repertoire")
+    args = list(two_seed_run.args)  # the fixture's flags over these seeds
+    args[args.index("--repertoire-dir") + 1] = str(seeds)
+    out = tmp_path / "run"
+    # batch 0's file waits before its rename: worker 1 has failed long before worker 0 could start batch 2
+    run = _spread_batches(args, out, **{PAUSE_BEFORE_RENAME: "10"})
+    stdout, stderr = run.communicate(timeout=900)
+    assert run.returncode == EXIT_BAD_INPUT, stderr[-3000:]
+    [line] = stderr.splitlines()
+    assert line.startswith(f"error: worker 1 (cpu device 1; batch 1) failed (exit status 2): {broken}: not an "
+                           f"hte-jax checkpoint (not an .npz archive) (its stderr: {out / 'worker_1.stderr'}); the "
+                           f"finished batches stay in {out}; resume with: python -m experiments.maze_eval "), line
+    assert str(broken) in (out / "worker_1.stderr").read_text()
+    assert (out / "episodes_0.npz").is_file() and not (out / "episodes_1.npz").exists()
+    assert not (out / "episodes_2.npz").exists() and not (out / "summary.json").exists()
+    assert _same_batch(out / "episodes_0.npz", two_seed_run.whole / "episodes_0.npz")
+
+    shutil.copyfile(seeds / "a" / "flat2d.npz", broken)
+    command = shlex.split(line.partition("resume with: ")[2])
+    resumed = subprocess.run([sys.executable, *command[1:]], cwd=ROOT, env=cpu_devices_env(2), capture_output=True,
+                             text=True, timeout=900)
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    assert f"batch 0 (2d-rte on seed 0): read from {out / 'episodes_0.npz'}" in resumed.stdout
+    assert _same_batch(out / "episodes_1.npz", two_seed_run.whole / "episodes_1.npz")
+    assert sorted({r["seed"] for r in _records(out)}) == [0, 1, 2] and len(_records(out)) == 12
+    assert not list(out.glob("worker_*.stderr"))  # the earlier failure's, removed when workers start again
+
+
+@pytest.mark.slow
+def test_ctrl_c_ends_the_workers_of_spread_batches(two_seed_run, tmp_path):
+    """A SIGINT to the command alone (not to its workers) ends it with the line saying how to resume, and ends
+    both workers."""
+    out = tmp_path / "run"
+    run = _spread_batches(two_seed_run.args, out)
+    children = Path(f"/proc/{run.pid}/task/{run.pid}/children")
+    began = time.perf_counter()
+    while len(children.read_text().split()) < 2:
+        assert run.poll() is None and time.perf_counter() - began < 120, run.communicate()
+        time.sleep(0.05)
+    workers = [int(pid) for pid in children.read_text().split()]
+    run.send_signal(signal.SIGINT)
+    stdout, stderr = run.communicate(timeout=60)
+    assert run.returncode == EXIT_INTERRUPTED
+    assert stderr.startswith(f"interrupted: wrote 0 of 2 batch files (episodes_<k>.npz) in {out}, no summary; "
+                             "resume with: python -m experiments.maze_eval "), stderr
+    assert stderr.rstrip("\n").endswith("--resume") and len(stderr.splitlines()) == 1
+
+    def ended(pid):
+        try:
+            return Path(f"/proc/{pid}/stat").read_text().split(") ")[1][0] in "ZX"  # a zombie has ended
+        except FileNotFoundError:
+            return True
+
+    while not all(ended(pid) for pid in workers):
+        assert time.perf_counter() - began < 180, "a worker outlived its command"
+        time.sleep(0.05)
+
+
+def test_spread_batches_deals_the_batches_to_a_process_per_device():
+    """`--spread batches` over several devices: a worker per device, the i-th batch to run on device i mod N, on that
+    device alone (a GPU's entry of CUDA_VISIBLE_DEVICES; a CPU worker takes --devices 1); one device, --spread
+    episodes and a worker itself run here; --distributed and a bad --spread are one-line errors."""
+    def device(platform, index):
+        return SimpleNamespace(platform=platform, id=index, local_hardware_id=index)
+
+    def mesh(*devices):
+        return SimpleNamespace(devices=np.array(devices, dtype=object))
+
+    gpus = [device("gpu", 0), device("gpu", 1)]
+    assert _worker_devices("batches", mesh(*gpus), False, None) == gpus
+    assert _worker_devices("batches", mesh(gpus[0]), False, None) == []
+    assert _worker_devices("episodes", mesh(*gpus), False, None) == []
+    assert _worker_devices("batches", mesh(*gpus), False, [0, 2]) == []  # a worker runs its batches itself
+    with pytest.raises(ConfigError, match=r"^--spread batches starts a process per device itself: leave out "):
+        _worker_devices("batches", mesh(*gpus), True, None)
+    with pytest.raises(ConfigError, match=r"^--spread must be one of episodes, batches, got 'rows'$"):
+        _worker_devices("rows", mesh(*gpus), False, None)
+
+    argv = ["--variant", "2d-rte", "--devices", "2", "--spread", "batches"]
+    workers = plan_workers("experiments.maze_eval", gpus, [0, 2, 3], argv, {"CUDA_VISIBLE_DEVICES": "5,7", "PATH": "/bin"})
+    assert [w.batches for w in workers] == [[0, 3], [2]]
+    assert [w.env["CUDA_VISIBLE_DEVICES"] for w in workers] == ["5", "7"]  # the parent's list, entry by entry
+    assert workers[1].name == "worker 1 (gpu 1, CUDA_VISIBLE_DEVICES=7; batch 2)"
+    assert workers[0].command[1:] == ["-m", "experiments.maze_eval", *argv, "--resume", "--devices", "1",
+                                      "--no-progress", "--worker-batches", "0,3"]
+    assert workers[0].env["PATH"] == "/bin" and workers[0].env["PYTHONPATH"].split(os.pathsep)[0] == str(ROOT)
+    assert [w.env["CUDA_VISIBLE_DEVICES"] for w in plan_workers("experiments.maze_eval", gpus, [0, 1], argv, {})] == ["0", "1"]
+    [alone] = plan_workers("experiments.maze_eval", gpus, [4], argv, {})  # fewer batches than devices
+    assert alone.batches == [4] and alone.index == 0
+    cpus = plan_workers("experiments.maze_eval", [device("cpu", 0), device("cpu", 1)], [0, 1], argv, {"XLA_FLAGS": "--x"})
+    assert cpus[1].name == "worker 1 (cpu device 1; batch 1)" and "CUDA_VISIBLE_DEVICES" not in cpus[1].env
+    assert cpus[1].env["XLA_FLAGS"] == "--x" and cpus[1].command[-5:-2] == ["--devices", "1", "--no-progress"]
+
+
+def test_worker_batches_are_checked_in_one_line(tmp_path, capsys):
+    """The hidden --worker-batches (a --spread batches worker's batches): indices of this run's batches, each once,
+    with --resume; else one line, exit status 2, nothing written."""
+    seeds = _seed_folders(tmp_path / "seeds")
+    out = tmp_path / "never"
+    args = ["--variant", "2d-rte", "--repertoire-dir", str(seeds), "--out", str(out)]
+    cases = {"1,x": "error: --worker-batches must be comma-separated batch indices (integers >= 0), got '1,x'",
+             "-1": "error: --worker-batches must be comma-separated batch indices (integers >= 0), got '-1'",
+             "0,0": "error: --worker-batches names a batch twice: '0,0'",
+             "1,2": "error: --worker-batches: this run has batches 0 to 1, not 2"}
+    for value, line in cases.items():
+        assert maze_main([*args, "--resume", "--worker-batches", value]) == EXIT_BAD_INPUT, value
+        assert capsys.readouterr().err.splitlines() == [line]
+    assert maze_main([*args, "--worker-batches", "1"]) == EXIT_BAD_INPUT
+    assert capsys.readouterr().err.splitlines() == [
+        "error: --worker-batches runs batches of a started run: give --resume too"]
+    assert not out.exists()
 
 
 def test_warp_splits_no_batch_over_several_gpus():
-    """Several GPUs under one batch with --impl warp: a one-line ConfigError (XLA crashed compiling it); one GPU per
-    batch, CPU devices (where it runs) and the JAX backend pass."""
+    """Several GPUs under one batch with --impl warp: a one-line ConfigError (XLA crashed compiling it); one GPU,
+    CPU devices (where it runs) and the JAX backend pass."""
     gpu, cpu = SimpleNamespace(platform="gpu"), SimpleNamespace(platform="cpu")
 
     def mesh(*devices):
         return SimpleNamespace(devices=np.array(devices, dtype=object), axis_sizes=(len(devices),))
 
     with pytest.raises(ConfigError, match=r"^--impl warp splits no batch over several GPUs .* --spread batches"):
-        _check_warp_spread("warp", [mesh(gpu, gpu)])
-    _check_warp_spread("warp", [mesh(gpu), mesh(gpu)])
-    _check_warp_spread("warp", [mesh(cpu, cpu)])
-    _check_warp_spread("jax", [mesh(gpu, gpu)])
-
-
-def test_a_failed_batch_raises_when_its_turn_comes():
-    """With several meshes a batch's exception reaches the caller when it asks for that batch."""
-    meshes = [object(), object()]
-
-    def run(k, on):
-        if k == 1:
-            raise ValueError("batch 1 broke")
-        return k, on
-
-    ran = run_batches([0, 1, 2, 3], run, meshes)
-    assert ran(0) == (0, meshes[0])
-    with pytest.raises(ValueError, match="batch 1 broke"):
-        ran(1)
-    assert ran(2) == (2, meshes[0])  # batch 2 is the first mesh's second: it ran
+        _check_warp_spread("warp", mesh(gpu, gpu))
+    _check_warp_spread("warp", mesh(gpu))
+    _check_warp_spread("warp", mesh(cpu, cpu))
+    _check_warp_spread("jax", mesh(gpu, gpu))

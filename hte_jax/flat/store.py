@@ -7,7 +7,6 @@ import dataclasses
 from pathlib import Path
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from hte_jax.errors import lookup
@@ -76,5 +75,5 @@ def load_flat(path: str | Path) -> tuple[FlatRepertoires, dict]:
         raise CheckpointError(f"{path}: holds no repertoire")
     repertoires = [rebuild_elites(path, arrays, flat_spec(task), _prefix(index), label=f"repertoire {index} ({name})")
                    for index, name in enumerate(damages)]
-    stacked = jax.tree.map(lambda *xs: jnp.stack(xs), *repertoires)
+    stacked = jax.tree.map(lambda *xs: jax.device_put(np.stack([np.asarray(x) for x in xs])), *repertoires)  # host
     return FlatRepertoires(task=task, damages=damages, repertoire=stacked), meta

@@ -45,9 +45,9 @@ class PatternTable:
 
 
 def descriptor_steps(middle_descriptors: jax.Array) -> StepModel:
-    """The stored primary descriptors as the step model (no spread)."""
-    steps = jnp.asarray(middle_descriptors)[:, :PRIMARY]
-    return StepModel(steps=steps, spread=jnp.zeros(steps.shape[0], jnp.float32))
+    """The stored primary descriptors as the step model (no spread), placed from the host."""
+    steps = np.asarray(middle_descriptors, np.float32)[:, :PRIMARY]
+    return StepModel(steps=jax.device_put(steps), spread=jax.device_put(np.zeros(steps.shape[0], np.float32)))
 
 
 def hbr_steps(hbr) -> StepModel:
@@ -61,10 +61,10 @@ def member_table(members: np.ndarray, model: StepModel) -> PatternTable:
     for p in range(NUM_PATTERNS):
         rows = np.flatnonzero(members[p])
         index[p, : rows.size] = rows
-    rows = jnp.asarray(np.maximum(index, 0))
-    usable = jnp.asarray(index >= 0) & jnp.isfinite(jnp.asarray(model.spread)[rows])
-    return PatternTable(index=jnp.asarray(index), steps=jnp.asarray(model.steps)[rows],
-                        penalty=jnp.where(usable, 0.0, jnp.inf))
+    rows = np.maximum(index, 0)
+    usable = (index >= 0) & np.isfinite(np.asarray(model.spread)[rows])
+    return PatternTable(index=jax.device_put(index), steps=jax.device_put(np.asarray(model.steps)[rows]),
+                        penalty=jax.device_put(np.where(usable, 0.0, np.inf).astype(np.float32)))
 
 
 def pattern_table(patterns: np.ndarray, model: StepModel) -> PatternTable:

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from flax import struct
 
 from hte_jax.hbr.composition import PatternTable, StepModel, plan_batch
@@ -44,10 +45,12 @@ class HBR:
     @classmethod
     def build(cls, bottom: Repertoire, middle: Repertoire, top: Repertoire, middle_task: MiddleTask,
               step_model: StepModel | None = None, top_task: TopTask = TopTask()) -> HBR:
-        """Assemble the layers and precompute the middle elites' controllers and patterns."""
+        """Assemble the layers (concrete arrays) and precompute the middle elites' controllers and patterns (on
+        the host)."""
         params = elite_controllers(bottom, middle.genotypes, middle.filled)
-        patterns = jnp.where(middle.filled, pattern_code(middle.descriptors[:, PRIMARY:]), ANY_PATTERN)
-        return cls(bottom, middle, top, params, patterns.astype(jnp.int32), middle_task, step_model, top_task)
+        codes = pattern_code(np.asarray(middle.descriptors)[:, PRIMARY:], xp=np)
+        patterns = np.where(np.asarray(middle.filled), codes, ANY_PATTERN).astype(np.int32)
+        return cls(bottom, middle, top, params, jax.device_put(patterns), middle_task, step_model, top_task)
 
 
 @struct.dataclass
@@ -81,9 +84,9 @@ class SkillResult:
     steps: StepResult
 
 
-def state_pose(state: SimState) -> jax.Array:
-    """(B, 3) planar pose (x, y, heading) of robots `state` (B, ...)."""
-    return planar_pose(state.qpos[:, :3], state.qpos[:, 3:7])
+def state_pose(state: SimState, xp=jnp) -> jax.Array:
+    """(B, 3) planar pose (x, y, heading) of robots `state` (B, ...) (jax or NumPy, `geometry.planar_pose`)."""
+    return planar_pose(state.qpos[:, :3], state.qpos[:, 3:7], xp)
 
 
 def select_middle(hbr: HBR, desired: jax.Array, pattern: jax.Array, chunk: int = 1024,

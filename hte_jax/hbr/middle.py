@@ -83,6 +83,9 @@ def nearest_index(points: jax.Array, mask: jax.Array, queries: jax.Array, chunk:
     return jnp.where(mask.any(), map_rows(block, (flat,), (0.0,), chunk), -1).reshape(shape)
 
 
+_nearest_index = jax.jit(nearest_index, static_argnames=("chunk",))  # one program for host-side lookups
+
+
 def leg_controllers(bottom: Repertoire, targets: jax.Array) -> jax.Array:
     """(..., 6, 3) per-leg targets in bottom descriptor space -> (..., 36) controllers."""
     index = nearest_index(bottom.descriptors, bottom.filled, targets)
@@ -116,20 +119,20 @@ def elite_controllers(bottom: Repertoire, genotypes: jax.Array, filled: jax.Arra
     key = _digest([np.asarray(x) for x in inputs])
     if key in _elite_cache:
         _elite_cache.move_to_end(key)
-        return jnp.asarray(_elite_cache[key])
+        return jax.device_put(_elite_cache[key])
     keep = np.flatnonzero(np.asarray(bottom.filled))
     rows = np.flatnonzero(np.asarray(filled))
     genes = np.asarray(bottom.genotypes)
     out = np.zeros((genotypes.shape[0], NUM_LEGS * genes.shape[-1]), genes.dtype)
     if rows.size:
-        points = jax.device_put(np.asarray(bottom.descriptors)[keep])
-        index = nearest_index(points, jnp.ones(keep.size, bool), decode(jax.device_put(np.asarray(genotypes)[rows])))
+        points = np.asarray(bottom.descriptors)[keep]
+        index = _nearest_index(points, np.ones(keep.size, bool), decode(np.asarray(genotypes)[rows]))
         out[rows] = genes[keep[np.asarray(index)]].reshape(rows.size, -1)
     out.flags.writeable = False
     _elite_cache[key] = out
     while len(_elite_cache) > ELITE_CACHE_SIZE:
         _elite_cache.popitem(last=False)
-    return jnp.asarray(out)
+    return jax.device_put(out)
 
 
 def decode(genotypes: jax.Array) -> jax.Array:
@@ -137,15 +140,16 @@ def decode(genotypes: jax.Array) -> jax.Array:
     return genotypes.reshape(*genotypes.shape[:-1], NUM_LEGS, 3)
 
 
-def pattern_code(bits: jax.Array) -> jax.Array:
-    """(..., 6) contact bits (leg 0 first) -> (...,) int32 pattern in [0, 64), leg 0 the most significant bit."""
-    weights = 2 ** jnp.arange(NUM_LEGS - 1, -1, -1)
-    return jnp.sum(jnp.round(bits).astype(jnp.int32) * weights, axis=-1).astype(jnp.int32)
+def pattern_code(bits: jax.Array, xp=jnp) -> jax.Array:
+    """(..., 6) contact bits (leg 0 first) -> (...,) int32 pattern in [0, 64), leg 0 the most significant bit (jax
+    or NumPy)."""
+    weights = 2 ** xp.arange(NUM_LEGS - 1, -1, -1)
+    return xp.sum(xp.round(bits).astype(xp.int32) * weights, axis=-1).astype(xp.int32)
 
 
-def pattern_bits(code: jax.Array) -> jax.Array:
-    """Inverse of `pattern_code`: (...,) int -> (..., 6) float32 bits."""
-    return ((jnp.asarray(code)[..., None] >> jnp.arange(NUM_LEGS - 1, -1, -1)) & 1).astype(jnp.float32)
+def pattern_bits(code: jax.Array, xp=jnp) -> jax.Array:
+    """Inverse of `pattern_code`: (...,) int -> (..., 6) float32 bits (jax or NumPy)."""
+    return ((xp.asarray(code)[..., None] >> xp.arange(NUM_LEGS - 1, -1, -1)) & 1).astype(xp.float32)
 
 
 def evaluate_controllers(robot: Robot, start: SimState, task: MiddleTask, params: jax.Array) -> Evaluation:

@@ -20,7 +20,7 @@ SPARE_STREAM = 7  # folded into the seed's key: the spare archive's draws differ
 
 def lifted_legs(pattern: np.ndarray) -> np.ndarray:
     """(...,) pattern codes (leg 0 = most significant bit, 1 = down) -> (..., 6) bool, legs lifted."""
-    return np.asarray(pattern_bits(pattern)) == 0
+    return pattern_bits(pattern, xp=np) == 0
 
 
 def spare_members(contact_fraction: np.ndarray, present: np.ndarray, strict: float = STRICT_CONTACT) -> np.ndarray:
@@ -58,9 +58,9 @@ def with_spare(hbr: HBR, spare: Repertoire, spare_params: jnp.ndarray, spare_ste
     middle = Repertoire(genotypes=append(main.genotypes, spare.genotypes),
                         descriptors=append(main.descriptors, descriptors),
                         fitnesses=append(main.fitnesses, spare.fitnesses),
-                        filled=jnp.concatenate([main.filled, jnp.zeros(rows.size, bool)]),
+                        filled=jax.device_put(np.concatenate([np.asarray(main.filled), np.zeros(rows.size, bool)])),
                         extras={name: append(value, spare.extras[name]) for name, value in main.extras.items()})
-    patterns = jnp.concatenate([hbr.middle_patterns, jnp.full(rows.size, ANY_PATTERN, jnp.int32)])
+    patterns = np.concatenate([np.asarray(hbr.middle_patterns), np.full(rows.size, ANY_PATTERN, np.int32)])
     steps = StepModel(steps=append(own.steps, added.steps), spread=append(own.spread, added.spread))
-    return hbr.replace(middle=middle, middle_params=append(hbr.middle_params, spare_params), middle_patterns=patterns,
-                       step_model=steps, spare_count=int(rows.size))
+    return hbr.replace(middle=middle, middle_params=append(hbr.middle_params, spare_params),
+                       middle_patterns=jax.device_put(patterns), step_model=steps, spare_count=int(rows.size))

@@ -7,7 +7,7 @@ import dataclasses
 import hashlib
 from pathlib import Path
 
-import jax.numpy as jnp
+import jax
 import numpy as np
 
 from hte_jax.errors import ConfigError
@@ -70,7 +70,7 @@ def load_hbr(path: str | Path | None = None) -> tuple[HBR, TopTask, dict]:
     if capacity["top"] != specs["top"].capacity:
         raise CheckpointError(f"{path}: top capacity {capacity['top']} does not match a {top_task.bins}^2 grid")
     layers = {layer: rebuild_elites(path, arrays, specs[layer], f"{layer}_") for layer in LAYERS}
-    middle_count = int(layers["middle"].filled.sum())
+    middle_count = int(np.asarray(layers["middle"].filled).sum())
     used = np.asarray(arrays["top_extra_middle_indices"])
     if used.size and (used.min() < 0 or used.max() >= middle_count):
         raise CheckpointError(f"{path}: top elites refer to middle elites that are not in the file")
@@ -102,8 +102,8 @@ def _step_model(path, arrays, count: int, capacity: int, prefix: str = "middle_"
     if not np.isfinite(steps).all() or np.isnan(spread).any() or (spread < 0).any():
         raise CheckpointError(f"{path}: the measured step model has non-finite steps or negative spreads")
     pad = capacity - count
-    return StepModel(steps=jnp.asarray(np.pad(steps, ((0, pad), (0, 0)))),
-                     spread=jnp.asarray(np.pad(spread, (0, pad), constant_values=np.inf)))
+    return StepModel(steps=jax.device_put(np.pad(steps, ((0, pad), (0, 0)))),
+                     spread=jax.device_put(np.pad(spread, (0, pad), constant_values=np.inf)))
 
 
 def bottom_fingerprint(hbr: HBR) -> str:
@@ -137,7 +137,7 @@ def load_spare(path: str | Path, hbr: HBR) -> HBR:
     except (KeyError, TypeError, ValueError) as error:
         raise CheckpointError(f"{path}: bad spare header: {error}") from None
     spare = rebuild_elites(path, arrays, middle_spec(capacity, l), "spare_")
-    steps = _step_model(path, arrays, int(spare.filled.sum()), capacity, "spare_")
+    steps = _step_model(path, arrays, int(np.asarray(spare.filled).sum()), capacity, "spare_")
     return with_spare(hbr, spare, elite_controllers(hbr.bottom, spare.genotypes, spare.filled), steps)
 
 

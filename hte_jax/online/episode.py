@@ -28,7 +28,7 @@ from hte_jax.online.gp import GPData, add_observation, empty_gp
 from hte_jax.online.maze import GridSpec, Maze, distance_field, planning_start, reached_goal
 from hte_jax.online.mcts import PlannerConfig, PlanResult, plan, world_of
 from hte_jax.online.recording import Recorder
-from hte_jax.online.rules import PatternRule, RuleBatch, start_rules
+from hte_jax.online.rules import PatternRule, RuleBatch, rule_indices, start_rules
 from hte_jax.online.secondary import ERROR_DIM
 from hte_jax.online.skills import OUTCOME_DIM, Skills, displacement_of, predict
 from hte_jax.online.skills import outcome as outcome_of
@@ -113,9 +113,19 @@ def start_episodes(config: AdaptationConfig, skills: Skills, start: SimState | j
     `init` reads the damaged legs) and planning first with a random repertoire."""
     damages = damages if isinstance(damages, Damage) else np.asarray(damages, bool)
     legs = np.asarray(damage_legs(damages), bool)
-    batch, length, depth, maps = legs.shape[0], config.max_actions, config.planner.depth, skills.num_maps
     simulated = isinstance(start, SimState)
-    pose = state_pose(start) if simulated else jnp.asarray(start, jnp.float32)
+    pose = state_pose(jax.device_get(start), xp=np) if simulated else np.asarray(start, np.float32)
+    return _fresh_episodes(config, skills.num_maps, skills.actions.inputs.shape[-1], tuple(rules),
+                           start if simulated else None, pose, damages, legs, rule_indices(which, len(rules)), key)
+
+
+@functools.partial(jax.jit, static_argnames=("config", "maps", "inputs", "rules"))
+def _fresh_episodes(config: AdaptationConfig, maps: int, inputs: int, rules: tuple[PatternRule, ...],
+                    sim: SimState | None, pose: jax.Array, damages: jax.Array | Damage, legs: jax.Array,
+                    which: jax.Array, key: jax.Array) -> Episodes:
+    """`start_episodes`' episodes, in one program: robots `sim` (None: executor-driven) at world poses `pose`
+    (B, 3), `maps` repertoires of actions with `inputs` GP inputs, episode b running `rules[which[b]]`."""
+    batch, length, depth = legs.shape[0], config.max_actions, config.planner.depth
     first_map = jax.random.randint(jax.random.fold_in(key, 1), (batch,), 0, maps)
     history = History(
         action=jnp.full((batch, length), -1, jnp.int32), map=jnp.full((batch, length), -1, jnp.int32),
@@ -128,9 +138,8 @@ def start_episodes(config: AdaptationConfig, skills: Skills, start: SimState | j
         contacts=jnp.zeros((batch, length, STEPS_PER_SKILL, NUM_LEGS), jnp.float32),
         leg_travel=jnp.zeros((batch, length, STEPS_PER_SKILL, NUM_LEGS), jnp.float32))
     return Episodes(
-        sim=start if simulated else None, damage=jax.tree.map(jnp.asarray, damages),
-        rte=jax.tree.map(lambda x: jnp.broadcast_to(x, (batch, maps, *x.shape)),
-                         empty_gp(length, skills.actions.inputs.shape[-1], OUTCOME_DIM)),
+        sim=sim, damage=damages,
+        rte=jax.tree.map(lambda x: jnp.broadcast_to(x, (batch, maps, *x.shape)), empty_gp(length, inputs, OUTCOME_DIM)),
         belief=jax.vmap(lambda k: initial_belief(maps, k))(first_map), rules=start_rules(rules, which, legs, length),
         key=jax.random.split(key, batch), taken=jnp.zeros(batch, jnp.int32), reached=jnp.zeros(batch, bool),
         broken=jnp.zeros(batch, bool), reason=jnp.zeros(batch, jnp.int32),
@@ -245,10 +254,17 @@ class RunTimings:
     setup: float = 0.0
 
 
+@functools.partial(jax.jit, static_argnames=("size",))
 def pad_episodes(episodes: Episodes, size: int) -> Episodes:
     """The batch grown to `size` rows with copies of its last episode marked ended (`broken`)."""
     padded = sharding.pad_rows(episodes, size)
     return padded.replace(broken=padded.broken | (jnp.arange(size) >= episodes.taken.shape[0]))
+
+
+@jax.jit
+def episode_status(episodes: Episodes) -> tuple[jax.Array, jax.Array]:
+    """(done, reached) (B,) bool of every episode: what the run loop reads on the host after each action."""
+    return episodes.done, episodes.reached
 
 
 @functools.lru_cache(maxsize=32)
@@ -284,20 +300,22 @@ def run_episodes(maze: Maze, config: AdaptationConfig, robot: Robot, skills: Ski
     plan, act = sharded_steps(maze, config, mesh, 0 if recorder is None else recorder.every)
     timings, begin = RunTimings(), time.perf_counter()
     bar = tqdm(total=config.max_actions, desc=description, unit="action", disable=not progress)
+    done, reached = (np.asarray(x) for x in sharding.addressable(episode_status(episodes)))
     for _ in range(config.max_actions if max_steps is None else min(max_steps, config.max_actions)):
-        if bool(episodes.done.all()):
+        if done.all():
             break
         tick = time.perf_counter()
         decision = jax.block_until_ready(plan(skills, field, episodes))
         timings.plan.append(time.perf_counter() - tick)
-        active = None if recorder is None else np.asarray(sharding.addressable(~episodes.done))[:batch]
+        active = ~done[:batch]
         tick = time.perf_counter()
         episodes, states = jax.block_until_ready(act(robot, skills, episodes, decision))
         timings.act.append(time.perf_counter() - tick)
         if recorder is not None:
             recorder.add(sharding.addressable(states), active)
+        done, reached = (np.asarray(x) for x in sharding.addressable(episode_status(episodes)))
         bar.update(1)
-        bar.set_postfix(reached=int(episodes.reached.sum()), running=int((~episodes.done).sum()))
+        bar.set_postfix(reached=int(reached.sum()), running=int((~done).sum()))
     bar.close()
     timings.total = time.perf_counter() - begin
     return jax.tree.map(lambda x: x[:batch], sharding.addressable(episodes)), timings

@@ -228,7 +228,7 @@ def load_skills(path: str | Path | None, maps: bool = False, composition: str = 
             hbr = load_spare(archive, hbr)
         skills = hbr_skills(hbr, task, composition=composition, spare=spare)
         return skills, {"kind": "hbr", "path": "shipped" if shipped else str(path),
-                        "actions": int(skills.actions.mask.sum()), **({"spare": str(archive)} if archive else {})}
+                        "actions": _action_count(skills), **({"spare": str(archive)} if archive else {})}
     if kind == "hte_jax.flat":
         count = len(header["metadata"].get("damages", ()))
         if count != 1 and not maps:
@@ -237,16 +237,21 @@ def load_skills(path: str | Path | None, maps: bool = False, composition: str = 
         if maps:
             skills = flat_skill_maps(flat.repertoire, flat.task.extent)
             return skills, {"kind": f"flat-{flat.task.descriptor}-set", "path": str(path), "repertoires": len(flat),
-                            "actions": int(skills.actions.mask.sum())}
-        skills = flat_skills(flat[0], flat.task.extent)
-        return skills, {"kind": f"flat-{flat.task.descriptor}", "path": str(path), "actions": int(skills.actions.mask.sum())}
+                            "actions": _action_count(skills)}
+        skills = flat_skills(jax.tree.map(lambda x: x[0], jax.device_get(flat.repertoire)), flat.task.extent)  # host
+        return skills, {"kind": f"flat-{flat.task.descriptor}", "path": str(path), "actions": _action_count(skills)}
     raise CheckpointError(f"{path}: neither an HBR nor a flat repertoire file (kind {kind!r})")
+
+
+def _action_count(skills: Skills) -> int:
+    """The real actions of `skills`, over all its repertoires (counted on the host)."""
+    return int(np.asarray(skills.actions.mask).sum())
 
 
 @dataclasses.dataclass
 class BatchResult:
     """One batch of episodes on one repertoire (of repertoire seed `seed`): labels per episode, damage
-    (B, ...) NumPy what is wrong with each episode's robot, the final `Episodes` and the replays of the
+    (B, ...) NumPy what is wrong with each episode's robot, the final `Episodes` (NumPy) and the replays of the
     recorded episodes (in row order)."""
 
     seed: int
@@ -329,6 +334,7 @@ def run_batch(config: EvalConfig, path: str | None, variants: list[str], maze: M
     setup = time.perf_counter() - began
     episodes, timings = run_episodes(maze, adaptation, robot, skills, episodes, progress=progress,
                                      description="/".join(variants), recorder=recorder, mesh=mesh)
+    episodes = jax.device_get(episodes)  # what the records, plots and files read, on the host once
     timings.setup = setup
     replays = [replay_of(recorder, episodes, row, {
         "variant": labels[row][0], "damage": labels[row][1], "replicate": labels[row][2], "seed": seed,

@@ -13,6 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from hte_jax.errors import ConfigError, check_fields, number
+from hte_jax.numerics import quotient
 
 Box = tuple[float, float, float, float]
 
@@ -107,56 +108,58 @@ def load_maze(spec: str) -> Maze:
     return maze
 
 
-def point_box_distance(points: jax.Array, boxes: np.ndarray) -> jax.Array:
-    """(..., 2) points, (K, 4) boxes -> (..., K) Euclidean distance to each box (0 inside)."""
+def point_box_distance(points: jax.Array, boxes: np.ndarray, xp=jnp) -> jax.Array:
+    """(..., 2) points, (K, 4) boxes -> (..., K) Euclidean distance to each box (0 inside). Jax (xp=jnp) or
+    NumPy (float32 points: the same values)."""
     p = points[..., None, :]
-    low, high = jnp.asarray(boxes[:, :2]), jnp.asarray(boxes[:, 2:])
-    gap = jnp.maximum(jnp.maximum(low - p, p - high), 0.0)
-    return jnp.sqrt(jnp.sum(gap * gap, axis=-1))
+    low, high = xp.asarray(boxes[:, :2]), xp.asarray(boxes[:, 2:])
+    gap = xp.maximum(xp.maximum(low - p, p - high), 0.0)
+    return xp.sqrt(xp.sum(gap * gap, axis=-1))
 
 
-def _point_segment_distance(points: jax.Array, a: jax.Array, b: jax.Array) -> jax.Array:
+def _point_segment_distance(points: jax.Array, a: jax.Array, b: jax.Array, xp=jnp) -> jax.Array:
     """points (..., M, 2) to segments a, b (..., 2) -> (..., M)."""
     ab, ap = (b - a)[..., None, :], points - a[..., None, :]
-    t = jnp.clip(jnp.sum(ap * ab, -1) / jnp.maximum(jnp.sum(ab * ab, -1), 1e-12), 0.0, 1.0)
+    t = xp.clip(quotient(xp.sum(ap * ab, -1), xp.maximum(xp.sum(ab * ab, -1), 1e-12), xp), 0.0, 1.0)
     d = ap - t[..., None] * ab
-    return jnp.sqrt(jnp.sum(d * d, axis=-1))
+    return xp.sqrt(xp.sum(d * d, axis=-1))
 
 
-def _segment_crosses_box(a: jax.Array, b: jax.Array, boxes: np.ndarray) -> jax.Array:
+def _segment_crosses_box(a: jax.Array, b: jax.Array, boxes: np.ndarray, xp=jnp) -> jax.Array:
     """Slab test: does segment a-b (..., 2) meet each box? -> (..., K)."""
-    low, high = jnp.asarray(boxes[:, :2]), jnp.asarray(boxes[:, 2:])
+    low, high = xp.asarray(boxes[:, :2]), xp.asarray(boxes[:, 2:])
     a, d = a[..., None, :], (b - a)[..., None, :]
-    safe = jnp.where(jnp.abs(d) < 1e-12, 1e-12, d)
-    t1, t2 = (low - a) / safe, (high - a) / safe
+    safe = xp.where(xp.abs(d) < 1e-12, 1e-12, d)
+    t1, t2 = quotient(low - a, safe, xp), quotient(high - a, safe, xp)
     inside = (a >= low) & (a <= high)  # for axis-parallel segments
-    t_near = jnp.where(jnp.abs(d) < 1e-12, jnp.where(inside, -jnp.inf, jnp.inf), jnp.minimum(t1, t2))
-    t_far = jnp.where(jnp.abs(d) < 1e-12, jnp.where(inside, jnp.inf, -jnp.inf), jnp.maximum(t1, t2))
-    enter, leave = jnp.max(t_near, axis=-1), jnp.min(t_far, axis=-1)
+    t_near = xp.where(xp.abs(d) < 1e-12, xp.where(inside, -xp.inf, xp.inf), xp.minimum(t1, t2))
+    t_far = xp.where(xp.abs(d) < 1e-12, xp.where(inside, xp.inf, -xp.inf), xp.maximum(t1, t2))
+    enter, leave = xp.max(t_near, axis=-1), xp.min(t_far, axis=-1)
     return (enter <= leave) & (leave >= 0.0) & (enter <= 1.0)
 
 
-def segment_box_distance(a: jax.Array, b: jax.Array, boxes: np.ndarray) -> jax.Array:
-    """(..., 2) segment ends, (K, 4) boxes -> (..., K) distance (0 if they meet; else at an end or a corner)."""
-    ends = jnp.minimum(point_box_distance(a, boxes), point_box_distance(b, boxes))
-    corners = jnp.stack([boxes[:, [0, 1]], boxes[:, [0, 3]], boxes[:, [2, 1]], boxes[:, [2, 3]]], axis=1)  # (K, 4, 2)
-    flat = jnp.asarray(corners.reshape(-1, 2))
+def segment_box_distance(a: jax.Array, b: jax.Array, boxes: np.ndarray, xp=jnp) -> jax.Array:
+    """(..., 2) segment ends, (K, 4) boxes -> (..., K) distance (0 if they meet; else at an end or a corner).
+    Jax (xp=jnp) or NumPy (float32 ends: the same values)."""
+    ends = xp.minimum(point_box_distance(a, boxes, xp), point_box_distance(b, boxes, xp))
+    corners = xp.stack([boxes[:, [0, 1]], boxes[:, [0, 3]], boxes[:, [2, 1]], boxes[:, [2, 3]]], axis=1)  # (K, 4, 2)
+    flat = xp.asarray(corners.reshape(-1, 2))
     batch = a.shape[:-1]
-    to_corners = _point_segment_distance(jnp.broadcast_to(flat, (*batch, *flat.shape)), a, b)
+    to_corners = _point_segment_distance(xp.broadcast_to(flat, (*batch, *flat.shape)), a, b, xp)
     to_corners = to_corners.reshape(*batch, boxes.shape[0], 4).min(axis=-1)
-    return jnp.where(_segment_crosses_box(a, b, boxes), 0.0, jnp.minimum(ends, to_corners))
+    return xp.where(_segment_crosses_box(a, b, boxes, xp), 0.0, xp.minimum(ends, to_corners))
 
 
-def point_collides(maze: Maze, points: jax.Array, radius: float | None = None) -> jax.Array:
-    """(..., 2) -> (...,) the disc overlaps an obstacle."""
+def point_collides(maze: Maze, points: jax.Array, radius: float | None = None, xp=jnp) -> jax.Array:
+    """(..., 2) -> (...,) the disc overlaps an obstacle (jax or NumPy)."""
     radius = maze.robot_radius if radius is None else radius
-    return jnp.any(point_box_distance(points, maze.boxes) < radius, axis=-1)
+    return xp.any(point_box_distance(points, maze.boxes, xp) < radius, axis=-1)
 
 
-def move_collides(maze: Maze, start: jax.Array, end: jax.Array, radius: float | None = None) -> jax.Array:
-    """(..., 2), (..., 2) -> (...,) the disc swept from start to end overlaps an obstacle."""
+def move_collides(maze: Maze, start: jax.Array, end: jax.Array, radius: float | None = None, xp=jnp) -> jax.Array:
+    """(..., 2), (..., 2) -> (...,) the disc swept from start to end overlaps an obstacle (jax or NumPy)."""
     radius = maze.robot_radius if radius is None else radius
-    return jnp.any(segment_box_distance(start, end, maze.boxes) < radius, axis=-1)
+    return xp.any(segment_box_distance(start, end, maze.boxes, xp) < radius, axis=-1)
 
 
 def in_bounds(maze: Maze, points: jax.Array) -> jax.Array:
@@ -200,26 +203,26 @@ class GridSpec:
         i, j = np.meshgrid(np.arange(nx), np.arange(ny), indexing="ij")
         return np.stack([maze.bounds[0] + i * self.cell, maze.bounds[1] + j * self.cell], -1).astype(np.float32)
 
-    def node_of(self, maze: Maze, points: jax.Array) -> jax.Array:
+    def node_of(self, maze: Maze, points: jax.Array, xp=jnp) -> jax.Array:
+        """(..., 2) float32 points -> (..., 2) int32 indices of their nearest nodes (jax or NumPy)."""
         nx, ny = self.shape(maze)
-        ij = jnp.round((points - jnp.asarray(maze.bounds[:2])) / self.cell).astype(jnp.int32)
-        return jnp.clip(ij, 0, jnp.asarray([nx - 1, ny - 1]))
+        ij = xp.round((points - xp.asarray(maze.bounds[:2], xp.float32)) / self.cell).astype(xp.int32)
+        return xp.clip(ij, 0, xp.asarray([nx - 1, ny - 1], xp.int32))
 
 
 NEIGHBOURS = np.array([(di, dj) for di in (-1, 0, 1) for dj in (-1, 0, 1) if (di, dj) != (0, 0)], np.int32)
 
 
 def edge_free(maze: Maze, grid: GridSpec) -> np.ndarray:
-    """(nx, ny, 8) bool: the step from each node to each neighbour stays free and on the grid."""
+    """(nx, ny, 8) bool: the step from each node to each neighbour stays free and on the grid (NumPy)."""
     nodes = grid.nodes(maze)
     nx, ny = nodes.shape[:2]
     radius = grid.radius_factor * maze.robot_radius
-    targets = nodes[:, :, None, :] + NEIGHBOURS[None, None] * grid.cell
+    targets = (nodes[:, :, None, :] + NEIGHBOURS[None, None] * grid.cell).astype(np.float32)
     ij = np.stack(np.meshgrid(np.arange(nx), np.arange(ny), indexing="ij"), -1)[:, :, None, :] + NEIGHBOURS
     on_grid = (ij[..., 0] >= 0) & (ij[..., 0] < nx) & (ij[..., 1] >= 0) & (ij[..., 1] < ny)
     start = np.broadcast_to(nodes[:, :, None, :], targets.shape)
-    blocked = np.asarray(move_collides(maze, jnp.asarray(start), jnp.asarray(targets), radius))
-    return on_grid & ~blocked
+    return on_grid & ~move_collides(maze, start, targets, radius, xp=np)
 
 
 def distance_field(maze: Maze, grid: GridSpec = GridSpec()) -> jax.Array:
@@ -227,9 +230,9 @@ def distance_field(maze: Maze, grid: GridSpec = GridSpec()) -> jax.Array:
     free = edge_free(maze, grid)
     nx, ny = free.shape[:2]
     padded_index = np.stack(np.meshgrid(np.arange(nx), np.arange(ny), indexing="ij"), -1)[:, :, None, :] + NEIGHBOURS
-    neighbour = np.clip(padded_index, 0, np.array([nx - 1, ny - 1]))
-    goal = grid.node_of(maze, jnp.asarray(maze.goal, jnp.float32))
-    return _grid_steps(jnp.asarray(free), jnp.asarray(neighbour), goal)
+    neighbour = np.clip(padded_index, 0, np.array([nx - 1, ny - 1])).astype(np.int32)
+    goal = grid.node_of(maze, np.asarray(maze.goal, np.float32), xp=np)
+    return _grid_steps(free, neighbour, goal)
 
 
 @jax.jit

@@ -14,7 +14,6 @@ import re
 import sys
 from pathlib import Path
 
-import jax.numpy as jnp
 import numpy as np
 
 from hte_jax.errors import ConfigError
@@ -47,21 +46,21 @@ def parse_random(spec: str) -> int:
 def start_steps(maze: Maze, grid: GridSpec = GridSpec()) -> int:
     """The planner's distance field on `grid` (its default: the planner's) at the start's node: grid steps to
     the goal's node, -1 if unreachable (kept per maze and grid: `solvable` and `detour` both ask)."""
-    node = grid.node_of(maze, jnp.asarray(maze.start[:2], jnp.float32))
-    return int(distance_field(maze, grid)[node[0], node[1]])
+    node = grid.node_of(maze, np.asarray(maze.start[:2], np.float32), xp=np)
+    return int(np.asarray(distance_field(maze, grid))[node[0], node[1]])
 
 
 def solvable(maze: Maze, grid: GridSpec = GridSpec()) -> bool:
     """The robot's disc stands free at the start and at the goal, and the planner's distance field leads from
     the start's node to the goal's, at least one step."""
-    ends = jnp.asarray([maze.start[:2], maze.goal], jnp.float32)
-    return not bool(point_collides(maze, ends).any()) and start_steps(maze, grid) > 0
+    ends = np.asarray([maze.start[:2], maze.goal], np.float32)
+    return not bool(point_collides(maze, ends, xp=np).any()) and start_steps(maze, grid) > 0
 
 
 def detour(maze: Maze, grid: GridSpec = GridSpec()) -> int:
     """Grid steps of the planner's path from the start's node to the goal's beyond those of an open room (the
     larger of the two index differences)."""
-    start, goal = (np.asarray(grid.node_of(maze, jnp.asarray(p, jnp.float32))) for p in (maze.start[:2], maze.goal))
+    start, goal = (grid.node_of(maze, np.asarray(p, np.float32), xp=np) for p in (maze.start[:2], maze.goal))
     return start_steps(maze, grid) - int(np.abs(start - goal).max())
 
 
@@ -90,7 +89,7 @@ def _free_point(rng: np.random.Generator, maze: Maze, away_from=None) -> tuple[f
     margin = maze.robot_radius + CLEARANCE
     x0, y0, x1, y1 = maze.bounds
     points = np.round(rng.uniform((x0 + margin, y0 + margin), (x1 - margin, y1 - margin), (POINT_TRIES, 2)), 2)
-    ok = ~np.asarray(point_collides(maze, jnp.asarray(points, jnp.float32), margin))
+    ok = ~point_collides(maze, points.astype(np.float32), margin, xp=np)
     if away_from is not None:
         ok &= np.linalg.norm(points - np.asarray(away_from), axis=-1) >= SEPARATION
     return tuple(float(v) for v in points[np.argmax(ok)]) if ok.any() else None
@@ -107,7 +106,8 @@ def _draw(rng: np.random.Generator) -> Maze | None:
         return None
     yaw = float(rng.integers(8) * np.pi / 4)
     maze = dataclasses.replace(maze, start=(*start, yaw), goal=goal)
-    return maze if bool(move_collides(maze, jnp.asarray(start), jnp.asarray(goal))) else None
+    blocked = move_collides(maze, np.asarray(start, np.float32), np.asarray(goal, np.float32), xp=np)
+    return maze if bool(blocked) else None
 
 
 @functools.lru_cache(maxsize=64)

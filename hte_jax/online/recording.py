@@ -8,7 +8,7 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
-import jax.numpy as jnp
+import jax
 import numpy as np
 
 from hte_jax.errors import ConfigError, require_int
@@ -41,13 +41,21 @@ class Recorder:
             raise ConfigError(f"recorded rows must be distinct and >= 0, got {self.rows}")
 
     def add(self, qpos, active: np.ndarray) -> None:
-        """Keep one action's states (B, F, 25) of the recorded rows that were running (`active` (B,))."""
+        """Keep one action's states (B, F, 25) (jax or NumPy) of the recorded rows that were running (`active`
+        (B,))."""
         if not self.rows:
             return
-        kept = np.asarray(qpos[jnp.asarray(self.rows)])  # only the recorded rows leave the device
+        rows = np.asarray(self.rows)
+        kept = qpos[rows] if isinstance(qpos, np.ndarray) else np.asarray(_take_rows(qpos, rows))
         for row, states in zip(self.rows, kept):
             if active[row]:
                 self.frames.setdefault(row, []).append(states)
+
+
+@jax.jit
+def _take_rows(states: jax.Array, rows: jax.Array) -> jax.Array:
+    """states[rows] in one program: only the recorded rows leave the device."""
+    return states[rows]
 
 
 @dataclasses.dataclass(frozen=True)

@@ -20,7 +20,7 @@ from flax import struct
 from hte_jax.hbr.hierarchy import ANY_PATTERN, HBR, STEPS_PER_SKILL, select_middle
 from hte_jax.hbr.middle import PRIMARY
 from hte_jax.online.gp import HTE_KERNEL, GPData, add_observation, empty_gp, posterior
-from hte_jax.online.secondary import ERROR_DIM, acquisition, allowed_patterns, oracle_pattern, relative_error, ucb_beta
+from hte_jax.online.secondary import ERROR_DIM, acquisition, allowed_patterns, oracle_patterns, relative_error, ucb_beta
 from hte_jax.online.sensing import unusable_legs, usable_pattern
 from hte_jax.sim.controller import commanded_travel
 from hte_jax.sim.robot import NUM_LEGS
@@ -151,7 +151,7 @@ class Oracle(PatternRule):
     spare: bool = False
 
     def init(self, damages, max_actions):
-        return TruePattern(jnp.asarray([oracle_pattern(d) for d in np.asarray(damages, bool)], jnp.int32))
+        return TruePattern(oracle_patterns(damages))
 
     def choose(self, state, context):
         return state.pattern, jnp.full(context.desired.shape[0], self.spare)
@@ -215,14 +215,20 @@ class RuleBatch:
     rules: tuple = struct.field(pytree_node=False, default=())
 
 
+def rule_indices(which, count: int) -> np.ndarray:
+    """(B,) int32 NumPy `which`, checked to index `count` rules (ValueError otherwise)."""
+    which = np.asarray(which, np.int32)
+    if which.size and (which.min() < 0 or which.max() >= count):
+        raise ValueError(f"rule indices must be in [0, {count}), got {sorted(set(which.tolist()))}")
+    return which
+
+
 def start_rules(rules: tuple, which: np.ndarray, damages: np.ndarray, max_actions: int) -> RuleBatch:
     """The rules of B new episodes: episode b runs `rules[which[b]]`; damages (B, 6) bool, the damaged legs
-    (`Damage.legs`), reach `init`."""
-    which = np.asarray(which, np.int32)
-    if which.size and (which.min() < 0 or which.max() >= len(rules)):
-        raise ValueError(f"rule indices must be in [0, {len(rules)}), got {sorted(set(which.tolist()))}")
-    return RuleBatch(which=jnp.asarray(which), states=tuple(rule.init(damages, max_actions) for rule in rules),
-                     rules=tuple(rules))
+    (`Damage.legs`), reach `init`. which is checked (`rule_indices`) unless traced: inside a jit, check it first."""
+    which = which if isinstance(which, jax.core.Tracer) else rule_indices(which, len(rules))
+    states = tuple(rule.init(damages, max_actions) for rule in rules)
+    return RuleBatch(which=jnp.asarray(which, jnp.int32), states=states, rules=tuple(rules))
 
 
 def choose_patterns(batch: RuleBatch, context: StepContext) -> tuple[jax.Array, jax.Array]:

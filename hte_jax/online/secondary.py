@@ -40,6 +40,12 @@ def oracle_pattern(damage: np.ndarray) -> int:
     return int(sum(1 << (NUM_LEGS - 1 - leg) for leg in range(NUM_LEGS) if not damage[leg]))
 
 
+def oracle_patterns(damages: jax.Array) -> jax.Array:
+    """(..., 6) bool damaged legs -> (...,) int32 `oracle_pattern` of each (jax: also inside a jit)."""
+    weights = 2 ** jnp.arange(NUM_LEGS - 1, -1, -1, dtype=jnp.int32)  # leg 0 the most significant bit
+    return jnp.sum(jnp.where(damages, 0, weights), axis=-1, dtype=jnp.int32)
+
+
 def relative_error(expected: jax.Array, observed: jax.Array) -> jax.Array:
     """(..., 3) normalised primary descriptors -> (..., 3) errors |bd' - bd| / (2 |bd - c| + guard)."""
     return jnp.abs(observed - expected) / (2.0 * jnp.abs(expected - ERROR_CENTRE) + ERROR_GUARD)

@@ -54,7 +54,12 @@ def action_set(repertoire: Repertoire, extent: float, pad_to: int | None = None)
         return jax.device_put(out)
 
     return ActionSet(slots=pad(filled.astype(np.int32), -1), inputs=pad(descriptors.astype(np.float32)),
-                     prior=pad(prior.astype(np.float32)), mask=jnp.asarray(np.arange(size) < filled.size))
+                     prior=pad(prior.astype(np.float32)), mask=jax.device_put(np.arange(size) < filled.size))
+
+
+def _slot_rows(table: jax.Array, actions: ActionSet) -> jax.Array:
+    """The rows of `table` (one per repertoire slot) of every action (row 0 for padding), gathered on the host."""
+    return jax.device_put(np.asarray(table)[np.maximum(np.asarray(actions.slots), 0)])
 
 
 def outcome(displacement: jax.Array) -> jax.Array:
@@ -116,7 +121,7 @@ def hbr_skills(hbr: HBR, top_task: TopTask, pad_to: int | None = None, compositi
     if spare and composition != "planned":
         raise ConfigError("variants that run steps from spare sets need --composition planned")
     actions = action_set(hbr.top, top_task.extent, pad_to)
-    genotypes = hbr.top.genotypes[jnp.maximum(actions.slots, 0)]
+    genotypes = _slot_rows(hbr.top.genotypes, actions)
     table = planning_table(hbr) if composition == "planned" else None
     return Skills(actions=actions, genotypes=genotypes, hbr=hbr, table=table, spare=spare_table(hbr) if spare else None)
 
@@ -124,7 +129,7 @@ def hbr_skills(hbr: HBR, top_task: TopTask, pad_to: int | None = None, compositi
 def flat_skills(repertoire: Repertoire, extent: float, pad_to: int | None = None) -> Skills:
     """The elites of a flat repertoire (2-D or 8-D descriptors) as actions."""
     actions = action_set(repertoire, extent, pad_to)
-    genotypes = repertoire.genotypes[jnp.maximum(actions.slots, 0)]
+    genotypes = _slot_rows(repertoire.genotypes, actions)
     if genotypes.shape[-1] != NUM_PARAMS:
         raise ValueError(f"a flat repertoire holds {NUM_PARAMS}-parameter controllers, got {genotypes.shape[-1]} genes")
     return Skills(actions=actions, genotypes=genotypes)
@@ -132,7 +137,8 @@ def flat_skills(repertoire: Repertoire, extent: float, pad_to: int | None = None
 
 def flat_skill_maps(repertoires: Repertoire, extent: float) -> Skills:
     """K flat repertoires (a `Repertoire` with a leading (K,) axis) as actions (K, A), A the largest's elites."""
-    count = int(jnp.asarray(repertoires.filled).sum(axis=-1).max())
-    maps = [flat_skills(jax.tree.map(lambda x, k=k: x[k], repertoires), extent, pad_to=count)
-            for k in range(repertoires.filled.shape[0])]
-    return jax.tree.map(lambda *xs: jnp.stack(xs), *maps)
+    host = jax.device_get(repertoires)
+    count = int(np.asarray(host.filled).sum(axis=-1).max())
+    maps = [flat_skills(jax.tree.map(lambda x, k=k: x[k], host), extent, pad_to=count)
+            for k in range(host.filled.shape[0])]
+    return jax.tree.map(lambda *xs: jax.device_put(np.stack([np.asarray(x) for x in xs])), *maps)

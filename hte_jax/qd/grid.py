@@ -11,6 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from hte_jax.errors import ConfigError, require_bounds, require_int
+from hte_jax.numerics import quotient
 from hte_jax.qd.repertoire import (Evaluation, Insertion, Repertoire, best_per_target, empty_repertoire, insertable,
                                    write)
 
@@ -41,25 +42,27 @@ class Grid:
     def empty(self, genotype_dim: int, extras=None) -> Repertoire:
         return empty_repertoire(self.capacity, genotype_dim, self.descriptor_dim, extras)
 
-    def cell_index(self, descriptors: jax.Array) -> jax.Array:
-        """(B, D) descriptors -> (B,) int32 cell index, -1 if outside the bounds or not finite."""
-        low = jnp.asarray(self.low, jnp.float32)
-        high = jnp.asarray(self.high, jnp.float32)
-        bins = jnp.asarray(self.bins, jnp.int32)
-        inside = jnp.all((descriptors >= low) & (descriptors <= high), axis=-1)
-        scaled = (descriptors - low) / (high - low) * bins
-        coords = jnp.clip(jnp.floor(scaled).astype(jnp.int32), 0, bins - 1)
+    def cell_index(self, descriptors: jax.Array, xp=jnp) -> jax.Array:
+        """(B, D) float32 descriptors -> (B,) int32 cell index, -1 if outside the bounds or not finite (jax or
+        NumPy: the same cells)."""
+        low = xp.asarray(self.low, xp.float32)
+        high = xp.asarray(self.high, xp.float32)
+        bins = xp.asarray(self.bins, xp.int32)
+        inside = xp.all((descriptors >= low) & (descriptors <= high), axis=-1)
+        scaled = quotient(descriptors - low, high - low, xp) * bins.astype(xp.float32)
+        coords = xp.clip(xp.floor(scaled).astype(xp.int32), 0, bins - 1)
         strides = np.cumprod((1,) + self.bins[:0:-1])[::-1].astype(np.int32)  # row-major
-        index = (coords * strides).sum(axis=-1)
-        return jnp.where(inside, index, -1)
+        index = (coords * strides).sum(axis=-1, dtype=xp.int32)
+        return xp.where(inside, index, -1)
 
     def cell_matches(self, descriptors: jax.Array, cells: jax.Array, tolerance: float = 1e-6) -> np.ndarray:
-        """(B,) bool: `cells` is the cell of `descriptors`, up to `tolerance` either side of a bin edge (rounding)."""
-        descriptors = jnp.asarray(descriptors, jnp.float32)
+        """(B,) bool: `cells` is the cell of `descriptors`, up to `tolerance` either side of a bin edge (rounding);
+        on the host (NumPy)."""
+        descriptors = np.asarray(descriptors, np.float32)
         cells = np.asarray(cells)
         ok = np.zeros(cells.shape, bool)
         for shift in (0.0, -tolerance, tolerance):
-            ok |= np.asarray(self.cell_index(descriptors + shift)) == cells
+            ok |= self.cell_index(descriptors + shift, xp=np) == cells
         return ok
 
     def add(self, repertoire: Repertoire, genotypes: jax.Array, evaluation: Evaluation):

@@ -195,15 +195,28 @@ def empty_data(robot: Robot, rows: int) -> mjx.Data:
 
 def standing_state(robot: Robot, damage: jax.Array | Damage | None = None, settle_steps: int = 100) -> SimState:
     """A settled standing pose (zero controller, then x = y = 0), batched like `damage`: a (6,) or (B, 6) bool leg
-    mask, or a `Damage` unbatched or batched (B, ...)."""
-    damage = jnp.zeros(NUM_LEGS, bool) if damage is None else damage
-    damage = damage if isinstance(damage, Damage) else jnp.asarray(damage, bool)
+    mask, or a `Damage` unbatched or batched (B, ...), concrete or traced. Three programs: the reference poses, the
+    rollout, the move to the origin."""
+    damage = np.zeros(NUM_LEGS, bool) if damage is None else damage
+    if not isinstance(damage, Damage):  # traced (under a caller's jit) or concrete
+        damage = damage.astype(bool) if isinstance(damage, jax.Array) else np.asarray(damage, bool)
     legs = damage.legs if isinstance(damage, Damage) else damage
-    batched = legs.ndim == 2
-    damage = jax.tree.map(lambda x: x.reshape(-1, *x.shape[legs.ndim - 1:]), damage)
-    init = jax.vmap(lambda d: initial_state(robot, d))(damage)
-    params = jnp.zeros((init.qpos.shape[0], NUM_PARAMS))
+    batched = np.ndim(legs) == 2
+    damage = jax.tree.map(lambda x: x.reshape(-1, *np.shape(x)[np.ndim(legs) - 1:]), damage)
     spec = RolloutSpec(num_steps=settle_steps, record_contacts=False)
-    state = rollout(robot, params, damage, init, spec).final_state
+    init = _reference_states(robot, damage)
+    params = np.zeros((np.shape(init.qpos)[0], NUM_PARAMS), np.float32)
+    return _at_origin(rollout(robot, params, damage, init, spec).final_state, batched)
+
+
+@jax.jit
+def _reference_states(robot: Robot, damage: jax.Array | Damage) -> SimState:
+    """`initial_state` of each robot of `damage` (B, ...)."""
+    return jax.vmap(lambda d: initial_state(robot, d))(damage)
+
+
+@functools.partial(jax.jit, static_argnames=("batched",))
+def _at_origin(state: SimState, batched: bool) -> SimState:
+    """Robots `state` (B, ...) moved to x = y = 0; the first alone (unbatched) unless `batched`."""
     state = state.replace(qpos=state.qpos.at[:, :2].set(0.0))
     return state if batched else jax.tree.map(lambda x: x[0], state)
