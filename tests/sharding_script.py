@@ -2,14 +2,14 @@
 its largest device count (the rest of the suite keeps one device); `tests/test_sharding.py` starts
 it and reads its output.
 
-python -m tests.sharding_script OUT.npz [--devices 1,2,4] [--parts hbr,flat,batched,episodes,hlo,replica,empty]
+python -m tests.sharding_script OUT.npz [--devices 1,2,4] [--parts hbr,flat,batched,episodes,hlo,replica,empty,archive]
 
 Writes OUT.npz: for every part and device count N, the arrays of its result, named
 "<part>/<N>/<array>"; "hlo/collectives" lists the collectives found inside while loops of the
 compiled generation of the batched run on the most devices (none expected), "hlo/outside" counts the
 collectives of that program outside loops (the gather of the results: some expected),
 "replica/error" the message of the replica check on a deliberately inconsistent array (replicated
-over every visible device),
+over every visible device), "archive_topk/<N>" the rows of each TopK of the compiled `Archive.add` on N devices,
 "seconds/<part>" the wall time of each part. Every setting is the smallest that still runs
 the code path: the whole script must stay within a few minutes on a 2-core CPU.
 """
@@ -28,7 +28,7 @@ import numpy as np
 
 from hte_jax import sharding
 
-PARTS = ("hbr", "flat", "batched", "episodes", "hlo", "replica", "empty")
+PARTS = ("hbr", "flat", "batched", "episodes", "hlo", "replica", "empty", "archive")
 BATCHED_DAMAGES = ("leg1", "legs1+4")  # an APROL-style BatchedMapElites of two damages
 # Training batches: 12 rows, so 12, 6 or 3 rows per device. XLA's CPU code for a vmapped MJX step
 # rounds differently with the rows it is compiled for (measured on one device: 3, 5, 6 and 12 rows
@@ -192,6 +192,52 @@ def run_empty(devices: int) -> dict:
     return {f"empty/{devices}/out": np.asarray(out)}
 
 
+def run_archive(devices: int) -> dict:
+    """Under `spread_over`: `Archive.add` of BATCH candidates into 20 elites (additions, replacements and
+    rejections), its new repertoire and insertion and the rows of each TopK of its compiled program; and the
+    nearest of 20 points (arrays of the mesh, closed over) to each of BATCH queries in blocks of 5 rows
+    (`middle.nearest_index`)."""
+    import jax.numpy as jnp
+
+    from hte_jax.hbr.middle import nearest_index
+    from hte_jax.qd.archive import Archive
+    from hte_jax.qd.repertoire import Evaluation
+
+    rng = np.random.default_rng(0)
+    archive = Archive(64, (0.0, 0.0), (1.0, 1.0), l=0.1, k=3)
+    filled = np.arange(64) < 20
+    repertoire = archive.empty(3).replace(
+        genotypes=jnp.asarray(rng.random((64, 3)), jnp.float32) * filled[:, None],
+        descriptors=jnp.asarray(rng.random((64, 2)), jnp.float32) * filled[:, None],
+        fitnesses=jnp.where(filled, jnp.asarray(rng.random(64), jnp.float32), -jnp.inf), filled=jnp.asarray(filled))
+    genotypes = jnp.asarray(rng.random((BATCH, 3)), jnp.float32)
+    evaluation = Evaluation(fitnesses=jnp.asarray(rng.random(BATCH), jnp.float32),
+                            descriptors=jnp.asarray(rng.random((BATCH, 2)), jnp.float32),
+                            valid=jnp.asarray(np.arange(BATCH) != 5))
+    mesh = sharding.batch_mesh(devices)
+
+    def add(*args):
+        with sharding.spread_over(mesh):
+            return archive.add(*args)
+
+    args = sharding.put_replicated((repertoire, genotypes, evaluation), mesh)
+    text = jax.jit(add).lower(*args).compile().as_text()
+    topk = re.compile(r"\(f32\[(\d+),\d+\][^)]*\) custom-call\([^)]*\), custom_call_target=\"TopK\"")
+    rows = [int(m) for m in topk.findall(text)]
+    new, insertion = jax.jit(add)(*args)
+
+    points, mask, queries = sharding.put_replicated((repertoire.descriptors, repertoire.filled,
+                                                     evaluation.descriptors), mesh)
+
+    def nearest(queries):  # closing over arrays of the mesh, as a layer's evaluation does over the layer below
+        with sharding.spread_over(mesh):
+            return nearest_index(points, mask, queries, chunk=5)
+
+    found = jax.jit(nearest)(queries)
+    return tree_arrays(f"archive/{devices}", {"repertoire": new, "insertion": insertion, "nearest": found}) | {
+        f"archive_topk/{devices}": np.array(rows)}
+
+
 def replica_error() -> dict:
     """The replica check on an array whose device copies (one per visible device) differ in one element."""
     mesh = sharding.batch_mesh(jax.device_count())
@@ -238,6 +284,8 @@ def main(args: argparse.Namespace):
             arrays |= timed("flat", run_flat, n)
         if "empty" in parts:
             arrays |= timed("empty", run_empty, n)
+        if "archive" in parts:
+            arrays |= timed("archive", run_archive, n)
         if "batched" in parts or "hlo" in parts:
             found, batched = timed("batched", run_batched, n)
             arrays |= found

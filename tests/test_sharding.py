@@ -5,8 +5,9 @@ suite keeps one device) and these tests read what it wrote.
 Nearly all of the cost is XLA compiling the MJX programs, once per program and device count (about
 15-40 s each on a 2-core CPU), so by default (CI) the subprocess runs 2 devices and the parts that
 fit about 2 minutes: the APROL-style `BatchedMapElites` run on 1 and 2 devices, the HLO of its
-compiled generation on 2 devices and the replica check. 2 devices already split every batch (6 of 12
-rows each) and gather it, as any larger count does. `HTE_SHARDING_FULL=1` adds a 4-device leg (4
+compiled generation on 2 devices, an archive insertion and a nearest-elite search on 1 and 2 devices
+and the replica check. 2 devices already split every batch (6 of 12 rows each) and gather it, as any
+larger count does. `HTE_SHARDING_FULL=1` adds a 4-device leg (4
 forced devices: 3 rows each), the tiny HBR run and the tiny flat run on 1, 2 and 4 devices and the
 episode batch of 6 on 1 and 4 devices (padded to 8: the padding path; about 20 minutes more).
 
@@ -36,7 +37,7 @@ from tests.processes import ROOT, cpu_devices_env
 
 FULL = os.environ.get("HTE_SHARDING_FULL", "") not in ("", "0")
 DEVICES = (1, 2, 4) if FULL else (1, 2)
-PARTS = ("batched", "hlo", "replica", "empty") + (("hbr", "flat", "episodes") if FULL else ())
+PARTS = ("batched", "hlo", "replica", "empty", "archive") + (("hbr", "flat", "episodes") if FULL else ())
 # 6 episodes of 2 actions, 4 devices vs 1: measured max |diff| 3.3e-4 on the GP's prediction errors,
 # 5e-6 on poses and trajectories
 EPISODE_TOLERANCE = 2e-3
@@ -121,6 +122,19 @@ def test_zero_sized_arrays_cross_the_split(results):
     give one device's result on every count (jax 0.11.2's partitioner crashed on them as shard_map inputs)."""
     _check_agreement(results, "empty")
     np.testing.assert_array_equal(_runs(results, "empty")[1]["out"], 2.0 * np.arange(12, dtype=np.float32))
+
+
+@pytest.mark.slow
+def test_the_archive_searches_each_devices_candidates_there(results):
+    """Under `spread_over`, each device searches the neighbours of its own rows of the batch (every TopK of the
+    compiled `Archive.add` holds 12 / N rows, not the whole batch); the insertion and a nearest-elite search in
+    blocks (`qd.archive.map_rows`) are one device's bit for bit."""
+    _check_agreement(results, "archive")
+    one = _runs(results, "archive")[1]
+    assert one["['insertion'].accepted"].any() and not one["['insertion'].accepted"].all()
+    assert len(set(one["['nearest']"].tolist())) > 3 and (one["['nearest']"] < 20).all()
+    for count in DEVICES:
+        assert results[f"archive_topk/{count}"].tolist() == [12 // count] * 2
 
 
 @pytest.mark.slow
