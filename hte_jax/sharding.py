@@ -179,7 +179,7 @@ def _traced(fn: Callable[..., Any], shared: Any, rows: Any, count: int) -> tuple
 
     local = jax.tree.map(lambda x: jax.ShapeDtypeStruct((x.shape[0] // count, *x.shape[1:]), x.dtype), rows)
     with jax.sharding.use_abstract_mesh(AbstractMesh((), ())):
-        closed, shapes = jax.make_jaxpr(fn, return_shape=True)(shared, local)
+        closed, shapes = jax.make_jaxpr(fn, return_shape=True)(jax.tree.map(_unplaced, shared), local)
     arrays = [i for i, c in enumerate(closed.consts) if isinstance(c, jax.Array) and np.size(c)]
 
     def body(shared, captured, rows):
@@ -190,6 +190,14 @@ def _traced(fn: Callable[..., Any], shared: Any, rows: Any, count: int) -> tuple
         return jax.tree.unflatten(jax.tree.structure(shapes), flat)
 
     return body, [closed.consts[i] for i in arrays]
+
+
+def _unplaced(leaf: Any) -> Any:
+    """An array leaf as its shape and dtype alone (no sharding: an outer jit's value placed on the mesh would type
+    the trace with that mesh, which clashes inside the `shard_map`); other leaves as they are."""
+    if not isinstance(leaf, jax.Array):
+        return leaf
+    return jax.ShapeDtypeStruct(leaf.shape, leaf.dtype, weak_type=jax.typeof(leaf).weak_type)
 
 
 def replica_digests(tree: Any) -> dict[str, list[str]]:
