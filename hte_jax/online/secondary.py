@@ -8,7 +8,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from hte_jax.hbr.middle import NUM_PATTERNS
+from hte_jax.hbr.middle import NUM_PATTERNS, pattern_code
 from hte_jax.sim.robot import NUM_LEGS
 
 ERROR_SCALE = np.array([4.0, 4.0, 3.0], np.float32)  # k for x, y, yaw (paper: k = 4; code: 3 for yaw)
@@ -37,13 +37,12 @@ def allowed_patterns() -> np.ndarray:
 
 def oracle_pattern(damage: np.ndarray) -> int:
     """Perfect HTE: the pattern with exactly the intact legs down (63 for the intact robot)."""
-    return int(sum(1 << (NUM_LEGS - 1 - leg) for leg in range(NUM_LEGS) if not damage[leg]))
+    return int(pattern_code((~np.asarray(damage, bool)).astype(np.float32), xp=np))
 
 
 def oracle_patterns(damages: jax.Array) -> jax.Array:
     """(..., 6) bool damaged legs -> (...,) int32 `oracle_pattern` of each (jax: also inside a jit)."""
-    weights = 2 ** jnp.arange(NUM_LEGS - 1, -1, -1, dtype=jnp.int32)  # leg 0 the most significant bit
-    return jnp.sum(jnp.where(damages, 0, weights), axis=-1, dtype=jnp.int32)
+    return pattern_code((~jnp.asarray(damages, bool)).astype(jnp.float32))
 
 
 def relative_error(expected: jax.Array, observed: jax.Array) -> jax.Array:

@@ -7,7 +7,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from hte_jax.sim.robot import NUM_LEGS
+from hte_jax.hbr.middle import pattern_code
 
 CONTACT_EVIDENCE = 0.3  # seconds of expected floor contact before a leg is judged (`unusable_legs`)
 CONTACT_RATIO = 0.1  # a leg sensed down for less than this share of its expected contact is unusable
@@ -35,6 +35,4 @@ def usable_pattern(contacts: jax.Array, motion: jax.Array | None = None) -> jax.
     bad = unusable_legs(contacts)
     if motion is not None:
         bad = bad | stuck_legs(motion)
-    weights = jnp.asarray([1 << (NUM_LEGS - 1 - leg) for leg in range(NUM_LEGS)], jnp.int32)
-    pattern = jnp.sum(jnp.where(bad, 0, weights), axis=-1)
-    return jnp.where(bad.any(axis=-1), pattern, -1).astype(jnp.int32)
+    return jnp.where(bad.any(axis=-1), pattern_code((~bad).astype(jnp.float32)), -1).astype(jnp.int32)
