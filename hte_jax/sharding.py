@@ -98,6 +98,12 @@ def put_batch(tree: Any, mesh: Mesh) -> Any:
     return jax.tree.map(lambda x: jax.device_put(x, batch_sharding(mesh, np.ndim(x))), tree)
 
 
+def put_stacked(trees: list) -> Any:
+    """Outside jit: pytrees of one structure stacked along a new leading axis on the host, then placed on the
+    default device (one transfer per leaf, no XLA program)."""
+    return jax.tree.map(lambda *xs: jax.device_put(np.stack([np.asarray(x) for x in xs])), *trees)
+
+
 def local_device() -> jax.Device:
     """This process's first device, where MJX's loaders put their arrays (their default, `jax.devices()[0]`,
     belongs to process 0 in a multi-process run)."""

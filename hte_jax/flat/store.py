@@ -9,6 +9,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
+from hte_jax import sharding
 from hte_jax.errors import lookup
 from hte_jax.flat.task import FlatTask, flat_spec
 from hte_jax.qd.io import CheckpointError, elite_arrays, save_checkpoint
@@ -75,5 +76,4 @@ def load_flat(path: str | Path) -> tuple[FlatRepertoires, dict]:
         raise CheckpointError(f"{path}: holds no repertoire")
     repertoires = [rebuild_elites(path, arrays, flat_spec(task), _prefix(index), label=f"repertoire {index} ({name})")
                    for index, name in enumerate(damages)]
-    stacked = jax.tree.map(lambda *xs: jax.device_put(np.stack([np.asarray(x) for x in xs])), *repertoires)  # host
-    return FlatRepertoires(task=task, damages=damages, repertoire=stacked), meta
+    return FlatRepertoires(task=task, damages=damages, repertoire=sharding.put_stacked(repertoires)), meta

@@ -10,6 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
+from hte_jax import sharding
 from hte_jax.geometry import wrap_angle
 from hte_jax.errors import ConfigError
 from hte_jax.hbr.composition import COMPOSITIONS, PatternTable, planning_table
@@ -141,4 +142,4 @@ def flat_skill_maps(repertoires: Repertoire, extent: float) -> Skills:
     count = int(np.asarray(host.filled).sum(axis=-1).max())
     maps = [flat_skills(jax.tree.map(lambda x, k=k: x[k], host), extent, pad_to=count)
             for k in range(host.filled.shape[0])]
-    return jax.tree.map(lambda *xs: jax.device_put(np.stack([np.asarray(x) for x in xs])), *maps)
+    return sharding.put_stacked(maps)
