@@ -8,6 +8,7 @@ import os
 import sys
 import tempfile
 
+from hte_jax import warp_calls
 from hte_jax.errors import ConfigError, require_choice
 
 WARP_NOTICES = ("Failed to import warp:", "Failed to import mujoco_warp:")
@@ -58,6 +59,7 @@ def _start_warp() -> None:
     if kept:
         print("\n".join(kept), file=sys.stderr)
     _warp_started = True
+    warp_calls.mark_started()
 
 
 @contextlib.contextmanager
