@@ -17,6 +17,11 @@ from collections.abc import Iterator
 _started = False
 
 
+def started() -> bool:
+    """Whether Warp's backend started in this process."""
+    return _started
+
+
 def mark_started() -> None:
     """Warp's backend started in this process (`sim.mjx_import.require_impl`): `warp_calls()` pauses collection."""
     global _started

@@ -26,8 +26,6 @@ _other = [line for line in _captured.getvalue().splitlines() if not line.startsw
 if _other:
     print("\n".join(_other), file=sys.stdout)
 
-_warp_started = False
-
 
 def warp_installed() -> bool:
     """Whether MJX can run its Warp backend here (warp-lang and MJX's MuJoCo Warp both imported)."""
@@ -48,8 +46,7 @@ def require_impl(impl: str) -> None:
 
 def _start_warp() -> None:
     """`warp.init()` with Warp's informational output off and its start notices dropped."""
-    global _warp_started
-    if _warp_started:
+    if warp_calls.started():
         return
     import warp
     warp.config.log_level = warp.LOG_WARNING  # no banner, no line per kernel module loaded
@@ -58,7 +55,6 @@ def _start_warp() -> None:
     kept = [line for line in lines if line.strip() and not line.startswith(_WARP_START)]
     if kept:
         print("\n".join(kept), file=sys.stderr)
-    _warp_started = True
     warp_calls.mark_started()
 
 
