@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.experimental import multihost_utils
-from jax.sharding import AbstractMesh, Mesh, NamedSharding, PartitionSpec
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from hte_jax import cpu_pool
 from hte_jax.errors import ConfigError
@@ -131,28 +131,26 @@ def spread_over(mesh: Mesh):
 
 
 def current_mesh():
-    """The mesh `spread_over` made current, or None (also inside a `shard_map` over it already, or while `map_rows`
-    traces the function it splits)."""
+    """The mesh `spread_over` made current, or None (also inside a `shard_map` over it already)."""
     mesh = jax.sharding.get_abstract_mesh()
     unusable = mesh.empty or BATCH_AXIS not in mesh.axis_names or BATCH_AXIS in getattr(mesh, "manual_axes", ())
     return None if unusable else mesh
 
 
 def map_rows(fn: Callable[..., Any], shared: Any, rows: Any) -> Any:
-    """`fn(shared, rows)` on independent rows (every leaf's leading axis), split over the `spread_over` mesh if any;
-    the arrays fn closes over go whole to every device."""
+    """`fn(shared, rows)` on independent rows (every leaf's leading axis), split over the `spread_over` mesh if any."""
     mesh = current_mesh()
     if mesh is None or int(np.prod(mesh.axis_sizes)) == 1:
         return fn(shared, rows)  # one device: the very program a plain jit makes
     batch = jax.tree.leaves(rows)[0].shape[0]
     count = int(np.prod(mesh.axis_sizes))
     padded = pad_rows(rows, -(-batch // count) * count)
-    body, captured = _traced(fn, shared, padded, count)
-    (inputs, rebuild_inputs), (padded, rebuild_rows) = _without_empty((shared, captured)), _without_empty(padded, count)
-    split = jax.shard_map(lambda s, r: body(*rebuild_inputs(s), rebuild_rows(r)), mesh=mesh,
+    (shared, rebuild_shared), (padded, rebuild_rows) = _without_empty(shared), _without_empty(padded, count)
+    body = _empty_constants_made_inside(lambda s, r: fn(rebuild_shared(s), rebuild_rows(r)))
+    split = jax.shard_map(body, mesh=mesh,
                           in_specs=(PartitionSpec(), PartitionSpec(BATCH_AXIS)),
                           out_specs=PartitionSpec(BATCH_AXIS), check_vma=False)
-    result = jax.tree.map(lambda x: x[:batch], split(inputs, padded))
+    result = jax.tree.map(lambda x: x[:batch], split(shared, padded))
     return jax.tree.map(lambda x: jax.lax.with_sharding_constraint(x, PartitionSpec()), result)
 
 
@@ -176,34 +174,17 @@ def _without_empty(tree: Any, split: int = 1) -> tuple[list, Callable[[list], An
     return [None if i in empty else x for i, x in enumerate(leaves)], rebuild
 
 
-def _traced(fn: Callable[..., Any], shared: Any, rows: Any, count: int) -> tuple[Callable[..., Any], list]:
-    """`fn(shared, rows)` traced on one device's rows (1 / `count` of them), outside the `shard_map` and without a
-    mesh (as inside it, `current_mesh` is None): (body(shared, captured, rows) running the trace, its zero-sized
-    constants made by zeros; captured, the non-empty arrays fn closes over, made inputs of the `shard_map`: jax
-    refuses an array placed on the mesh, captured as a constant, inside it)."""
+def _empty_constants_made_inside(fn: Callable[..., Any]) -> Callable[..., Any]:
+    """`fn` traced to a jaxpr and run with its zero-sized constants made by zeros inside it, not captured."""
     from jax.extend.core import ClosedJaxpr, jaxpr_as_fun
 
-    local = jax.tree.map(lambda x: jax.ShapeDtypeStruct((x.shape[0] // count, *x.shape[1:]), x.dtype), rows)
-    with jax.sharding.use_abstract_mesh(AbstractMesh((), ())):
-        closed, shapes = jax.make_jaxpr(fn, return_shape=True)(jax.tree.map(_unplaced, shared), local)
-    arrays = [i for i, c in enumerate(closed.consts) if isinstance(c, jax.Array) and np.size(c)]
-
-    def body(shared, captured, rows):
+    def run(*args):
+        closed, shapes = jax.make_jaxpr(fn, return_shape=True)(*args)
         consts = [jnp.zeros(np.shape(c), c.dtype) if np.size(c) == 0 else c for c in closed.consts]
-        for i, array in zip(arrays, captured):
-            consts[i] = array
-        flat = jaxpr_as_fun(ClosedJaxpr(closed.jaxpr, consts))(*jax.tree.leaves((shared, rows)))
+        flat = jaxpr_as_fun(ClosedJaxpr(closed.jaxpr, consts))(*jax.tree.leaves(args))
         return jax.tree.unflatten(jax.tree.structure(shapes), flat)
 
-    return body, [closed.consts[i] for i in arrays]
-
-
-def _unplaced(leaf: Any) -> Any:
-    """An array leaf as its shape and dtype alone (no sharding: an outer jit's value placed on the mesh would type
-    the trace with that mesh, which clashes inside the `shard_map`); other leaves as they are."""
-    if not isinstance(leaf, jax.Array):
-        return leaf
-    return jax.ShapeDtypeStruct(leaf.shape, leaf.dtype, weak_type=jax.typeof(leaf).weak_type)
+    return run
 
 
 def replica_digests(tree: Any) -> dict[str, list[str]]:

@@ -9,7 +9,7 @@ Writes OUT.npz: for every part and device count N, the arrays of its result, nam
 compiled generation of the batched run on the most devices (none expected), "hlo/outside" counts the
 collectives of that program outside loops (the gather of the results: some expected),
 "replica/error" the message of the replica check on a deliberately inconsistent array (replicated
-over every visible device), "archive_topk/<N>" the rows of each TopK of the compiled `Archive.add` on N devices,
+over every visible device),
 "seconds/<part>" the wall time of each part. Every setting is the smallest that still runs
 the code path: the whole script must stay within a few minutes on a 2-core CPU.
 """
@@ -194,9 +194,8 @@ def run_empty(devices: int) -> dict:
 
 def run_archive(devices: int) -> dict:
     """Under `spread_over`: `Archive.add` of BATCH candidates into 20 elites (additions, replacements and
-    rejections), its new repertoire and insertion and the rows of each TopK of its compiled program; and the
-    nearest of 20 points (arrays of the mesh, closed over) to each of BATCH queries in blocks of 5 rows
-    (`middle.nearest_index`)."""
+    rejections), its new repertoire and insertion; and the nearest of 20 points (arrays of the mesh, closed
+    over) to each of BATCH queries in blocks of 5 rows (`middle.nearest_index`)."""
     import jax.numpy as jnp
 
     from hte_jax.hbr.middle import nearest_index
@@ -221,9 +220,6 @@ def run_archive(devices: int) -> dict:
             return archive.add(*args)
 
     args = sharding.put_replicated((repertoire, genotypes, evaluation), mesh)
-    text = jax.jit(add).lower(*args).compile().as_text()
-    topk = re.compile(r"\(f32\[(\d+),\d+\][^)]*\) custom-call\([^)]*\), custom_call_target=\"TopK\"")
-    rows = [int(m) for m in topk.findall(text)]
     new, insertion = jax.jit(add)(*args)
 
     points, mask, queries = sharding.put_replicated((repertoire.descriptors, repertoire.filled,
@@ -234,8 +230,7 @@ def run_archive(devices: int) -> dict:
             return nearest_index(points, mask, queries, chunk=5)
 
     found = jax.jit(nearest)(queries)
-    return tree_arrays(f"archive/{devices}", {"repertoire": new, "insertion": insertion, "nearest": found}) | {
-        f"archive_topk/{devices}": np.array(rows)}
+    return tree_arrays(f"archive/{devices}", {"repertoire": new, "insertion": insertion, "nearest": found})
 
 
 def replica_error() -> dict:

@@ -125,16 +125,14 @@ def test_zero_sized_arrays_cross_the_split(results):
 
 
 @pytest.mark.slow
-def test_the_archive_searches_each_devices_candidates_there(results):
-    """Under `spread_over`, each device searches the neighbours of its own rows of the batch (every TopK of the
-    compiled `Archive.add` holds 12 / N rows, not the whole batch); the insertion and a nearest-elite search in
-    blocks (`qd.archive.map_rows`) are one device's bit for bit."""
+def test_the_archive_compiles_and_agrees_on_several_devices(results):
+    """Under `spread_over`, `Archive.add` compiles for N devices (XLA:CPU once failed a CHECK there, see
+    docs/design.md "Performance notes") and its insertion and a nearest-elite search in blocks
+    (`qd.archive.map_rows`) are one device's bit for bit."""
     _check_agreement(results, "archive")
     one = _runs(results, "archive")[1]
     assert one["['insertion'].accepted"].any() and not one["['insertion'].accepted"].all()
     assert len(set(one["['nearest']"].tolist())) > 3 and (one["['nearest']"] < 20).all()
-    for count in DEVICES:
-        assert results[f"archive_topk/{count}"].tolist() == [12 // count] * 2
 
 
 @pytest.mark.slow

@@ -21,7 +21,6 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
-from hte_jax import sharding
 from hte_jax.errors import ConfigError, check_fields, integer, number, require_bounds
 from hte_jax.qd.repertoire import (Evaluation, Insertion, Repertoire, best_per_target, empty_repertoire, insertable,
                                    write)
@@ -42,14 +41,7 @@ def pairwise_distance(queries: jax.Array, points: jax.Array) -> jax.Array:
 
 
 def map_rows(fn, arrays: tuple, fills: tuple, chunk: int):
-    """fn over blocks of `chunk` rows of `arrays` with lax.map (bounding memory), the last padded with `fills`; the
-    rows first split over the `sharding.spread_over` mesh, if any, what fn closes over whole on every device (left
-    to XLA's partitioner, a lax.map of several blocks and a top_k ran on all rows on every device)."""
-    return sharding.map_rows(lambda _, rows: _blocks(fn, rows, fills, chunk), (), tuple(arrays))
-
-
-def _blocks(fn, arrays: tuple, fills: tuple, chunk: int):
-    """`map_rows` on one device."""
+    """fn over blocks of `chunk` rows of `arrays` with lax.map (bounding memory), the last padded with `fills`."""
     num = arrays[0].shape[0]
     chunk = max(1, min(chunk, num))
     blocks = -(-num // chunk)

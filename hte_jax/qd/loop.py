@@ -79,10 +79,8 @@ class OnMesh:
 
     @functools.partial(jax.jit, static_argnums=(0, 2))
     def run_block(self, state: QDState, generations: int) -> tuple[QDState, jax.Array]:
-        """(state, total accepted), replicated on the mesh; the rows of each generation's rollouts and archive
-        searches split over it (`sharding.spread_over`)."""
-        with sharding.spread_over(self.active_mesh):
-            state, accepted = jax.lax.scan(lambda s, _: self.generation_step(s), state, None, length=generations)
+        """(state, total accepted), replicated on the mesh."""
+        state, accepted = jax.lax.scan(lambda s, _: self.generation_step(s), state, None, length=generations)
         return sharding.replicate((state, accepted.sum()), self.active_mesh)
 
 
@@ -105,6 +103,11 @@ class MapElites(OnMesh):
         config = spec_config(spec, config)
         return cls(spec.container, spec.evaluate, spec.genotype_dim, config, spec.extras_example(), emitter, mesh)
 
+    def evaluate_batch(self, key: jax.Array, genotypes: jax.Array) -> Evaluation:
+        """`evaluate`, its rollouts' rows spread over the mesh (`sharding.spread_over`)."""
+        with sharding.spread_over(self.active_mesh):
+            return self.evaluate(key, genotypes)
+
     @functools.cached_property
     def active_emitter(self) -> Emitter:
         return config_emitter(self.config, self.container) if self.emitter is None else self.emitter
@@ -120,8 +123,7 @@ class MapElites(OnMesh):
 
     @functools.partial(jax.jit, static_argnums=0)
     def init(self, key: jax.Array) -> QDState:
-        """Evaluate init_size uniform random genotypes and insert them, batch by batch, the rows split over the
-        mesh as in `run_block`."""
+        """Evaluate init_size uniform random genotypes and insert them, batch by batch."""
         key, key_init = jax.random.split(key)
         state = self.empty_state(key)
         batches = self.config.init_size // self.config.batch_size
@@ -129,11 +131,10 @@ class MapElites(OnMesh):
         def insert(repertoire, batch_key):
             key_genes, key_eval = jax.random.split(batch_key)
             genotypes = jax.random.uniform(key_genes, (self.config.batch_size, self.genotype_dim))
-            repertoire, _ = self.container.add(repertoire, genotypes, self.evaluate(key_eval, genotypes))
+            repertoire, _ = self.container.add(repertoire, genotypes, self.evaluate_batch(key_eval, genotypes))
             return repertoire, None
 
-        with sharding.spread_over(self.active_mesh):
-            repertoire, _ = jax.lax.scan(insert, state.repertoire, jax.random.split(key_init, batches))
+        repertoire, _ = jax.lax.scan(insert, state.repertoire, jax.random.split(key_init, batches))
         key_emitter = jax.random.fold_in(key_init, 0)  # a key of its own: the batches' keys stay as they were
         emitter_state = self.active_emitter.init(repertoire, key_emitter)
         return sharding.replicate(state.replace(repertoire=repertoire, emitter_state=emitter_state), self.active_mesh)
@@ -156,7 +157,7 @@ class MapElites(OnMesh):
         """One generation; returns the new state and the number of accepted offspring."""
         key, key_ask, key_eval = jax.random.split(state.key, 3)
         genotypes, emitter_state = self.ask(state.repertoire, state.emitter_state, key_ask)
-        evaluation = self.evaluate(key_eval, genotypes)
+        evaluation = self.evaluate_batch(key_eval, genotypes)
         repertoire, emitter_state, insertion = self.tell(state.repertoire, emitter_state, genotypes, evaluation)
         new = QDState(repertoire=repertoire, key=key, generation=state.generation + 1, emitter_state=emitter_state)
         return new, insertion.accepted.sum(dtype=jnp.int32)
