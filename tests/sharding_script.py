@@ -193,9 +193,10 @@ def run_empty(devices: int) -> dict:
 
 
 def run_archive(devices: int) -> dict:
-    """Under `spread_over`: `Archive.add` of BATCH candidates into 20 elites (additions, replacements and
-    rejections), its new repertoire and insertion; and the nearest of 20 points (arrays of the mesh, closed
-    over) to each of BATCH queries in blocks of 5 rows (`middle.nearest_index`)."""
+    """Where a generation runs them: `Archive.add` of BATCH candidates into 20 elites (additions, replacements
+    and rejections) on inputs replicated on the mesh, as `tell` does, its new repertoire and insertion; and, under
+    `spread_over` as in a layer's evaluation, the nearest of 20 points (arrays of the mesh, closed over) to each
+    of BATCH queries in blocks of 5 rows (`middle.nearest_index`)."""
     import jax.numpy as jnp
 
     from hte_jax.hbr.middle import nearest_index
@@ -215,12 +216,8 @@ def run_archive(devices: int) -> dict:
                             valid=jnp.asarray(np.arange(BATCH) != 5))
     mesh = sharding.batch_mesh(devices)
 
-    def add(*args):
-        with sharding.spread_over(mesh):
-            return archive.add(*args)
-
     args = sharding.put_replicated((repertoire, genotypes, evaluation), mesh)
-    new, insertion = jax.jit(add)(*args)
+    new, insertion = jax.jit(archive.add)(*args)
 
     points, mask, queries = sharding.put_replicated((repertoire.descriptors, repertoire.filled,
                                                      evaluation.descriptors), mesh)

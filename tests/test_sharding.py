@@ -126,9 +126,9 @@ def test_zero_sized_arrays_cross_the_split(results):
 
 @pytest.mark.slow
 def test_the_archive_compiles_and_agrees_on_several_devices(results):
-    """Under `spread_over`, `Archive.add` compiles for N devices (XLA:CPU once failed a CHECK there, see
-    docs/design.md "Performance notes") and its insertion and a nearest-elite search in blocks
-    (`qd.archive.map_rows`) are one device's bit for bit."""
+    """`Archive.add` compiles for N devices (XLA:CPU once failed a CHECK there, see docs/design.md "Performance
+    notes") and its insertion and a nearest-elite search in blocks (`qd.archive.map_rows`) are one device's bit
+    for bit."""
     _check_agreement(results, "archive")
     one = _runs(results, "archive")[1]
     assert one["['insertion'].accepted"].any() and not one["['insertion'].accepted"].all()
