@@ -37,9 +37,10 @@ def run_benchmark(script, *args):
     return out.getvalue()
 
 
-def run_benchmark_process(script, *args):
-    """stdout of `python benchmarks/<script> <args>`; fails the test with its stderr if it exits non-zero."""
-    proc = subprocess.run([sys.executable, str(BENCHMARKS / script), *args], cwd=ROOT,
+def run_benchmark_process(script, *args, env=None):
+    """stdout of `python benchmarks/<script> <args>` (this environment updated with `env`); fails the test with
+    its stderr if it exits non-zero."""
+    proc = subprocess.run([sys.executable, str(BENCHMARKS / script), *args], cwd=ROOT, env={**os.environ, **(env or {})},
                           capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-2000:]
     return proc.stdout

@@ -3,10 +3,11 @@ separate module so that pytest-xdist runs it beside the other benchmark tests).
 """
 
 import json
+import os
 
 import pytest
 
-from tests.benchmark_runner import run_benchmark
+from tests.benchmark_runner import run_benchmark, run_benchmark_process
 
 # Runs the tiny HBR's programs, as test_hbr_training does: the same options and group, so they are compiled once.
 pytestmark = [pytest.mark.exact_numerics, pytest.mark.slow, pytest.mark.xdist_group("hbr_tiny")]
@@ -22,6 +23,34 @@ def test_hbr_layer_benchmark(tmp_path):
     assert (row["layer"], row["batch"]) == ("bottom", 16)
     assert row["evaluations_per_s"] > 0 and abs(row["steps_per_s"] / row["evaluations_per_s"] - 100) < 1e-6
     assert result["settings"]["preset"] == "tiny" and "eval/s" in stdout
+
+
+def test_hbr_layer_benchmark_parts_and_trace(tmp_path):
+    """--parts times ask, evaluate and tell apart; --trace records a generation and sums each traced process."""
+    out = tmp_path / "layers.json"
+    stdout = run_benchmark("hbr_layers.py", "--preset", "tiny", "--batch-sizes", "16", "--repeats", "1",
+                           "--layers", "bottom", "--devices", "1", "--parts", "--trace", str(tmp_path / "trace"),
+                           "--out", str(out))
+    result = json.loads(out.read_text())
+    (row,) = result["rows"]
+    assert row["devices"] == 1 and result["settings"]["parts"] and "evaluate s" in stdout
+    assert all(row[f"{part}_s"] > 0 for part in ("ask", "evaluate", "tell"))
+    assert row["evaluate_s"] > row["tell_s"]  # 16 rollouts of 100 steps against 16 insertions
+    processes = row["trace"]["processes"]
+    assert processes and all(p["seconds"] > 0 and p["events"] > 0 and p["longest"] for p in processes.values())
+    assert list(tmp_path.joinpath("trace", "bottom_16_1dev").rglob("perfetto_trace.json.gz"))
+
+
+def test_hbr_layer_benchmark_on_two_devices(tmp_path):
+    """--devices 2 spreads the batch over 2 forced CPU devices (its own process: the count is set at start)."""
+    out = tmp_path / "layers.json"
+    flags = f"{os.environ.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count=2".strip()
+    run_benchmark_process("hbr_layers.py", "--preset", "tiny", "--batch-sizes", "16", "--repeats", "1",
+                          "--layers", "bottom", "--devices", "2", "--parts", "--out", str(out), env={"XLA_FLAGS": flags})
+    result = json.loads(out.read_text())
+    (row,) = result["rows"]
+    assert result["settings"]["devices"] == row["devices"] == 2 and row["evaluations_per_s"] > 0
+    assert all(row[f"{part}_s"] > 0 for part in ("ask", "evaluate", "tell"))
 
 
 def test_hbr_preset_benchmark(tmp_path):
