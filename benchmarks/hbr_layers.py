@@ -38,7 +38,7 @@ from hte_jax.hbr.training import LAYERS, layer_algorithms, preset, with_override
 from hte_jax.sharding import batch_mesh
 from hte_jax.sim import load_robot, standing_state
 from hte_jax.sim.mjx_import import require_impl
-from hte_jax.warp_calls import warp_calls
+from hte_jax.warp_calls import waited
 
 TOP_OPERATIONS = 12  # the longest operations a trace summary lists per device
 
@@ -48,15 +48,13 @@ def steps_per_evaluation(config, layer: str) -> int:
 
 
 def timed(fn, *args, repeats: int) -> tuple[float, list[float], object]:
-    """Median seconds of `repeats` calls of `fn(*args)` after one untimed call (compiling), each waited for
-    inside `warp_calls`; the times and the last result."""
-    with warp_calls():
-        out = jax.block_until_ready(fn(*args))
+    """Median seconds of `repeats` calls of `fn(*args)` after one untimed call (compiling), each `waited` for;
+    the times and the last result."""
+    out = waited(fn, *args)
     times = []
     for _ in range(repeats):
         t0 = time.perf_counter()
-        with warp_calls():
-            out = jax.block_until_ready(fn(*args))
+        out = waited(fn, *args)
         times.append(time.perf_counter() - t0)
     return statistics.median(times), times, out
 
@@ -125,8 +123,7 @@ def main(argv=None) -> int:
     seed_config = sized(min(args.batch_sizes))
     for layer in LAYERS[:max(LAYERS.index(name) for name in args.layers)]:
         algo = layer_algorithms(seed_config, robot, start, lower, mesh)[layer]()
-        with warp_calls():
-            lower[layer] = jax.block_until_ready(algo.init(key)).repertoire
+        lower[layer] = waited(algo.init, key).repertoire
 
     rows = []
     for layer in args.layers:
@@ -134,12 +131,10 @@ def main(argv=None) -> int:
             config = sized(batch)
             algo = layer_algorithms(config, robot, start, lower, mesh)[layer]()
             t0 = time.perf_counter()
-            with warp_calls():
-                state = jax.block_until_ready(algo.place(algo.init(key)))
+            state = waited(lambda: algo.place(algo.init(key)))
             init_s = time.perf_counter() - t0
             t0 = time.perf_counter()
-            with warp_calls():
-                state, _ = jax.block_until_ready(algo.run_block(state, 1))
+            state, _ = waited(algo.run_block, state, 1)
             first_s = time.perf_counter() - t0
             median, times, (state, _) = timed(algo.run_block, state, 1, repeats=args.repeats)
             row = {
@@ -157,8 +152,8 @@ def main(argv=None) -> int:
                 row.update(part_seconds(algo, state, args.repeats))
             if args.trace is not None:
                 folder = Path(args.trace) / f"{layer}_{batch}_{devices}dev"
-                with jax.profiler.trace(str(folder), create_perfetto_trace=True), warp_calls():
-                    jax.block_until_ready(algo.run_block(state, 1))
+                with jax.profiler.trace(str(folder), create_perfetto_trace=True):
+                    waited(algo.run_block, state, 1)
                 row["trace"] = {"folder": str(folder), "processes": trace_summary(folder)}
             rows.append(row)
             parts = "".join(f"  {name} {row[f'{name}_s']:.3f}" for name in ("ask", "evaluate", "tell") if f"{name}_s" in row)

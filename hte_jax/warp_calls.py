@@ -1,5 +1,5 @@
 """Python's garbage collector paused while Warp's calls run: `warp_calls()` around device work that may call MJX's
-Warp backend.
+Warp backend, and `waited(fn, ...)`: a call whose device work is waited for inside it.
 
 Each call of Warp's JAX FFI wraps XLA's CUDA stream in a `warp.Stream` (registering the stream) and captures a
 graph on it. A wrapper left in a reference cycle by an earlier call is finalised by whichever collection comes
@@ -12,7 +12,10 @@ from __future__ import annotations
 
 import contextlib
 import gc
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
+from typing import Any
+
+import jax
 
 _started = False
 
@@ -40,3 +43,10 @@ def warp_calls() -> Iterator[None]:
     finally:
         if pause:
             gc.enable()
+
+
+def waited(fn: Callable[..., Any], *args, **kwargs) -> Any:
+    """`fn(*args, **kwargs)` (device work, which may run Warp's calls) with its result waited for inside
+    `warp_calls()`."""
+    with warp_calls():
+        return jax.block_until_ready(fn(*args, **kwargs))

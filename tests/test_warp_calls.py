@@ -92,3 +92,20 @@ def test_maze_eval_plans_and_acts_with_the_collector_paused(monkeypatch, tmp_pat
     assert maze_main(args) == 0
     assert len(seen) == 4 and not any(seen)  # 2 actions, each planned and acted
     assert gc.isenabled()
+
+
+def test_waited_returns_the_finished_result_with_the_collector_paused_during_the_call(monkeypatch, collector_on):
+    monkeypatch.setattr(warp_calls, "_started", True)
+    seen = []
+
+    def record(x):
+        seen.append(gc.isenabled())
+        return x
+
+    @jax.jit
+    def work(x, scale):
+        return jax.pure_callback(record, jax.ShapeDtypeStruct(x.shape, x.dtype), x) * scale
+
+    out = warp_calls.waited(work, jnp.arange(4.0), scale=2.0)
+    assert seen == [False] and gc.isenabled()  # paused while the device work ran, on again after
+    assert out.is_ready() and np.array_equal(np.asarray(out), [0.0, 2.0, 4.0, 6.0])

@@ -19,7 +19,7 @@ from hte_jax.hbr.middle import NUM_PATTERNS, PRIMARY, MiddleTask
 from hte_jax.sim.robot import NUM_LEGS, Robot
 from hte_jax.sim.env import SimState
 from hte_jax.sim.rollout import RolloutSpec, rollout
-from hte_jax.warp_calls import warp_calls
+from hte_jax.warp_calls import waited
 
 COMPOSITIONS = ("planned", "waypoints")  # how a step with a chosen pattern picks its elite
 DEFAULT_BEAM = (32, 16)
@@ -157,8 +157,8 @@ def measure_steps(robot: Robot, middle_params: jax.Array, filled: jax.Array, tas
         pad = size - take  # the last block: padded as a full one (elite 0 after the neutral pose)
         indices = (np.pad(own[rows], (0, pad)), np.pad(before[rows], (0, pad), constant_values=-1))
         inputs = sharding.put_replicated(indices, mesh)
-        with sharding.spread_over(mesh), warp_calls():
-            steps, ok = jax.block_until_ready(_measure_block(*shared, *inputs, task))
+        with sharding.spread_over(mesh):
+            steps, ok = waited(_measure_block, *shared, *inputs, task)
         measured[samples[rows]] = np.asarray(steps)[:take]
         valid[samples[rows]] = np.asarray(ok)[:take]
     measured = jnp.asarray(measured.reshape(count, starts, PRIMARY))

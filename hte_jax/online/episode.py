@@ -35,7 +35,7 @@ from hte_jax.online.skills import outcome as outcome_of
 from hte_jax.sim.damage import Damage, damage_legs
 from hte_jax.sim.robot import NUM_LEGS, Robot
 from hte_jax.sim.env import SimState
-from hte_jax.warp_calls import warp_calls
+from hte_jax.warp_calls import waited
 
 
 @dataclasses.dataclass(frozen=True)
@@ -306,13 +306,11 @@ def run_episodes(maze: Maze, config: AdaptationConfig, robot: Robot, skills: Ski
         if done.all():
             break
         tick = time.perf_counter()
-        with warp_calls():
-            decision = jax.block_until_ready(plan(skills, field, episodes))
+        decision = waited(plan, skills, field, episodes)
         timings.plan.append(time.perf_counter() - tick)
         active = ~done[:batch]
         tick = time.perf_counter()
-        with warp_calls():
-            episodes, states = jax.block_until_ready(act(robot, skills, episodes, decision))
+        episodes, states = waited(act, robot, skills, episodes, decision)
         timings.act.append(time.perf_counter() - tick)
         if recorder is not None:
             recorder.add(sharding.addressable(states), active)

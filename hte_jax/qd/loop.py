@@ -23,7 +23,7 @@ from hte_jax.qd.emitters import Emitter, config_emitter
 from hte_jax.qd.metrics import MetricsLog, RepertoireMetrics, repertoire_metrics
 from hte_jax.qd.repertoire import Evaluation, Repertoire
 from hte_jax.qd.task_spec import TaskSpec, container_metadata
-from hte_jax.warp_calls import warp_calls
+from hte_jax.warp_calls import waited
 
 # evaluate(key, genotypes (B, G)) -> Evaluation with B rows; must be jittable.
 EvaluateFn = Callable[[jax.Array, jax.Array], Evaluation]
@@ -209,8 +209,7 @@ def run(algo: MapElites, state: QDState, generations: int, *, block_size: int = 
     while done < generations:
         block = done // block_size
         count = min(block_size * (block + 1), generations) - done
-        with warp_calls():
-            state, accepted = jax.block_until_ready(algo.run_block(state, count))
+        state, accepted = waited(algo.run_block, state, count)
         sharding.check_replicas(state, what=f"block {block}: state")
         done = int(state.generation)
         metrics, row = record(block, accepted)
@@ -237,8 +236,7 @@ def start_or_resume(algo: MapElites, key: jax.Array, checkpoint_path: str | Path
         return resume(algo, checkpoint_path)
     label = "initial batch" if description is None else f"{description}: initial batch"
     with tqdm(total=1, desc=label, unit="batch", disable=not progress, leave=False) as bar:
-        with warp_calls():
-            state = jax.block_until_ready(algo.init(key))
+        state = waited(algo.init, key)
         bar.update()
     return state
 
