@@ -47,32 +47,31 @@ def steps_per_evaluation(config, layer: str) -> int:
     return {"bottom": 100, "middle": 100 * config.middle_samples, "top": 300}[layer]
 
 
-def timed(fn, *args, repeats: int) -> tuple[float, list[float], object]:
-    """Median seconds of `repeats` calls of `fn(*args)` after one untimed call (compiling), each `waited` for;
-    the times and the last result."""
-    out = waited(fn, *args)
+def timed(fn, *args, repeats: int) -> tuple[float, float, list[float], object]:
+    """Seconds of a first call of `fn(*args)` (compiling it), the median of `repeats` calls after it and their
+    times, each `waited` for; and the last result."""
     times = []
-    for _ in range(repeats):
+    for _ in range(1 + repeats):
         t0 = time.perf_counter()
         out = waited(fn, *args)
         times.append(time.perf_counter() - t0)
-    return statistics.median(times), times, out
+    return times[0], statistics.median(times[1:]), times[1:], out
 
 
 def part_seconds(algo, state, repeats: int) -> dict:
     """Median seconds of one generation's `ask`, `evaluate` and `tell`, each a compiled program of its own."""
     key_ask, key_eval = jax.random.split(state.key)
-    ask_s, _, (genotypes, emitter_state) = timed(jax.jit(algo.ask), state.repertoire, state.emitter_state, key_ask,
+    _, ask_s, _, (genotypes, emitter_state) = timed(jax.jit(algo.ask), state.repertoire, state.emitter_state, key_ask,
                                                  repeats=repeats)
-    evaluate_s, _, evaluation = timed(jax.jit(algo.evaluate_batch), key_eval, genotypes, repeats=repeats)
-    tell_s, _, _ = timed(jax.jit(algo.tell), state.repertoire, emitter_state, genotypes, evaluation, repeats=repeats)
+    _, evaluate_s, _, evaluation = timed(jax.jit(algo.evaluate_batch), key_eval, genotypes, repeats=repeats)
+    _, tell_s, _, _ = timed(jax.jit(algo.tell), state.repertoire, emitter_state, genotypes, evaluation, repeats=repeats)
     return {"ask_s": ask_s, "evaluate_s": evaluate_s, "tell_s": tell_s}
 
 
 def trace_summary(folder: Path) -> dict:
     """Per traced process of the Perfetto trace under `folder` (a device, the host): the summed seconds of its
     complete events, their count, and the longest operations by summed seconds."""
-    (path,) = sorted(folder.rglob("perfetto_trace.json.gz"))[-1:]
+    path = max(folder.rglob("perfetto_trace.json.gz"))  # the latest trace under it
     with gzip.open(path, "rt") as handle:
         events = json.load(handle)
     events = events["traceEvents"] if isinstance(events, dict) else events
@@ -133,10 +132,7 @@ def main(argv=None) -> int:
             t0 = time.perf_counter()
             state = waited(lambda: algo.place(algo.init(key)))
             init_s = time.perf_counter() - t0
-            t0 = time.perf_counter()
-            state, _ = waited(algo.run_block, state, 1)
-            first_s = time.perf_counter() - t0
-            median, times, (state, _) = timed(algo.run_block, state, 1, repeats=args.repeats)
+            first_s, median, times, (state, _) = timed(algo.run_block, state, 1, repeats=args.repeats)
             row = {
                 "layer": layer,
                 "batch": batch,
