@@ -109,3 +109,33 @@ def test_waited_returns_the_finished_result_with_the_collector_paused_during_the
     out = warp_calls.waited(work, jnp.arange(4.0), scale=2.0)
     assert seen == [False] and gc.isenabled()  # paused while the device work ran, on again after
     assert out.is_ready() and np.array_equal(np.asarray(out), [0.0, 2.0, 4.0, 6.0])
+
+
+def test_standing_state_settles_with_the_collector_paused_and_under_a_callers_jit_as_before(monkeypatch, collector_on):
+    """Every command's start (`standing_state`, eager) waits for its rollout inside `warp_calls`; traced under a
+    caller's jit it leaves the waiting to that caller."""
+    import importlib
+
+    from hte_jax.sim.robot import load_robot
+
+    rollout_module = importlib.import_module("hte_jax.sim.rollout")  # the module (the package exports its function)
+
+    monkeypatch.setattr(warp_calls, "_started", True)
+    seen = []
+    real = rollout_module.rollout
+
+    def record(x):
+        seen.append(gc.isenabled())
+        return x
+
+    def recorded_rollout(robot, params, damage, init, spec):
+        params = jax.pure_callback(record, jax.ShapeDtypeStruct(params.shape, params.dtype), jnp.asarray(params))
+        return real(robot, params, damage, init, spec)
+
+    monkeypatch.setattr(rollout_module, "rollout", jax.jit(recorded_rollout, static_argnames=("spec",)))
+    robot = load_robot()
+    eager = rollout_module.standing_state(robot, np.eye(6, dtype=bool)[:2], settle_steps=4)
+    assert seen == [False] and gc.isenabled()
+    assert eager.qpos.shape[0] == 2 and np.all(np.isfinite(np.asarray(eager.qpos)))
+    traced = jax.jit(lambda d: rollout_module.standing_state(robot, d, settle_steps=4))(jnp.eye(6, dtype=bool)[:2])
+    assert np.allclose(np.asarray(traced.qpos), np.asarray(eager.qpos), atol=1e-6)

@@ -18,6 +18,7 @@ from hte_jax.sim.damage import Damage, as_damage, edited_model, edits_model, hel
 from hte_jax.sim.env import SimState, ValidityLimits, check_state
 from hte_jax.sim.mjx_import import mjx
 from hte_jax.sim.robot import FOOT_RADIUS, NUM_JOINTS, NUM_LEGS, Robot, mj_model, warp_capacity
+from hte_jax.warp_calls import waited
 
 
 @dataclasses.dataclass(frozen=True)
@@ -196,7 +197,7 @@ def empty_data(robot: Robot, rows: int) -> mjx.Data:
 def standing_state(robot: Robot, damage: jax.Array | Damage | None = None, settle_steps: int = 100) -> SimState:
     """A settled standing pose (zero controller, then x = y = 0), batched like `damage`: a (6,) or (B, 6) bool leg
     mask, or a `Damage` unbatched or batched (B, ...), concrete or traced. Three programs: the reference poses, the
-    rollout, the move to the origin."""
+    rollout, the move to the origin; run eagerly, waited for inside `warp_calls()` (`hte_jax.warp_calls`)."""
     damage = np.zeros(NUM_LEGS, bool) if damage is None else damage
     if not isinstance(damage, Damage):  # traced (under a caller's jit) or concrete
         damage = damage.astype(bool) if isinstance(damage, jax.Array) else np.asarray(damage, bool)
@@ -204,9 +205,14 @@ def standing_state(robot: Robot, damage: jax.Array | Damage | None = None, settl
     batched = np.ndim(legs) == 2
     damage = jax.tree.map(lambda x: x.reshape(-1, *np.shape(x)[np.ndim(legs) - 1:]), damage)
     spec = RolloutSpec(num_steps=settle_steps, record_contacts=False)
-    init = _reference_states(robot, damage)
-    params = np.zeros((np.shape(init.qpos)[0], NUM_PARAMS), np.float32)
-    return _at_origin(rollout(robot, params, damage, init, spec).final_state, batched)
+
+    def settle() -> SimState:
+        init = _reference_states(robot, damage)
+        params = np.zeros((np.shape(init.qpos)[0], NUM_PARAMS), np.float32)
+        return _at_origin(rollout(robot, params, damage, init, spec).final_state, batched)
+
+    traced = any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves((robot, damage)))
+    return settle() if traced else waited(settle)
 
 
 @jax.jit
