@@ -23,7 +23,6 @@ time and its longest operations.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import gzip
 import json
 import statistics
@@ -105,7 +104,7 @@ def main(argv=None) -> int:
     env = environment()
     base = preset(args.preset)
     if args.impl is not None:
-        base = dataclasses.replace(base, solver=dataclasses.replace(base.solver, impl=args.impl))
+        base = with_overrides(base, {"solver.impl": args.impl})
     require_impl(base.robot.impl)
     mesh = batch_mesh(args.devices)
     devices = int(mesh.devices.size)

@@ -3,11 +3,11 @@ separate module so that pytest-xdist runs it beside the other benchmark tests).
 """
 
 import json
-import os
 
 import pytest
 
 from tests.benchmark_runner import run_benchmark, run_benchmark_process
+from tests.processes import cpu_devices_env
 
 # Runs the tiny HBR's programs, as test_hbr_training does: the same options and group, so they are compiled once.
 pytestmark = [pytest.mark.exact_numerics, pytest.mark.slow, pytest.mark.xdist_group("hbr_tiny")]
@@ -44,9 +44,8 @@ def test_hbr_layer_benchmark_parts_and_trace(tmp_path):
 def test_hbr_layer_benchmark_on_two_devices(tmp_path):
     """--devices 2 spreads the batch over 2 forced CPU devices (its own process: the count is set at start)."""
     out = tmp_path / "layers.json"
-    flags = f"{os.environ.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count=2".strip()
     run_benchmark_process("hbr_layers.py", "--preset", "tiny", "--batch-sizes", "16", "--repeats", "1",
-                          "--layers", "bottom", "--devices", "2", "--parts", "--out", str(out), env={"XLA_FLAGS": flags})
+                          "--layers", "bottom", "--devices", "2", "--parts", "--out", str(out), env=cpu_devices_env(2))
     result = json.loads(out.read_text())
     (row,) = result["rows"]
     assert result["settings"]["devices"] == row["devices"] == 2 and row["evaluations_per_s"] > 0
