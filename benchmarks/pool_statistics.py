@@ -24,6 +24,16 @@ seeds of A and B then those of C and D. Writes (or adds KEY to) --out and prints
 (the paper's method) and failure rate, its success rate with a 95 % Wilson interval and per-seed rates,
 and the Bonferroni-corrected tests of each pair at each level; --summary and --figure write
 `evaluation.summarise` and Fig. 6 of the episodes.
+
+Each --cells is LABEL=FILE:KEY[:VARIANT]: the per-seed cells (episodes, successes, median actions) of LABEL's
+other seeds, read from the "success" entry of KEY in FILE (a statistics file this script wrote; VARIANT, default
+LABEL, names the variant there), for seeds whose episodes are no longer at hand. Their seeds must differ from the
+seeds of LABEL's --run. The entry then also holds "seed_cells": `statistics.cell_statistics` of every seed (the
+file's and the runs'): pooled success with its interval, Fisher's tests of the pooled counts and the seed-level
+tests; the other entries cover the runs' episodes alone. E.g. ten seeds, seeds 0-3 from an earlier file:
+
+    python benchmarks/pool_statistics.py --out s.json --key r10 --run "hte=R4_TO_9:hte" \\
+        --cells "hte=benchmarks/results/r4_raised_h200x4_2026-11-28/statistics_hte-jax_raised.json:r4"
 """
 
 from __future__ import annotations
@@ -39,8 +49,9 @@ from pathlib import Path
 
 from hte_jax.online.evaluation import summarise
 from hte_jax.online.plots import plot_protocol_box
-from hte_jax.online.statistics import (PAPER_METHOD_HEADER, SEED_QUANTITIES, level_lines, protocol_statistics,
-                                       rank_test_text, rates_text, seed_level_tests, success_rates)
+from hte_jax.online.statistics import (PAPER_METHOD_HEADER, SEED_QUANTITIES, cell_statistics, level_lines,
+                                       p_text, protocol_statistics, rank_test_text, rates_text, seed_cells,
+                                       seed_level_tests, success_rates)
 from hte_jax.qd.io import read_checkpoint
 
 WORLD_SAMPLE = ("world level: the world (a run folder pooled with +, e.g. a maze) is the unit, each label's value per "
@@ -130,6 +141,47 @@ def world_lines(level: dict) -> list[str]:
     return lines
 
 
+def all_cells(specs: list[str], records: list[dict]) -> dict[str, dict[int, dict]]:
+    """LABEL -> seed -> per-seed cell: the --cells files' seeds, then the records' (`seed_cells`)."""
+    cells = seed_cells(records)
+    for spec in specs:
+        label, _, rest = spec.partition("=")
+        parts = rest.split(":")
+        if not label or len(parts) not in (2, 3) or not all(parts):
+            raise SystemExit(f"error: --cells {spec!r} is not LABEL=FILE:KEY[:VARIANT]")
+        if label not in cells:
+            raise SystemExit(f"error: --cells {spec!r}: no --run is labelled {label!r}")
+        path, key, variant = Path(parts[0]), parts[1], parts[2] if len(parts) == 3 else label
+        try:
+            held = json.loads(path.read_text())[key]["success"][variant]["seeds"]
+        except (OSError, ValueError, KeyError, TypeError) as error:
+            raise SystemExit(f"error: --cells {spec!r}: {path} holds no per-seed cells of {key}/success/{variant} "
+                             f"({type(error).__name__}: {error})")
+        clash = sorted(set(map(int, held)) & set(cells[label]))
+        if clash:
+            raise SystemExit(f"error: --cells {spec!r}: seeds {clash} are also in the runs of {label!r}")
+        cells[label] = dict(sorted({**cells[label], **{int(seed): cell for seed, cell in held.items()}}.items()))
+    return cells
+
+
+def cell_lines(level: dict) -> list[str]:
+    """Each label's pooled success over every seed and per seed, then each pair's Fisher and seed-level p."""
+    width = max(12, *(len(name) for name in level["success"]))
+    lines = ["every seed (--cells and runs): success pooled [95 % Wilson] and per seed; Bonferroni p of Fisher's test "
+             "(episodes) and of the seed-level signed-rank tests (seeds compared, min p):"]
+    for name, cell in level["success"].items():
+        pooled = cell["pooled"]
+        low, high = pooled["ci95"]
+        lines.append(f"{name:<{width}} success {100 * pooled['rate']:5.1f} % [{100 * low:.1f}, {100 * high:.1f}] "
+                     f"{pooled['successes']}/{pooled['episodes']}; per seed {rates_text(cell['seeds'])} %")
+    seed = level["seed_tests"]
+    for fisher, rate, actions in zip(level["episode_success"]["pairs"], seed["success_rate"]["pairs"],
+                                     seed["median_actions"]["pairs"]):
+        lines.append(f"  {fisher['a']} vs {fisher['b']}: episodes success {p_text(fisher['p_bonferroni'])} | seeds: "
+                     f"success {rank_test_text(rate)}, median actions {rank_test_text(actions)}")
+    return lines
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--run", action="append", required=True,
@@ -141,6 +193,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--summary", type=Path, help="also write `evaluation.summarise` of the episodes here")
     parser.add_argument("--figure", type=Path, help="also draw Fig. 6 (the paper's method) of the episodes here")
     parser.add_argument("--max-actions", type=int, default=80, help="the runs' action cap (default 80, maze_eval's)")
+    parser.add_argument("--cells", action="append", default=[],
+                        help="LABEL=FILE:KEY[:VARIANT]: LABEL's per-seed cells of other seeds from a statistics file")
     args = parser.parse_args(argv)
     runs = [pooled(spec, args.damage) for spec in args.run]
     worlds = {count for _, count in runs}
@@ -154,6 +208,8 @@ def main(argv: list[str] | None = None) -> None:
     stats.pop("medians")
     if worlds != {1}:
         stats["world_level"] = world_level(records)
+    if args.cells:
+        stats["seed_cells"] = cell_statistics(all_cells(args.cells, records))
     data = json.loads(args.out.read_text()) if args.out.is_file() else {}
     data[args.key] = stats
     args.out.write_text(json.dumps(data, indent=1) + "\n")
@@ -163,7 +219,8 @@ def main(argv: list[str] | None = None) -> None:
     for name, v in stats["variants"].items():
         print(f"{name:24s} p25/p50/p75 {v['p25']:5.1f} {v['p50']:5.1f} {v['p75']:5.1f}  failed {v['failure_percent']:5.1f} %"
               f"  ({v['replications']} replications, {v['episodes']} episodes)")
-    print("\n".join(level_lines(stats) + (world_lines(stats["world_level"]) if "world_level" in stats else [])))
+    print("\n".join(level_lines(stats) + (world_lines(stats["world_level"]) if "world_level" in stats else [])
+                    + (cell_lines(stats["seed_cells"]) if "seed_cells" in stats else [])))
 
 
 if __name__ == "__main__":

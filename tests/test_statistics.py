@@ -4,6 +4,7 @@ Fisher's exact test, Mann-Whitney on successful actions) and the seed level (exa
 
 import json
 import math
+from pathlib import Path
 
 import matplotlib.image
 import numpy as np
@@ -17,6 +18,7 @@ from hte_jax.online.statistics import (
     PAIR_LEGEND,
     action_summary,
     bonferroni,
+    cell_statistics,
     episode_action_tests,
     episode_success_tests,
     failure_reduction,
@@ -27,6 +29,7 @@ from hte_jax.online.statistics import (
     pairwise_tests,
     protocol_statistics,
     replication_medians,
+    seed_cells,
     seed_level_tests,
     seed_values,
     signed_rank_test,
@@ -275,6 +278,60 @@ def test_pool_statistics_merges_runs_of_other_seeds_joined_by_and(tmp_path):
                                "seed 1, damage 'd', replicate 0 (& joins runs of other seeds)")
     benchmark_module("pool_statistics").main(["--out", str(out), "--key", "b only", "--run", f"b={both[0]}&{rest[0]}:b@0"])
     assert json.loads(out.read_text())["b only"]["variants"]["b"]["episodes"] == 3  # @0 leaves out the shared seeds
+
+
+def test_pool_statistics_takes_other_seeds_cells_from_an_earlier_file(tmp_path):
+    """--cells LABEL=FILE:KEY[:VARIANT] adds the per-seed cells of seeds whose episodes are gone: "seed_cells" of
+    runs of seeds 2-4 plus the file's seeds 0-1 equals the cell statistics of one run holding seeds 0-4; bad
+    specs, a missing file entry and seeds held twice stop the script with one line."""
+
+    def write(folder, seeds):
+        folder.mkdir()
+        records = [{"variant": v, "seed": s, "damage": "d", "replicate": r, "actions": a, "reached": a < 80,
+                    "broken": False}
+                   for v, base in (("a", 10), ("b", 14)) for s in seeds for r in range(4)
+                   for a in [80 if (v, r) == ("b", s % 4) else base + s + r]]
+        (folder / "episodes.json").write_text(json.dumps({"episodes": records}))
+        return str(folder)
+
+    every, early, late = write(tmp_path / "all", range(5)), write(tmp_path / "early", (0, 1)), write(tmp_path / "late", (2, 3, 4))
+    out = tmp_path / "s.json"
+    run_benchmark("pool_statistics.py", "--out", str(out), "--key", "early", "--run", f"x={early}:a", "--run", f"y={early}:b")
+    printed = run_benchmark("pool_statistics.py", "--out", str(out), "--key", "r5", "--run", f"a={late}:a", "--run",
+                            f"b={late}:b", "--cells", f"a={out}:early:x", "--cells", f"b={out}:early:y")
+    data = json.loads(out.read_text())
+    whole = cell_statistics(seed_cells(json.loads(Path(every, "episodes.json").read_text())["episodes"]))
+    assert data["r5"]["seed_cells"] == json.loads(json.dumps(whole))
+    assert data["r5"]["variants"]["a"]["episodes"] == 12  # the other entries: the runs' episodes alone
+    assert list(data["r5"]["seed_cells"]["success"]["b"]["seeds"]) == ["0", "1", "2", "3", "4"]
+    (rate,) = data["r5"]["seed_cells"]["seed_tests"]["success_rate"]["pairs"]
+    assert rate["seeds"] == 5 and rate["values_a"] == [1.0] * 5 and rate["p"] == pytest.approx(2 / 32)
+    assert "every seed (--cells and runs)" in printed and "success  75.0 % [" in printed
+
+    module = benchmark_module("pool_statistics")
+    for cells, message in ((f"a={out}", f"--cells 'a={out}' is not LABEL=FILE:KEY[:VARIANT]"),
+                           (f"c={out}:early:x", f"--cells 'c={out}:early:x': no --run is labelled 'c'"),
+                           (f"a={out}:early", f"--cells 'a={out}:early': {out} holds no per-seed cells of early/success/a "
+                                              "(KeyError: 'a')"),
+                           (f"a={out}:r5", f"--cells 'a={out}:r5': seeds [2, 3, 4] are also in the runs of 'a'")):
+        with pytest.raises(SystemExit) as stop:
+            module.main(["--out", str(tmp_path / "x.json"), "--run", f"a={late}:a", "--cells", cells])
+        assert stop.value.code == f"error: {message}"
+
+
+def test_cell_statistics_agree_with_the_episodes_where_both_apply():
+    """From per-seed cells alone: the pooled successes and Wilson interval, Fisher's tests and the seed-level tests
+    are those the episodes give."""
+    records = _three_variants()
+    level = cell_statistics(seed_cells(records))
+    rates = success_rates(records)
+    for variant, cell in level["success"].items():
+        pooled = {k: rates[variant]["pooled"][k] for k in ("episodes", "successes", "rate", "ci95")}
+        assert cell["pooled"] == pooled and cell["seeds"] == rates[variant]["seeds"]
+    assert {k: v for k, v in level["episode_success"].items() if k != "sample"} == episode_success_tests(records)
+    for quantity in ("success_rate", "median_actions"):
+        assert level["seed_tests"][quantity] == seed_level_tests(records, quantity)
+    assert level["success"]["a"]["pooled"]["successes"] == 6 and level["success"]["c"]["pooled"]["rate"] == 0
 
 
 def test_pool_statistics_errors_are_one_line(tmp_path):

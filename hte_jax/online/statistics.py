@@ -175,6 +175,12 @@ def episode_success_tests(records: list[dict]) -> dict:
     for r in records:
         counts[r["variant"]][0] += bool(r["reached"])
         counts[r["variant"]][1] += 1
+    return fisher_tests({v: (s, n) for v, (s, n) in counts.items()})
+
+
+def fisher_tests(counts: dict[str, tuple[int, int]]) -> dict:
+    """Per pair of variants (variant -> (successes, episodes)), two-sided Fisher's exact test on their 2 x 2
+    table of successes and failures, Bonferroni-corrected over the pairs."""
     pairs = list(itertools.combinations(counts, 2))
     raw = []
     for a, b in pairs:
@@ -234,30 +240,39 @@ def min_signed_rank_p(seeds: int) -> float:
 SEED_QUANTITIES = ("success_rate", "median_actions")
 
 
+def seed_cells(records: list[dict]) -> dict[str, dict[int, dict]]:
+    """variant -> seed -> `success_summary` of that seed's episodes (all damages), seeds in increasing order."""
+    check_records(records)
+    rows: dict[str, dict[int, list[dict]]] = defaultdict(lambda: defaultdict(list))
+    for r in records:
+        rows[r["variant"]][_seed(r)].append(r)
+    return {v: {s: success_summary(cell) for s, cell in sorted(seeds.items())} for v, seeds in rows.items()}
+
+
+def cell_values(cells: dict[str, dict[int, dict]], quantity: str) -> dict[str, dict[int, float | None]]:
+    """variant -> seed -> the "success_rate" (successes / episodes) or the "median_actions" (of the successful
+    episodes, None without one) of per-seed `success_summary` cells."""
+    if quantity not in SEED_QUANTITIES:
+        raise ValueError(f"seed quantity must be one of {', '.join(SEED_QUANTITIES)}, got {quantity!r}")
+    return {v: {s: (c["successes"] / c["episodes"] if quantity == "success_rate" else c["actions"]["median"])
+                for s, c in seeds.items()} for v, seeds in cells.items()}
+
+
 def seed_values(records: list[dict], quantity: str) -> dict[str, dict[int, float | None]]:
     """variant -> seed -> its "success_rate" (successes / episodes of that seed, all damages) or its
     "median_actions" (np.median of the actions of that seed's successful episodes, None without one)."""
-    if quantity not in SEED_QUANTITIES:
-        raise ValueError(f"seed quantity must be one of {', '.join(SEED_QUANTITIES)}, got {quantity!r}")
-    check_records(records)
-    cells: dict[str, dict[int, list[dict]]] = defaultdict(lambda: defaultdict(list))
-    for r in records:
-        cells[r["variant"]][_seed(r)].append(r)
-    out = {}
-    for variant, seeds in cells.items():
-        out[variant] = {}
-        for seed, rows in sorted(seeds.items()):
-            successful = [r["actions"] for r in rows if r["reached"]]
-            out[variant][seed] = (len(successful) / len(rows) if quantity == "success_rate"
-                                  else _median_or_none(successful))
-    return out
+    return cell_values(seed_cells(records), quantity)
 
 
 def seed_level_tests(records: list[dict], quantity: str) -> dict:
-    """Per pair of variants, `signed_rank_test` of the differences a - b of their `seed_values` over the seeds
+    """`signed_rank_tests` of the records' `seed_values`."""
+    return signed_rank_tests(seed_values(records, quantity), quantity)
+
+
+def signed_rank_tests(values: dict[str, dict[int, float | None]], quantity: str) -> dict:
+    """Per pair of variants, `signed_rank_test` of the differences a - b of their per-seed values over the seeds
     both have (for median_actions, both with a successful episode: the seeds left out are counted), with the
     smallest p those seeds can give; Bonferroni over the pairs (None where no seed is left to compare)."""
-    values = seed_values(records, quantity)
     pairs = list(itertools.combinations(values, 2))
     tests = []
     for a, b in pairs:
@@ -275,6 +290,23 @@ def seed_level_tests(records: list[dict], quantity: str) -> dict:
     what = "success rate" if quantity == "success_rate" else "median actions of the successful episodes"
     return {"test": f"exact Wilcoxon signed-rank, two-sided, on each seed's {what}", "bonferroni_pairs": len(pairs),
             "pairs": tests}
+
+
+def cell_statistics(cells: dict[str, dict[int, dict]]) -> dict:
+    """The statistics that per-seed `success_summary` cells (variant -> seed -> cell) determine without the
+    episodes: per variant the successes pooled over the seeds with a 95 % Wilson interval and the cells
+    ("success"); Fisher's tests of those counts ("episode_success", episodes as the sample); the seed level
+    (`signed_rank_tests` of both SEED_QUANTITIES). Pooled actions and the paper's method need the episodes."""
+    success = {}
+    for v, seeds in cells.items():
+        successes, episodes = sum(c["successes"] for c in seeds.values()), sum(c["episodes"] for c in seeds.values())
+        success[v] = {"pooled": {"episodes": episodes, "successes": successes, "rate": successes / episodes,
+                                 "ci95": list(wilson_interval(successes, episodes))},
+                      "seeds": {str(s): c for s, c in sorted(seeds.items())}}
+    counts = {v: (c["pooled"]["successes"], c["pooled"]["episodes"]) for v, c in success.items()}
+    return {"success": success, "episode_success": {"sample": EPISODE_SAMPLE, **fisher_tests(counts)},
+            "seed_tests": {"sample": SEED_SAMPLE, **{q: signed_rank_tests(cell_values(cells, q), q)
+                                                     for q in SEED_QUANTITIES}}}
 
 
 def protocol_statistics(records: list[dict]) -> dict:
