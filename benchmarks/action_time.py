@@ -28,10 +28,10 @@ HERE = Path(__file__).resolve().parent
 
 
 def parse_config(text: str) -> dict[str, str]:
-    """"KEY=VALUE,KEY=VALUE" -> overrides ("" -> none)."""
+    """"KEY=VALUE,KEY=VALUE" -> overrides ("" -> none); ValueError naming the malformed text."""
     pairs = [item.split("=", 1) for item in text.split(",") if item.strip()]
     if any(len(pair) != 2 for pair in pairs):
-        raise SystemExit(f"error: --config {text!r}: give KEY=VALUE items separated by commas")
+        raise ValueError(f"--config {text!r}: give KEY=VALUE items separated by commas")
     return {key.strip(): value.strip() for key, value in pairs}
 
 
@@ -64,8 +64,12 @@ def main(argv=None) -> int:
     parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     configs = args.config or [""]
-    for config in configs:
-        parse_config(config)
+    try:
+        for config in configs:
+            parse_config(config)
+    except ValueError as error:
+        print(f"error: {error}", file=sys.stderr)
+        return 2
     if args.child:  # one measurement, printed as JSON for the parent
         print(json.dumps(measure(args.protocol, args.preset, args.actions, seed=0, config=configs[0])))
         return 0

@@ -47,6 +47,7 @@ import sys
 from collections.abc import Callable
 from pathlib import Path
 
+from hte_jax.errors import ConfigError
 from hte_jax.online.evaluation import summarise
 from hte_jax.online.plots import plot_protocol_box
 from hte_jax.online.statistics import (PAPER_METHOD_HEADER, SEED_QUANTITIES, cell_statistics, level_lines,
@@ -71,7 +72,7 @@ def read_episodes(folder: Path) -> list[dict]:
         return json.loads(gzip.decompress(packed.read_bytes()))["episodes"]
     batches = sorted(folder.glob("episodes_*.npz"), key=lambda p: int(p.stem.removeprefix("episodes_")))
     if not batches:
-        raise SystemExit(f"error: {folder} holds no episodes.json(.gz) or finished batch (episodes_<k>.npz)")
+        raise ConfigError(f"{folder} holds no episodes.json(.gz) or finished batch (episodes_<k>.npz)")
     print(f"note: {folder}: a partial run, no episodes.json(.gz); read its {len(batches)} finished batch file(s)",
           file=sys.stderr)
     return [r for path in batches for r in read_checkpoint(path)[1]["metadata"]["records"]]
@@ -85,7 +86,7 @@ def pooled(spec: str, damage: str | None = None) -> tuple[list[dict], int]:
     rest, _, seeds = rest.partition("@")
     folders, _, variant = rest.partition(":")
     if not label or not folders:
-        raise SystemExit(f"error: --run {spec!r} is not LABEL=DIR[&DIR...][+DIR[&DIR...]...][:VARIANT][@SEEDS]")
+        raise ConfigError(f"--run {spec!r} is not LABEL=DIR[&DIR...][+DIR[&DIR...]...][:VARIANT][@SEEDS]")
     keep = [int(s) for s in seeds.split(",")] if seeds else None
 
     def selected(r: dict) -> bool:
@@ -102,13 +103,13 @@ def pooled(spec: str, damage: str | None = None) -> tuple[list[dict], int]:
         offset += 1 + max((r["replicate"] for folder in group.split("&") for r in read_episodes(Path(folder))),
                           default=-1)
     if not out:
-        raise SystemExit(f"error: --run {spec!r} selects no episodes")
+        raise ConfigError(f"--run {spec!r} selects no episodes")
     return out, len(worlds)
 
 
 def merged_episodes(folders: list[str], selected: Callable[[dict], bool], spec: str) -> list[dict]:
     """The `selected` episode records of run folders holding different seeds of the same replications, sorted by
-    seed (stable); SystemExit if two folders hold the same (variant, seed, damage, replicate)."""
+    seed (stable); ConfigError if two folders hold the same (variant, seed, damage, replicate)."""
     holder, out = {}, []
     for folder in folders:
         records = [r for r in read_episodes(Path(folder)) if selected(r)]
@@ -116,7 +117,7 @@ def merged_episodes(folders: list[str], selected: Callable[[dict], bool], spec: 
         for key in keys:
             if key in holder:
                 variant, seed, damage, replicate = key
-                raise SystemExit(f"error: --run {spec!r}: {holder[key]} and {folder} both hold variant {variant!r}, "
+                raise ConfigError(f"--run {spec!r}: {holder[key]} and {folder} both hold variant {variant!r}, "
                                  f"seed {seed}, damage {damage!r}, replicate {replicate} (& joins runs of other seeds)")
         holder.update(keys)
         out += records
@@ -148,18 +149,18 @@ def all_cells(specs: list[str], records: list[dict]) -> dict[str, dict[int, dict
         label, _, rest = spec.partition("=")
         parts = rest.split(":")
         if not label or len(parts) not in (2, 3) or not all(parts):
-            raise SystemExit(f"error: --cells {spec!r} is not LABEL=FILE:KEY[:VARIANT]")
+            raise ConfigError(f"--cells {spec!r} is not LABEL=FILE:KEY[:VARIANT]")
         if label not in cells:
-            raise SystemExit(f"error: --cells {spec!r}: no --run is labelled {label!r}")
+            raise ConfigError(f"--cells {spec!r}: no --run is labelled {label!r}")
         path, key, variant = Path(parts[0]), parts[1], parts[2] if len(parts) == 3 else label
         try:
             held = json.loads(path.read_text())[key]["success"][variant]["seeds"]
         except (OSError, ValueError, KeyError, TypeError) as error:
-            raise SystemExit(f"error: --cells {spec!r}: {path} holds no per-seed cells of {key}/success/{variant} "
+            raise ConfigError(f"--cells {spec!r}: {path} holds no per-seed cells of {key}/success/{variant} "
                              f"({type(error).__name__}: {error})")
         clash = sorted(set(map(int, held)) & set(cells[label]))
         if clash:
-            raise SystemExit(f"error: --cells {spec!r}: seeds {clash} are also in the runs of {label!r}")
+            raise ConfigError(f"--cells {spec!r}: seeds {clash} are also in the runs of {label!r}")
         cells[label] = dict(sorted({**cells[label], **{int(seed): cell for seed, cell in held.items()}}.items()))
     return cells
 
@@ -182,7 +183,9 @@ def cell_lines(level: dict) -> list[str]:
     return lines
 
 
-def main(argv: list[str] | None = None) -> None:
+def main(argv: list[str] | None = None) -> int:
+    """Pool, write and print; bad input (a malformed --run or --cells, a folder without episodes, runs that
+    disagree) gives one line on stderr and exit status 2, and writes nothing."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--run", action="append", required=True,
                         help="LABEL=DIR[&DIR...][+DIR[&DIR...]...][:VARIANT][@SEEDS]: & joins runs of different "
@@ -196,20 +199,30 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--cells", action="append", default=[],
                         help="LABEL=FILE:KEY[:VARIANT]: LABEL's per-seed cells of other seeds from a statistics file")
     args = parser.parse_args(argv)
+    try:
+        return pool(args)
+    except ConfigError as error:
+        print(f"error: {error}", file=sys.stderr)
+        return 2
+
+
+def pool(args: argparse.Namespace) -> int:
+    """What main does with its arguments; ConfigError for bad input, before anything is written."""
     runs = [pooled(spec, args.damage) for spec in args.run]
     worlds = {count for _, count in runs}
     if len(worlds) > 1:
-        raise SystemExit("error: the runs pool different numbers of folders (worlds): "
+        raise ConfigError("the runs pool different numbers of folders (worlds): "
                          + ", ".join(f"{spec.partition('=')[0]!r} {count}" for spec, (_, count) in zip(args.run, runs)))
     records = [r for run, _ in runs for r in run]
+    cells = all_cells(args.cells, records) if args.cells else None
     stats = protocol_statistics(records)
     if args.figure:
         plot_protocol_box(args.figure, stats, args.max_actions)
     stats.pop("medians")
     if worlds != {1}:
         stats["world_level"] = world_level(records)
-    if args.cells:
-        stats["seed_cells"] = cell_statistics(all_cells(args.cells, records))
+    if cells is not None:
+        stats["seed_cells"] = cell_statistics(cells)
     data = json.loads(args.out.read_text()) if args.out.is_file() else {}
     data[args.key] = stats
     args.out.write_text(json.dumps(data, indent=1) + "\n")
@@ -221,7 +234,8 @@ def main(argv: list[str] | None = None) -> None:
               f"  ({v['replications']} replications, {v['episodes']} episodes)")
     print("\n".join(level_lines(stats) + (world_lines(stats["world_level"]) if "world_level" in stats else [])
                     + (cell_lines(stats["seed_cells"]) if "seed_cells" in stats else [])))
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())

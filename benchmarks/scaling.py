@@ -66,13 +66,12 @@ def _timed(fn, repeats):
 
 
 def _worker(args) -> dict:
-    import dataclasses
-
     import jax
     import jax.numpy as jnp
     import numpy as np
 
     from hte_jax import sharding
+    from hte_jax.config import with_overrides
     from hte_jax.hbr.store import load_hbr
     from hte_jax.hbr.training import PRESETS, layer_algorithms
     from hte_jax.online.evaluation import EvalConfig, run_batch
@@ -104,10 +103,9 @@ def _worker(args) -> dict:
 
     hbr, _, _ = load_hbr(None)
     base = PRESETS["tiny"]
-    top = dataclasses.replace(base.top, batch_size=args.batch, init_size=args.batch)
-    config = dataclasses.replace(base, top=top, middle_samples=hbr.middle_task.samples,
-                                 contact_threshold=hbr.middle_task.contact_threshold,
-                                 solver=dataclasses.replace(base.solver, impl=impl))
+    config = with_overrides(base, {"top.batch_size": args.batch, "top.init_size": args.batch,
+                                   "middle_samples": hbr.middle_task.samples,
+                                   "contact_threshold": hbr.middle_task.contact_threshold, "solver.impl": impl})
     robot = load_robot(config.robot)
     algo = layer_algorithms(config, robot, standing_state(robot), {"bottom": hbr.bottom, "middle": hbr.middle},
                             mesh)["top"]()

@@ -17,7 +17,6 @@ give a one-line error and exit status 2.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import shutil
 import sys
@@ -28,6 +27,7 @@ import jax
 
 from experiments.cli import (add_device_flags, device_mesh, input_errors, interruptible, is_writer, resume_command,
                              show_progress)
+from hte_jax.config import with_overrides
 from hte_jax.errors import ConfigError
 from hte_jax.flat import training as flat
 from hte_jax.hbr import training as hbr_training
@@ -76,8 +76,7 @@ def main(argv=None) -> int:
                 raise ConfigError(f"--resume: {out} holds no set to resume")
             if args.impl not in ("jax", "warp"):
                 raise ConfigError(f"--impl must be jax or warp, got {args.impl!r}")
-            solver = dataclasses.replace(hbr_training.preset(args.preset).solver, impl=args.impl)
-            hbr_config = dataclasses.replace(hbr_training.preset(args.preset), seed=args.seed, solver=solver)
+            hbr_config = with_overrides(hbr_training.preset(args.preset), {"seed": args.seed, "solver.impl": args.impl})
             for part in parts:
                 if _final(out, part).is_file():
                     continue
@@ -97,10 +96,10 @@ def main(argv=None) -> int:
                     summary = hbr_training.train_spare(hbr, hbr_config, run_dir, resume_run=resume, progress=progress)
                     record = {k: summary[k] for k in ("evaluations", "elites", "patterns", "lifting_each_leg")}
                 else:
-                    config = dataclasses.replace(flat.preset(args.preset, "2d" if part == "matched" else part),
-                                                 seed=args.seed, solver=dataclasses.replace(solver, impl=impl))
+                    config = with_overrides(flat.preset(args.preset, "2d" if part == "matched" else part),
+                                            {"seed": args.seed, "solver.impl": impl})
                     if part == "matched":
-                        config = dataclasses.replace(config, generations=_matched_generations(out, config))
+                        config = with_overrides(config, {"generations": _matched_generations(out, config)})
                     summary = flat.train_flat(config, run_dir, resume_run=resume, progress=progress, mesh=mesh).summary
                     record = {k: summary[k] for k in ("evaluations", "elites", "statistics")}
                 if not is_writer():

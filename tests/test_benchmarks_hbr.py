@@ -70,3 +70,15 @@ def test_determinism_benchmark(tmp_path):
     assert result["identical"] is True  # on the CPU a seed is bit-reproducible
     assert result["elites"][0] == result["elites"][1] > 0 and len(result["wall_s"]) == 2
     assert "identical=True" in stdout
+
+
+def test_scaling_benchmark_on_one_and_two_forced_devices(tmp_path):
+    """benchmarks/scaling.py --cpu-devices 2: a top-layer generation on 1 and 2 devices (the tiny preset with --batch
+    set through its overrides), each in its own process, with 1 device's efficiency 1 and a table."""
+    out = tmp_path / "scaling.json"
+    printed = run_benchmark_process("scaling.py", "--cpu-devices", "2", "--devices", "1,2", "--batch", "8",
+                                    "--episodes", "0", "--repeats", "1", "--out", str(out))
+    rows = json.loads(out.read_text())["rows"]
+    assert [(r["devices"], r["impl"], r["batch"]) for r in rows] == [(1, "jax", 8), (2, "jax", 8)]
+    assert all(r["evaluations_per_s"] > 0 and r["rollout_steps_per_s"] > 0 for r in rows)
+    assert "evals/s" in printed and "wrote" in printed

@@ -79,3 +79,11 @@ def test_compile_cache_keeps_a_commands_programs_for_the_next_run(tmp_path):
     bad = run("--compile-cache", str(tmp_path / "file" / "sub"), "--out", str(tmp_path / "d"))
     assert bad.returncode == 2
     assert bad.stderr.strip().splitlines()[-1].startswith(f"error: --compile-cache: cannot make {tmp_path / 'file' / 'sub'}")
+
+
+def test_action_time_refuses_a_malformed_config_with_one_line():
+    """benchmarks/action_time.py --config that is not KEY=VALUE items: one line on stderr, exit status 2, nothing run."""
+    command = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "action_time.py"), "--config", "iterations"],
+                             capture_output=True, text=True, timeout=120)
+    assert command.returncode == 2
+    assert command.stderr == "error: --config 'iterations': give KEY=VALUE items separated by commas\n"

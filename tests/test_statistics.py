@@ -4,6 +4,8 @@ Fisher's exact test, Mann-Whitney on successful actions) and the seed level (exa
 
 import json
 import math
+import subprocess
+import sys
 from pathlib import Path
 
 import matplotlib.image
@@ -38,7 +40,7 @@ from hte_jax.online.statistics import (
     wilson_interval,
 )
 from hte_jax.qd.io import save_checkpoint
-from tests.benchmark_runner import benchmark_module, run_benchmark
+from tests.benchmark_runner import BENCHMARKS, benchmark_module, run_benchmark
 
 
 def test_nearest_percentile_takes_a_data_point():
@@ -240,7 +242,7 @@ def test_pool_statistics_pools_worlds_and_tests_them_paired_by_position(tmp_path
     assert "success per world 100 / 100 / 50 %" in printed
 
 
-def test_pool_statistics_merges_runs_of_other_seeds_joined_by_and(tmp_path):
+def test_pool_statistics_merges_runs_of_other_seeds_joined_by_and(tmp_path, capsys):
     """Folders joined by & hold different seeds of the same replications: merged as they are, in any order, they
     give the statistics of one run holding every seed, also as the worlds of + ("A&B+C&D"); two folders holding
     the same episode stop the script with one line."""
@@ -272,18 +274,18 @@ def test_pool_statistics_merges_runs_of_other_seeds_joined_by_and(tmp_path):
     assert pooled["one"]["variants"]["a"]["seeds_per_median"] == 3 and pooled["one"]["seed_tests"]["success_rate"]
     assert pooled["worlds"]["variants"]["b"]["replications"] == 6 and pooled["worlds"]["world_level"]["per_world"]["b"]
 
-    with pytest.raises(SystemExit) as stop:
-        benchmark_module("pool_statistics").main(["--out", str(out), "--run", f"a={both[0]}&{rest[0]}:a"])
-    assert stop.value.code == (f"error: --run 'a={both[0]}&{rest[0]}:a': {both[0]} and {rest[0]} both hold variant 'a', "
-                               "seed 1, damage 'd', replicate 0 (& joins runs of other seeds)")
+    capsys.readouterr()
+    assert benchmark_module("pool_statistics").main(["--out", str(out), "--run", f"a={both[0]}&{rest[0]}:a"]) == 2
+    assert capsys.readouterr().err == (f"error: --run 'a={both[0]}&{rest[0]}:a': {both[0]} and {rest[0]} both hold "
+                                       "variant 'a', seed 1, damage 'd', replicate 0 (& joins runs of other seeds)\n")
     benchmark_module("pool_statistics").main(["--out", str(out), "--key", "b only", "--run", f"b={both[0]}&{rest[0]}:b@0"])
     assert json.loads(out.read_text())["b only"]["variants"]["b"]["episodes"] == 3  # @0 leaves out the shared seeds
 
 
-def test_pool_statistics_takes_other_seeds_cells_from_an_earlier_file(tmp_path):
+def test_pool_statistics_takes_other_seeds_cells_from_an_earlier_file(tmp_path, capsys):
     """--cells LABEL=FILE:KEY[:VARIANT] adds the per-seed cells of seeds whose episodes are gone: "seed_cells" of
     runs of seeds 2-4 plus the file's seeds 0-1 equals the cell statistics of one run holding seeds 0-4; bad
-    specs, a missing file entry and seeds held twice stop the script with one line."""
+    specs, a missing file entry and seeds held twice stop the script with one line and exit status 2."""
 
     def write(folder, seeds):
         folder.mkdir()
@@ -314,9 +316,10 @@ def test_pool_statistics_takes_other_seeds_cells_from_an_earlier_file(tmp_path):
                            (f"a={out}:early", f"--cells 'a={out}:early': {out} holds no per-seed cells of early/success/a "
                                               "(KeyError: 'a')"),
                            (f"a={out}:r5", f"--cells 'a={out}:r5': seeds [2, 3, 4] are also in the runs of 'a'")):
-        with pytest.raises(SystemExit) as stop:
-            module.main(["--out", str(tmp_path / "x.json"), "--run", f"a={late}:a", "--cells", cells])
-        assert stop.value.code == f"error: {message}"
+        capsys.readouterr()
+        assert module.main(["--out", str(tmp_path / "x.json"), "--run", f"a={late}:a", "--cells", cells]) == 2
+        assert capsys.readouterr().err == f"error: {message}\n"
+    assert not (tmp_path / "x.json").exists()
 
 
 def test_cell_statistics_agree_with_the_episodes_where_both_apply():
@@ -334,8 +337,9 @@ def test_cell_statistics_agree_with_the_episodes_where_both_apply():
     assert level["success"]["a"]["pooled"]["successes"] == 6 and level["success"]["c"]["pooled"]["rate"] == 0
 
 
-def test_pool_statistics_errors_are_one_line(tmp_path):
-    """A folder without episodes or batch files, and runs pooling different numbers of worlds, stop with one line."""
+def test_pool_statistics_errors_are_one_line(tmp_path, capsys):
+    """A folder without episodes or batch files, and runs pooling different numbers of worlds, stop with one line
+    and exit status 2, as the command too."""
 
     main = benchmark_module("pool_statistics").main
     for name in ("w0", "w1"):
@@ -347,10 +351,14 @@ def test_pool_statistics_errors_are_one_line(tmp_path):
              "the runs pool different numbers of folders (worlds): 'x' 2, 'y' 1": [
                  "--run", f"x={tmp_path / 'w0'}+{tmp_path / 'w1'}", "--run", f"y={tmp_path / 'w0'}"]}
     for message, argv in cases.items():
-        with pytest.raises(SystemExit) as stop:
-            main(["--out", out, *argv])
-        assert message in str(stop.value.code) and "\n" not in str(stop.value.code)
+        capsys.readouterr()
+        assert main(["--out", out, *argv]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("error: ") and message in err and err.count("\n") == 1
     assert not (tmp_path / "pooled.json").exists()
+    command = subprocess.run([sys.executable, str(BENCHMARKS / "pool_statistics.py"), "--out", out, "--run",
+                              f"x={tmp_path / 'empty'}"], capture_output=True, text=True, timeout=120)
+    assert command.returncode == 2 and command.stderr.count("\n") == 1 and "holds no episodes" in command.stderr
 
 
 def test_wilson_interval_by_hand():
