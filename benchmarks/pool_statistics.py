@@ -26,11 +26,12 @@ and the Bonferroni-corrected tests of each pair at each level; --summary and --f
 `evaluation.summarise` and Fig. 6 of the episodes.
 
 Each --cells is LABEL=FILE:KEY[:VARIANT]: the per-seed cells (episodes, successes, median actions) of LABEL's
-other seeds, read from the "success" entry of KEY in FILE (a statistics file this script wrote; VARIANT, default
-LABEL, names the variant there), for seeds whose episodes are no longer at hand. Their seeds must differ from the
-seeds of LABEL's --run. The entry then also holds "seed_cells": `statistics.cell_statistics` of every seed (the
-file's and the runs'): pooled success with its interval, Fisher's tests of the pooled counts and the seed-level
-tests; the other entries cover the runs' episodes alone. E.g. ten seeds, seeds 0-3 from an earlier file:
+other seeds, read from KEY in FILE (a statistics file this script wrote: its "seed_cells" where it has them, else
+its "success"; VARIANT, default LABEL, names the variant there), for seeds whose episodes are no longer at hand.
+Their seeds must differ from the seeds LABEL has already; a label may have cells and no --run. The entry then also
+holds "seed_cells": `statistics.cell_statistics` of every seed (the files' and the runs'): pooled success with its
+interval, Fisher's tests of the pooled counts and the seed-level tests; the other entries cover the runs'
+episodes alone. E.g. ten seeds, seeds 0-3 from an earlier file:
 
     python benchmarks/pool_statistics.py --out s.json --key r10 --run "hte=R4_TO_9:hte" \\
         --cells "hte=benchmarks/results/r4_raised_h200x4_2026-11-28/statistics_hte-jax_raised.json:r4"
@@ -143,25 +144,26 @@ def world_lines(level: dict) -> list[str]:
 
 
 def all_cells(specs: list[str], records: list[dict]) -> dict[str, dict[int, dict]]:
-    """LABEL -> seed -> per-seed cell: the --cells files' seeds, then the records' (`seed_cells`)."""
+    """LABEL -> seed -> per-seed cell: the records' (`seed_cells`) with each --cells file's seeds added (a label
+    of --cells alone has the file's seeds only)."""
     cells = seed_cells(records)
     for spec in specs:
         label, _, rest = spec.partition("=")
         parts = rest.split(":")
         if not label or len(parts) not in (2, 3) or not all(parts):
             raise ConfigError(f"--cells {spec!r} is not LABEL=FILE:KEY[:VARIANT]")
-        if label not in cells:
-            raise ConfigError(f"--cells {spec!r}: no --run is labelled {label!r}")
         path, key, variant = Path(parts[0]), parts[1], parts[2] if len(parts) == 3 else label
         try:
-            held = json.loads(path.read_text())[key]["success"][variant]["seeds"]
-        except (OSError, ValueError, KeyError, TypeError) as error:
-            raise ConfigError(f"--cells {spec!r}: {path} holds no per-seed cells of {key}/success/{variant} "
-                             f"({type(error).__name__}: {error})")
-        clash = sorted(set(map(int, held)) & set(cells[label]))
+            entry = json.loads(path.read_text())[key]
+            held = entry.get("seed_cells", entry)["success"][variant]["seeds"]
+        except (OSError, ValueError, KeyError, TypeError, AttributeError) as error:
+            raise ConfigError(f"--cells {spec!r}: {path} holds no per-seed cells of {key}/[seed_cells/]success/"
+                              f"{variant} ({type(error).__name__}: {error})")
+        mine = cells.get(label, {})
+        clash = sorted(set(map(int, held)) & set(mine))
         if clash:
-            raise ConfigError(f"--cells {spec!r}: seeds {clash} are also in the runs of {label!r}")
-        cells[label] = dict(sorted({**cells[label], **{int(seed): cell for seed, cell in held.items()}}.items()))
+            raise ConfigError(f"--cells {spec!r}: seeds {clash} are also in the runs or cells of {label!r}")
+        cells[label] = dict(sorted({**mine, **{int(seed): cell for seed, cell in held.items()}}.items()))
     return cells
 
 

@@ -284,8 +284,9 @@ def test_pool_statistics_merges_runs_of_other_seeds_joined_by_and(tmp_path, caps
 
 def test_pool_statistics_takes_other_seeds_cells_from_an_earlier_file(tmp_path, capsys):
     """--cells LABEL=FILE:KEY[:VARIANT] adds the per-seed cells of seeds whose episodes are gone: "seed_cells" of
-    runs of seeds 2-4 plus the file's seeds 0-1 equals the cell statistics of one run holding seeds 0-4; bad
-    specs, a missing file entry and seeds held twice stop the script with one line and exit status 2."""
+    runs of seeds 2-4 plus the file's seeds 0-1 equals the cell statistics of one run holding seeds 0-4; a file's
+    own "seed_cells" are read where it has them, also for a label without a run; bad specs, a missing file entry
+    and seeds held twice stop the script with one line and exit status 2."""
 
     def write(folder, seeds):
         folder.mkdir()
@@ -311,11 +312,17 @@ def test_pool_statistics_takes_other_seeds_cells_from_an_earlier_file(tmp_path, 
     assert "every seed (--cells and runs)" in printed and "success  75.0 % [" in printed
 
     module = benchmark_module("pool_statistics")
+    # a file's "seed_cells" where it has them (r5: seeds 0-4), for a label with no --run too
+    run_benchmark("pool_statistics.py", "--out", str(out), "--key", "cells", "--run", f"a={late}:a",
+                  "--cells", f"b={out}:r5")
+    level = json.loads(out.read_text())["cells"]["seed_cells"]
+    assert level["success"]["b"] == data["r5"]["seed_cells"]["success"]["b"]
+    (rate,) = level["seed_tests"]["success_rate"]["pairs"]
+    assert (rate["a"], rate["b"], rate["seed_ids"]) == ("a", "b", [2, 3, 4])
     for cells, message in ((f"a={out}", f"--cells 'a={out}' is not LABEL=FILE:KEY[:VARIANT]"),
-                           (f"c={out}:early:x", f"--cells 'c={out}:early:x': no --run is labelled 'c'"),
-                           (f"a={out}:early", f"--cells 'a={out}:early': {out} holds no per-seed cells of early/success/a "
-                                              "(KeyError: 'a')"),
-                           (f"a={out}:r5", f"--cells 'a={out}:r5': seeds [2, 3, 4] are also in the runs of 'a'")):
+                           (f"a={out}:early", f"--cells 'a={out}:early': {out} holds no per-seed cells of "
+                                              "early/[seed_cells/]success/a (KeyError: 'a')"),
+                           (f"a={out}:r5", f"--cells 'a={out}:r5': seeds [2, 3, 4] are also in the runs or cells of 'a'")):
         capsys.readouterr()
         assert module.main(["--out", str(tmp_path / "x.json"), "--run", f"a={late}:a", "--cells", cells]) == 2
         assert capsys.readouterr().err == f"error: {message}\n"
