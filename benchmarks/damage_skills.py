@@ -67,6 +67,7 @@ from hte_jax.sim.damage import DAMAGE_PARTS, Damage, damage_model, make_damage, 
 from hte_jax.sim.env import InvalidReason, ValidityLimits
 from hte_jax.sim.robot import NUM_LEGS, RobotConfig, load_robot
 from hte_jax.sim.rollout import rollout, standing_state
+from hte_jax.warp_calls import waited
 
 INTACT = "intact"  # the reference condition
 FRICTION = "friction"  # the floor's friction scaled, no leg damaged
@@ -167,7 +168,7 @@ def run_all(fn, genotypes: np.ndarray, damage: Damage, start, chunk: int) -> lis
         rows = np.arange(begin, begin + size).clip(max=total - 1)
         take = min(size, total - begin)
         picked = jax.tree.map(lambda x, rows=which[rows]: jnp.asarray(x[rows]), (damage, start))
-        out = fn(jnp.asarray(genotypes[skill[rows]]), *picked)
+        out = waited(fn, jnp.asarray(genotypes[skill[rows]]), *picked)
         parts.append([np.asarray(x)[:take] for x in out])
     return [np.concatenate(column) for column in zip(*parts)]
 

@@ -39,6 +39,7 @@ from hte_jax.errors import ConfigError, require_choice, require_int, require_num
 from hte_jax.qd.io import CheckpointError
 from hte_jax.viz import gl
 from hte_jax.viz.camera import CAMERAS, Camera
+from hte_jax.warp_calls import waited
 
 # Nothing above imports mujoco or OpenGL: gl.setup() must choose MUJOCO_GL first. The modules that
 # simulate and render are imported inside the commands, after it.
@@ -179,8 +180,8 @@ def skills_video(args) -> Path:
     robot, every = load_robot(config), STEPS_PER_SECOND // args.fps
     batch = batch_damage(damage, picked.size)
     clips = jnp.asarray(genotypes[picked])
-    states = np.asarray(skills.flat_states(robot, clips, batch, every) if hbr is None
-                        else skills.hbr_states(robot, hbr, clips, batch, every, held))
+    states = np.asarray(waited(skills.flat_states, robot, clips, batch, every) if hbr is None
+                        else waited(skills.hbr_states, robot, hbr, clips, batch, every, held))
     camera = Camera(args.camera, distance=1.2 if args.camera == "track" else 2.0)
     with tqdm(total=states.shape[0] * states.shape[1], desc="render", unit="frame", disable=args.no_progress) as bar:
         frames = skills.render_grid(states, damage, config, camera, args.width, args.height, args.columns, labels, bar)

@@ -139,3 +139,61 @@ def test_standing_state_settles_with_the_collector_paused_and_under_a_callers_ji
     assert eager.qpos.shape[0] == 2 and np.all(np.isfinite(np.asarray(eager.qpos)))
     traced = jax.jit(lambda d: rollout_module.standing_state(robot, d, settle_steps=4))(jnp.eye(6, dtype=bool)[:2])
     assert np.allclose(np.asarray(traced.qpos), np.asarray(eager.qpos), atol=1e-6)
+
+
+def _recorder():
+    """(seen, record): record(x) appends whether the collector is on and returns x (a host callback's body)."""
+    seen = []
+
+    def record(x):
+        seen.append(gc.isenabled())
+        return x
+
+    return seen, record
+
+
+def test_modulation_re_executes_its_chunks_with_the_collector_paused(monkeypatch, collector_on, shipped_hbr):
+    """`modulation.execute_held` (the modulation command's and the damage screen's re-executions, eager) waits for
+    each chunk inside `warp_calls`: its summary, traced into the chunk's program, finds the collector off."""
+    from hte_jax.hbr.composition import skill_ends
+    from hte_jax.hbr.modulation import execute_held
+    from hte_jax.sim.robot import load_robot
+    from hte_jax.sim.rollout import standing_state
+
+    monkeypatch.setattr(warp_calls, "_started", True)
+    seen, record = _recorder()
+    hbr, task = shipped_hbr
+    slots = np.flatnonzero(np.asarray(hbr.top.filled))[:3]
+    ends = np.asarray(skill_ends(hbr.top.descriptors[slots], hbr.top.extras["arrival_yaw"][slots], task.extent))
+    robot = load_robot()
+    start = standing_state(robot)
+
+    def summarise(skill):
+        xy = skill.displacement[:, :2]
+        return (jax.pure_callback(record, jax.ShapeDtypeStruct(xy.shape, xy.dtype), xy),)
+
+    (xy,) = execute_held(robot, hbr, start, np.asarray(hbr.top.genotypes)[slots], np.array([63, 0, 27]), ends, None,
+                         summarise, chunk=2, progress=False)
+    assert seen == [False, False] and gc.isenabled()  # two chunks (2 + 1 padded), each paused
+    assert xy.shape == (3, 2) and np.all(np.isfinite(xy))
+
+
+def test_damage_screen_runs_its_blocks_with_the_collector_paused(monkeypatch, collector_on):
+    """benchmarks/damage_skills.py's `run_all` waits for each block inside `warp_calls`."""
+    from tests.benchmark_runner import benchmark_module
+
+    from hte_jax.sim.damage import make_damage, stack_damages
+
+    monkeypatch.setattr(warp_calls, "_started", True)
+    seen, record = _recorder()
+
+    @jax.jit
+    def fn(genotypes, damage, start):
+        return (jax.pure_callback(record, jax.ShapeDtypeStruct(genotypes.shape, genotypes.dtype), genotypes) + start[:, None],)
+
+    damage = stack_damages([make_damage(np.eye(6, dtype=bool)[0], "raised"),
+                            make_damage(np.eye(6, dtype=bool)[1], "removed")])
+    start = np.array([0.0, 10.0])  # per condition
+    (out,) = benchmark_module("damage_skills").run_all(fn, np.arange(6.0).reshape(3, 2), damage, start, chunk=4)
+    assert len(seen) == 2 and not any(seen) and gc.isenabled()  # 6 (condition, skill) rows in 2 blocks of 3
+    assert out.shape == (6, 2) and out[3, 0] == 10.0  # row c * K + k: condition 1, skill 0

@@ -17,6 +17,7 @@ from hte_jax.hbr.middle import NUM_PATTERNS, pattern_code
 from hte_jax.hbr.top import TopTask
 from hte_jax.sim.robot import Robot
 from hte_jax.sim.env import SimState
+from hte_jax.warp_calls import waited
 
 
 @dataclasses.dataclass(frozen=True)
@@ -131,9 +132,9 @@ def execute_held(robot: Robot, hbr: HBR, start: SimState, genes: np.ndarray, pat
     outputs = []
     for begin in tqdm(range(0, total, chunk), disable=not progress, desc=desc, unit="chunk", leave=False):
         stop = min(begin + chunk, total)
-        out = jax.device_get(run_chunk(hbr, table, jnp.asarray(padded(genes[begin:stop])),
-                                       jnp.asarray(padded(patterns[begin:stop]), jnp.int32),
-                                       jnp.asarray(padded(ends[begin:stop]))))
+        out = jax.device_get(waited(run_chunk, hbr, table, jnp.asarray(padded(genes[begin:stop])),
+                                    jnp.asarray(padded(patterns[begin:stop]), jnp.int32),
+                                    jnp.asarray(padded(ends[begin:stop]))))
         outputs.append([np.asarray(o)[: stop - begin] for o in out])
     return [np.concatenate(parts) for parts in zip(*outputs)]
 
