@@ -153,7 +153,8 @@ def use_compile_cache(flag: str | None) -> Path | None:
 def join_processes(timeout: int) -> None:
     """`jax.distributed.initialize()` with the process count and index of `PROCESS_ENV` if set; ConfigError
     when the settings are missing or wrong. If not every process has joined after `timeout` seconds, one
-    line on stderr and exit status 2 (a watcher thread: at its own deadline jax aborts the process)."""
+    line on stderr and exit status 2 (a watcher thread: at its own deadline jax aborts the process). SIGTERM
+    ends a joined process as it ends a lone one (jax's preemption service, which would catch it, stays off)."""
     if isinstance(timeout, bool) or not isinstance(timeout, int) or timeout < 1:
         raise ConfigError(f"--distributed-timeout must be an integer >= 1 (seconds), got {timeout!r}")
     count, index = (_env_int(name) for name in PROCESS_ENV)
@@ -169,6 +170,9 @@ def join_processes(timeout: int) -> None:
             os._exit(EXIT_BAD_INPUT)
 
     threading.Thread(target=watch, name="distributed-timeout", daemon=True).start()
+    # jax's preemption service catches SIGTERM (to agree on a checkpoint step across hosts, which these commands
+    # do not use): left on, a `kill` or a scheduler's SIGTERM would not stop the run
+    jax.config.update("jax_enable_preemption_service", False)
     try:
         jax.distributed.initialize(num_processes=count, process_id=index,
                                    initialization_timeout=timeout + JOIN_GRACE_S)

@@ -17,6 +17,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import signal
 import socket
 import subprocess
 import sys
@@ -257,3 +258,28 @@ def test_the_run_folder_digest_covers_the_files_a_resume_reads(tmp_path):
     assert second != first
     (tmp_path / "bottom" / "checkpoint.npz").write_bytes(b"2")
     assert run_files_digest(tmp_path) not in (first, second)
+
+
+def test_sigterm_ends_a_distributed_run_as_it_ends_a_lone_one(tmp_path):
+    """A joined --distributed process (one of one) ends on SIGTERM, as a `kill` or a scheduler sends it: jax's
+    preemption service, which catches SIGTERM, is off."""
+    address = f"127.0.0.1:{free_port()}"
+    env = base_env(JAX_COORDINATOR_ADDRESS=address, JAX_COORDINATOR_BIND_ADDRESS=address, JAX_NUM_PROCESSES="1",
+                   JAX_PROCESS_ID="0")
+    err = tmp_path / "err.txt"
+    with open(err, "w") as stderr:
+        process = subprocess.Popen([sys.executable, "-m", *TRAIN[:3], "--set", "bottom.generations=1000000",
+                                    "--no-progress", "--out", "run", "--distributed", "--distributed-timeout", "60"],
+                                   cwd=tmp_path, env=env, stdout=subprocess.DEVNULL, stderr=stderr)
+    try:
+        deadline = time.monotonic() + 240
+        while not (tmp_path / "run" / "config.json").exists():  # written once the process has joined
+            assert process.poll() is None, err.read_text()[-3000:]
+            assert time.monotonic() < deadline, "the run wrote no config.json in 240 s"
+            time.sleep(0.5)
+        process.terminate()
+        assert process.wait(timeout=60) == -signal.SIGTERM
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.wait()
