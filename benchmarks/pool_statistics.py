@@ -119,7 +119,7 @@ def merged_episodes(folders: list[str], selected: Callable[[dict], bool], spec: 
             if key in holder:
                 variant, seed, damage, replicate = key
                 raise ConfigError(f"--run {spec!r}: {holder[key]} and {folder} both hold variant {variant!r}, "
-                                 f"seed {seed}, damage {damage!r}, replicate {replicate} (& joins runs of other seeds)")
+                                  f"seed {seed}, damage {damage!r}, replicate {replicate} (& joins runs of other seeds)")
         holder.update(keys)
         out += records
     return sorted(out, key=lambda r: r.get("seed", 0))
@@ -214,7 +214,7 @@ def pool(args: argparse.Namespace) -> int:
     worlds = {count for _, count in runs}
     if len(worlds) > 1:
         raise ConfigError("the runs pool different numbers of folders (worlds): "
-                         + ", ".join(f"{spec.partition('=')[0]!r} {count}" for spec, (_, count) in zip(args.run, runs)))
+                          + ", ".join(f"{spec.partition('=')[0]!r} {count}" for spec, (_, count) in zip(args.run, runs)))
     records = [r for run, _ in runs for r in run]
     cells = all_cells(args.cells, records) if args.cells else None
     stats = protocol_statistics(records)

@@ -297,9 +297,11 @@ def test_pool_statistics_takes_other_seeds_cells_from_an_earlier_file(tmp_path, 
         (folder / "episodes.json").write_text(json.dumps({"episodes": records}))
         return str(folder)
 
-    every, early, late = write(tmp_path / "all", range(5)), write(tmp_path / "early", (0, 1)), write(tmp_path / "late", (2, 3, 4))
+    every, early = write(tmp_path / "all", range(5)), write(tmp_path / "early", (0, 1))
+    late = write(tmp_path / "late", (2, 3, 4))
     out = tmp_path / "s.json"
-    run_benchmark("pool_statistics.py", "--out", str(out), "--key", "early", "--run", f"x={early}:a", "--run", f"y={early}:b")
+    run_benchmark("pool_statistics.py", "--out", str(out), "--key", "early", "--run", f"x={early}:a",
+                  "--run", f"y={early}:b")
     printed = run_benchmark("pool_statistics.py", "--out", str(out), "--key", "r5", "--run", f"a={late}:a", "--run",
                             f"b={late}:b", "--cells", f"a={out}:early:x", "--cells", f"b={out}:early:y")
     data = json.loads(out.read_text())

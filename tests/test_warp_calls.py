@@ -189,7 +189,8 @@ def test_damage_screen_runs_its_blocks_with_the_collector_paused(monkeypatch, co
 
     @jax.jit
     def fn(genotypes, damage, start):
-        return (jax.pure_callback(record, jax.ShapeDtypeStruct(genotypes.shape, genotypes.dtype), genotypes) + start[:, None],)
+        seen_genotypes = jax.pure_callback(record, jax.ShapeDtypeStruct(genotypes.shape, genotypes.dtype), genotypes)
+        return (seen_genotypes + start[:, None],)
 
     damage = stack_damages([make_damage(np.eye(6, dtype=bool)[0], "raised"),
                             make_damage(np.eye(6, dtype=bool)[1], "removed")])

@@ -175,7 +175,7 @@ def episode_success_tests(records: list[dict]) -> dict:
     for r in records:
         counts[r["variant"]][0] += bool(r["reached"])
         counts[r["variant"]][1] += 1
-    return fisher_tests({v: (s, n) for v, (s, n) in counts.items()})
+    return fisher_tests({v: (successes, episodes) for v, (successes, episodes) in counts.items()})
 
 
 def fisher_tests(counts: dict[str, tuple[int, int]]) -> dict:
