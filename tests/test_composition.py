@@ -122,7 +122,8 @@ def test_measured_steps_match_a_direct_rollout(shipped, capsys):
                      RolloutSpec(num_steps=200, pose_steps=(100, 200), record_contacts=False))
     poses = planar_pose(direct.base_pos, direct.base_quat)
     expected = hbr.middle_task.normalise(relative_pose(poses[:, 0], poses[:, 1]))
-    np.testing.assert_allclose(model.steps, expected, atol=1e-6)
+    # two XLA programs of the same physics: a few 1e-6 apart on some CPUs (3e-6 on an AVX-512 AMD EPYC)
+    np.testing.assert_allclose(model.steps, expected, atol=1e-5)
     np.testing.assert_array_equal(model.spread, np.zeros(5))
     # Empty slots are not simulated and change nothing: 5 more slots, empty, with blocks of 5 samples
     # (the size above) run one block, not two, and the filled slots' steps keep their bits.
