@@ -40,8 +40,10 @@ its canonical label (the model omitted where it is --damage-model, the friction 
 those seeds (indices of the subfolders in name order), each keeping its index and its episodes
 (benchmarks/pool_statistics.py --run "LABEL=DIR&DIR" pools such runs). --resume reads the
 batches a killed run finished and runs the others: the results equal an uninterrupted run's.
---spread batches starts a worker process per device (each on that device alone, running the batches dealt
-to it in turn into their episodes_<k>.npz), waits for them, then summarises the batch files as --resume does.
+A seed's batches (its HBR variants, each flat repertoire) run together: each action plans every batch, then
+acts all of them in one program (--together none: one batch after another; the same results up to float
+rounding). --spread batches starts a worker process per device (each on that device alone, running the batches
+dealt to it in turn into their episodes_<k>.npz), waits for them, then summarises the batch files as --resume does.
 
 Writes config.json, episodes.json, summary.json (per variant and damage), statistics.json (the
 paper's method: quartiles of the replication medians, failure rates, Wilcoxon-Mann-Whitney tests with
@@ -78,7 +80,7 @@ from hte_jax.config import settings
 from hte_jax.errors import ConfigError, require_int
 from hte_jax.online.evaluation import (PRESETS, PROTOCOLS, EvalConfig, batch_labels, batches, episode_numbers,
                                       episode_records, prediction_errors, preset, protocol_overrides, rows_to_record,
-                                      run_batch, summarise, with_overrides)
+                                      run_batches, summarise, with_overrides)
 from hte_jax.online.plots import (episode_track, plot_episodes, plot_failures, plot_prediction_error, plot_protocol_box,
                                   plot_variant_mazes)
 from hte_jax.online.recording import replay_path, save_replay
@@ -91,6 +93,7 @@ from hte_jax.viz import gl
 
 SETTINGS = list(settings(EvalConfig))  # override keys, inlined settings (the planner's, the solver's) by their names
 SPREADS = ("episodes", "batches")  # --spread: what several devices split
+TOGETHER = ("seed", "none")  # --together: which batches run together
 RECORD_EVERY = 4  # control steps between the recorded states of --video episodes (25 per simulated second)
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -110,6 +113,10 @@ def parser() -> argparse.ArgumentParser:
                         "after another; 'batches' starts a worker process per device, each running whole batches "
                         "dealt in turn (the planner's host round trips overlap), then summarises their batch files "
                         "as --resume does (not with --distributed)")
+    p.add_argument("--together", default="seed", metavar="WHICH",
+                   help="'seed' (default): the batches of a seed (its HBR variants, each flat repertoire) run together, "
+                        "each action planning every batch and acting all of them in one program; 'none': one batch "
+                        "after another (the same results up to float rounding)")
     # K,K,...: the batches a worker process of --spread batches runs (with --resume), and no summary
     p.add_argument("--worker-batches", default=None, help=argparse.SUPPRESS)
     p.add_argument("--show-config", action="store_true", help="print the resolved configuration and exit")
@@ -138,6 +145,8 @@ def main(argv=None) -> int:
             if args.show_config:
                 print(json.dumps(config.to_dict(), indent=2))
                 return 0
+            if args.together not in TOGETHER:
+                raise ConfigError(f"--together must be one of {', '.join(TOGETHER)}, got {args.together!r}")
             require_impl(config.robot.impl)  # its backend, here
             if not workers:
                 _check_warp_spread(config.robot.impl, mesh)
@@ -165,17 +174,24 @@ def main(argv=None) -> int:
                 plans.append((labels, rows_to_record(labels, videos, earlier), episode_numbers(labels, earlier)))
                 earlier = {v: earlier.get(v, 0) + labels.count(v) for v in {*earlier, *labels}}
 
-            def run(k: int):
-                """Batch k, its replays and batch file written: (result, rows, recorded)."""
-                (seed, path, variants), (_, to_record, numbers) = planned[k], plans[k]
-                result = run_batch(config, path, variants, maze, progress=show_progress(args), seed=seed,
-                                   record=to_record, record_every=RECORD_EVERY, mesh=mesh)
-                rows = episode_records(result, config.max_actions)
-                if not writer:
-                    return result, rows, []
-                saved = _save_replays(out, result, numbers, k)  # before the batch file: a read batch has its replays
-                _save_batch(out / f"episodes_{k}.npz", result, rows)
-                return result, rows, saved
+            def run(ks: list[int]) -> dict:
+                """Batches ks (of one seed) run together, their replays and batch files written: k -> (result,
+                rows, recorded)."""
+                seed = planned[ks[0]][0]
+                results = run_batches(config, [planned[k][1:] for k in ks], maze, progress=show_progress(args),
+                                      seed=seed, record=[plans[k][1] for k in ks], record_every=RECORD_EVERY,
+                                      mesh=mesh)
+                ran = {}
+                for k, result in zip(ks, results):
+                    rows = episode_records(result, config.max_actions)
+                    if not writer:
+                        ran[k] = (result, rows, [])
+                        continue
+                    # the replays before the batch file: a batch that is read has its replays
+                    saved = _save_replays(out, result, plans[k][2], k)
+                    _save_batch(out / f"episodes_{k}.npz", result, rows)
+                    ran[k] = (result, rows, saved)
+                return ran
 
             done = [args.resume and (out / f"episodes_{k}.npz").is_file() for k in range(len(planned))]
             if share is not None:  # a worker of --spread batches: its batches' files, no summary
@@ -185,7 +201,7 @@ def main(argv=None) -> int:
                         print(f"stopped before batch {k}: the process that started this worker stopped or asked it "
                               "to", file=sys.stderr)
                         return EXIT_INTERRUPTED
-                    result, rows, _ = run(k)
+                    result, rows, _ = run([k])[k]
                     print(_batch_line(k, planned[k], result, rows), flush=True)
                 return 0
             by_workers = [k for k in range(len(planned)) if not done[k]] if workers else []
@@ -198,6 +214,7 @@ def main(argv=None) -> int:
                     print(f"error: {failure}; resume with: {interrupt.resume}", file=sys.stderr)
                     return failure.status
                 done = [True] * len(planned)
+            pending = {}  # batches run together with an earlier one, not yet reported
             for k, (seed, path, variants) in enumerate(planned):
                 labels, to_record, numbers = plans[k]
                 batch_file = out / f"episodes_{k}.npz"
@@ -210,7 +227,9 @@ def main(argv=None) -> int:
                         if k not in by_workers:  # a worker printed the line of each batch it ran
                             print(f"batch {k} ({'/'.join(variants)} on seed {seed}): read from {batch_file}")
                     continue
-                result, rows, saved = run(k)
+                if k not in pending:  # this batch and the seed's other batches still to run
+                    pending = run(_together(args.together, planned, done, k))
+                result, rows, saved = pending.pop(k)
                 records += rows
                 if not writer:
                     continue
@@ -259,6 +278,13 @@ def _batch_line(k: int, batch: tuple, result, rows: list[dict]) -> str:
     return (f"batch {k} ({'/'.join(variants)} on seed {seed}: {result.repertoire['path']}, "
             f"{result.repertoire['actions']} actions): {len(rows)} episodes in {result.timings.total:.1f} s, "
             f"planning median {np.median(result.timings.plan):.2f} s per action")
+
+
+def _together(which: str, planned: list, done: list[bool], k: int) -> list[int]:
+    """The batches to run with batch k: under --together seed, k and the later batches of its seed not done."""
+    if which == "none":
+        return [k]
+    return [j for j in range(k, len(planned)) if planned[j][0] == planned[k][0] and not done[j]]
 
 
 def _worker_batches(text: str | None, resume: bool) -> list[int] | None:

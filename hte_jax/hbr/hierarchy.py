@@ -124,23 +124,33 @@ def step_elite(hbr: HBR, here: jax.Array, target: jax.Array, pattern: jax.Array,
     return index, found
 
 
-def run_elite(robot: Robot, hbr: HBR, state: SimState, damage: jax.Array | Damage, index: jax.Array,
-              found: jax.Array, limits: ValidityLimits = ValidityLimits(), record_every: int = 0) -> StepResult:
-    """Simulate middle elites `index` (B,) for one step from `state` under `damage` (a leg mask or a `Damage`, as
-    `rollout` takes it); record_every > 0 also records qpos."""
-    steps = hbr.middle_task.steps
+def run_controllers(robot: Robot, params: jax.Array, state: SimState, damage: jax.Array | Damage, steps: int,
+                    limits: ValidityLimits = ValidityLimits(), record_every: int = 0) -> StepResult:
+    """Simulate controllers `params` (B, 36) for one step of `steps` control steps from `state` under `damage` (a leg
+    mask or a `Damage`, as `rollout` takes it); record_every > 0 also records qpos. middle_index is -1 and
+    pattern_found True (no elite named)."""
     spec = RolloutSpec(num_steps=steps, pose_steps=(0, steps), record_contacts=True, limits=limits,
                        record_qpos_every=record_every, record_joint_travel=True)
-    result = rollout(robot, hbr.middle_params[index], damage, state, spec)
+    result = rollout(robot, params, damage, state, spec)
     poses = planar_pose(result.base_pos, result.base_quat)
 
     def per_leg(joints):  # (B, 18) -> (B, 6)
         return joints.reshape(-1, NUM_LEGS, NUM_JOINTS // NUM_LEGS).sum(axis=-1)
 
+    batch = params.shape[0]
     return StepResult(state=result.final_state, valid=result.valid, invalid_reason=result.invalid_reason,
-                      middle_index=index, pattern_found=found, displacement=relative_pose(poses[:, 0], poses[:, 1]),
+                      middle_index=jnp.full(batch, -1, jnp.int32), pattern_found=jnp.ones(batch, bool),
+                      displacement=relative_pose(poses[:, 0], poses[:, 1]),
                       contact_fraction=result.foot_contacts.mean(axis=1), qpos=result.qpos,
                       leg_travel=per_leg(result.joint_travel), leg_commanded=per_leg(result.target_travel))
+
+
+def run_elite(robot: Robot, hbr: HBR, state: SimState, damage: jax.Array | Damage, index: jax.Array,
+              found: jax.Array, limits: ValidityLimits = ValidityLimits(), record_every: int = 0) -> StepResult:
+    """Simulate middle elites `index` (B,) for one step from `state` (`run_controllers`)."""
+    result = run_controllers(robot, hbr.middle_params[index], state, damage, hbr.middle_task.steps, limits,
+                             record_every)
+    return result.replace(middle_index=index, pattern_found=found)
 
 
 def execute_step(robot: Robot, hbr: HBR, state: SimState, damage: jax.Array | Damage, target: jax.Array,

@@ -2,6 +2,7 @@
 
 The robots are a strategy object with `pose`, `second`, `neutral`, `flat`, `steps` and `staged`:
 `SimulatedRobots` (MJX, inside the episode's jit) or `external.ExecutorRobot` (driven from the host).
+`joint_action` acts several batches of simulated robots at once, each second one rollout of all of them.
 """
 
 from __future__ import annotations
@@ -11,11 +12,13 @@ import math
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from flax import struct
 
 from hte_jax.geometry import compose_pose, planar_pose, relative_pose
 from hte_jax.hbr.composition import plan_batch
-from hte_jax.hbr.hierarchy import ANY_PATTERN, HBR, STEPS_PER_SKILL, run_elite, skill_waypoints, state_pose, step_elite
+from hte_jax.hbr.hierarchy import (ANY_PATTERN, HBR, STEPS_PER_SKILL, StepResult, run_controllers, run_elite,
+                                   skill_waypoints, state_pose, step_elite)
 from hte_jax.online.rules import RuleBatch, StepContext, StepObservation, choose_patterns, learn_rules, relative_error_of
 from hte_jax.online.secondary import ERROR_DIM
 from hte_jax.online.skills import Skills, displacement_of
@@ -88,11 +91,12 @@ class SimulatedRobots:
         return jax.lax.scan(step, carry, xs)
 
     def second(self, state: SimState, hbr: HBR, elite: jax.Array, found: jax.Array, alive: jax.Array) -> Second:
-        result = run_elite(self.robot, hbr, state, self.damage, elite, found, ONLINE_LIMITS, self.record_every)
-        return Second(state=result.state, pose=state_pose(result.state), displacement=result.displacement,
-                      valid=result.valid, invalid_reason=result.invalid_reason,
-                      contact_fraction=result.contact_fraction, leg_travel=result.leg_travel, qpos=result.qpos,
-                      leg_commanded=result.leg_commanded)
+        return second_of(run_elite(self.robot, hbr, state, self.damage, elite, found, ONLINE_LIMITS, self.record_every))
+
+    def controllers(self, state: SimState, params: jax.Array) -> Second:
+        """Controllers `params` (B, 36) for one second."""
+        return second_of(run_controllers(self.robot, params, state, self.damage, STEP_CONTROL_STEPS, ONLINE_LIMITS,
+                                         self.record_every))
 
     def neutral(self, state: SimState) -> Second:
         spec = RolloutSpec(num_steps=STEP_CONTROL_STEPS, record_contacts=False, limits=ONLINE_LIMITS,
@@ -117,6 +121,13 @@ class SimulatedRobots:
                       valid=result.valid, invalid_reason=result.invalid_reason, contact_fraction=zeros,
                       leg_travel=zeros, qpos=result.qpos)
         return last, poses[:, 1:]
+
+
+def second_of(result: StepResult) -> Second:
+    """The `Second` of a simulated step."""
+    return Second(state=result.state, pose=state_pose(result.state), displacement=result.displacement,
+                  valid=result.valid, invalid_reason=result.invalid_reason, contact_fraction=result.contact_fraction,
+                  leg_travel=result.leg_travel, qpos=result.qpos, leg_commanded=result.leg_commanded)
 
 
 def skill_targets(skills: Skills, index: jax.Array, origin: jax.Array) -> tuple[jax.Array, jax.Array]:
@@ -154,31 +165,45 @@ def learn_step(skills: Skills, rules: RuleBatch, elite: jax.Array, second: Secon
     return learn_rules(rules, observation), relative_error_of(observation)
 
 
-def hbr_step(robots, skills: Skills, goal: jax.Array, taken: jax.Array, carry, xs):
-    """One 1 s step of B HBR skills: choose, run, learn. carry: (state, rules, alive (B,) bool); xs: (target
-    (B, 3), step () int32, keys (B, 2)). Returns the carry and the step's record."""
+def hbr_choose(robots, skills: Skills, goal: jax.Array, taken: jax.Array, carry, xs):
+    """Each robot's pattern, middle elite and whether it has the pattern (`choose_step`) before one 1 s step of
+    HBR skills. carry: (state, rules, alive (B,) bool); xs: (target (B, 3), step () int32, keys (B, 2))."""
     state, rules, alive = carry
     target, step, keys = xs
-    pattern, elite, found = robots.staged(choose_step)(skills, rules, robots.pose(state), target, goal, step, taken,
-                                                       keys, alive)
-    second = robots.second(state, skills.hbr, elite, found, alive)
+    return robots.staged(choose_step)(skills, rules, robots.pose(state), target, goal, step, taken, keys, alive)
+
+
+def hbr_learn(robots, skills: Skills, carry, chosen, second: Second):
+    """The carry after the step `second` of the `chosen` elites, and the step's record."""
+    _, rules, alive = carry
+    pattern, elite, _ = chosen
     rules, error = robots.staged(learn_step)(skills, rules, elite, second)
     record = (pattern, jnp.where(alive, elite, -1), error, second.invalid_reason, second.pose, second.contact_fraction,
               second.leg_travel, second.qpos)
     return (second.state, rules, alive & (second.invalid_reason == 0)), record
 
 
-def hbr_action(robots, skills: Skills, state: SimState | None, rules: RuleBatch, action: jax.Array, taken: jax.Array,
-               keys: jax.Array) -> ActionOutcome:
-    """Run HBR skills `action` (B,) step by step from `state`, then 1 s neutral; keys (B, 2) are split per step."""
+def hbr_step(robots, skills: Skills, goal: jax.Array, taken: jax.Array, carry, xs):
+    """One 1 s step of B HBR skills: choose, run, learn. carry and xs as `hbr_choose`'s. Returns the carry and
+    the step's record."""
+    chosen = hbr_choose(robots, skills, goal, taken, carry, xs)
+    second = robots.second(carry[0], skills.hbr, chosen[1], chosen[2], carry[2])
+    return hbr_learn(robots, skills, carry, chosen, second)
+
+
+def hbr_start(robots, skills: Skills, state: SimState | None, rules: RuleBatch, action: jax.Array, keys: jax.Array):
+    """(origin (B, 3), goal (B, 3), carry, xs (3, ...)) of HBR skills `action` (B,) from `state`: `hbr_step`'s scan."""
     origin = robots.pose(state)
     targets, goal = robots.staged(skill_targets)(skills, action, origin)  # (B, 3, 3), (B, 3)
     step_keys = jnp.swapaxes(jax.vmap(lambda k: jax.random.split(k, STEPS_PER_SKILL))(keys), 0, 1)  # (3, B, 2)
     xs = (jnp.swapaxes(targets, 0, 1), jnp.arange(STEPS_PER_SKILL, dtype=jnp.int32), step_keys)
-    alive = jnp.ones(action.shape[0], bool)
-    (state, rules, alive), (patterns, middle, errors, reasons, poses, contacts, travel, qpos) = robots.steps(
-        lambda c, x: hbr_step(robots, skills, goal, taken, c, x), (state, rules, alive), xs)
-    rest = robots.neutral(state)
+    return origin, goal, (state, rules, jnp.ones(action.shape[0], bool)), xs
+
+
+def hbr_outcome(origin: jax.Array, rules: RuleBatch, records, rest: Second) -> ActionOutcome:
+    """The outcome of HBR skills from world poses `origin` (B, 3): their steps' stacked `hbr_learn` records
+    (3, B, ...), the rules after them and the neutral second `rest`."""
+    patterns, middle, errors, reasons, poses, contacts, travel, qpos = records
     if qpos is not None:  # (3, B, F / 4, 25) steps and (B, F / 4, 25) neutral -> (B, F, 25)
         steps = jnp.swapaxes(qpos, 0, 1)
         qpos = jnp.concatenate([steps.reshape(steps.shape[0], -1, steps.shape[-1]), rest.qpos], axis=1)
@@ -191,13 +216,110 @@ def hbr_action(robots, skills: Skills, state: SimState | None, rules: RuleBatch,
         leg_travel=jnp.swapaxes(travel, 0, 1), rules=rules, qpos=qpos)
 
 
+def hbr_action(robots, skills: Skills, state: SimState | None, rules: RuleBatch, action: jax.Array, taken: jax.Array,
+               keys: jax.Array) -> ActionOutcome:
+    """Run HBR skills `action` (B,) step by step from `state`, then 1 s neutral; keys (B, 2) are split per step."""
+    origin, goal, carry, xs = hbr_start(robots, skills, state, rules, action, keys)
+    (state, rules, _), records = robots.steps(lambda c, x: hbr_step(robots, skills, goal, taken, c, x), carry, xs)
+    return hbr_outcome(origin, rules, records, robots.neutral(state))
+
+
 def flat_action(robots, state: SimState | None, params: jax.Array) -> ActionOutcome:
     """Run flat controllers `params` (B, 36), each for 3 s, then 1 s neutral."""
-    last, poses = robots.flat(state, params)
-    batch = params.shape[0]
+    return flat_outcome(*robots.flat(state, params))
+
+
+def flat_outcome(last: Second, poses: jax.Array) -> ActionOutcome:
+    """The outcome of a flat action from its last `Second` (displacement: the whole action's) and its poses (B, 4, 3)
+    after each second."""
+    batch = poses.shape[0]
     still = jnp.zeros((batch, STEPS_PER_SKILL, NUM_LEGS), jnp.float32)  # no contacts or leg travel recorded
     return ActionOutcome(
         state=last.state, valid=last.valid, invalid_reason=last.invalid_reason, poses=poses,
         displacement=last.displacement, patterns=jnp.full((batch, STEPS_PER_SKILL), ANY_PATTERN, jnp.int32),
         middle_index=jnp.full((batch, STEPS_PER_SKILL), -1, jnp.int32), contacts=still, leg_travel=still,
         errors=jnp.zeros((batch, STEPS_PER_SKILL, ERROR_DIM), jnp.float32), rules=None, qpos=last.qpos)
+
+
+@struct.dataclass
+class Part:
+    """One batch's share of a `joint_action`: skills; state SimState (B, ...); rules RuleBatch (None for flat
+    skills); choice (B,) int32 HBR skills, or (B, 36) flat controllers; taken (B,) int32 actions so far; keys
+    (B, 2) the execution's."""
+
+    skills: Skills
+    state: SimState
+    rules: RuleBatch | None
+    choice: jax.Array
+    taken: jax.Array
+    keys: jax.Array
+
+
+def _frozen(alive: jax.Array, new, old):
+    """`new` where `alive` (B,), else `old` (a robot that went invalid stays where it stopped)."""
+    return jax.tree.map(lambda n, o: jnp.where(alive.reshape(-1, *([1] * (n.ndim - 1))), n, o), new, old)
+
+
+def _flat_second(carry, second: Second):
+    """A flat part's carry (state, first invalid reason (B,) int32) after `second`, and its record (pose, qpos)."""
+    state, reason = carry
+    alive = reason == 0
+    state = _frozen(alive, second.state, state)
+    qpos = None
+    if second.qpos is not None:  # an invalid robot's states: where it stopped
+        qpos = _frozen(alive, second.qpos, jnp.broadcast_to(state.qpos[:, None], second.qpos.shape))
+    return (state, jnp.where(alive, second.invalid_reason, reason)), (state_pose(state), qpos)
+
+
+def joint_action(robots: SimulatedRobots, parts: tuple[Part, ...]) -> tuple[ActionOutcome, ...]:
+    """One action of several batches of simulated robots (`hbr_action` or `flat_action` each) with every second of
+    all of them one rollout: a batch's action costs what its rows add, not a rollout of its own. `robots.damage`
+    holds every part's rows, in order. A flat part's robot that goes invalid stays where it stopped, as in
+    `flat_action`'s single rollout."""
+    bounds = np.cumsum([0] + [p.choice.shape[0] for p in parts])
+
+    def split(tree) -> list:
+        return [jax.tree.map(lambda x: x[a:b], tree) for a, b in zip(bounds[:-1], bounds[1:])]
+
+    def join(trees):
+        return jax.tree.map(lambda *xs: jnp.concatenate(xs), *trees)
+
+    starts, carries, xs = [], [], []
+    for p in parts:
+        if p.skills.hierarchical:
+            origin, goal, carry, x = hbr_start(robots, p.skills, p.state, p.rules, p.choice, p.keys)
+        else:
+            origin, goal, x = robots.pose(p.state), None, None
+            carry = (p.state, jnp.zeros(p.choice.shape[0], jnp.int32))
+        starts.append((origin, goal))
+        carries.append(carry)
+        xs.append(x)
+
+    def second(carries, xs):
+        chosen = [hbr_choose(robots, p.skills, goal, p.taken, c, x) if p.skills.hierarchical else None
+                  for p, (_, goal), c, x in zip(parts, starts, carries, xs)]
+        params = [p.skills.hbr.middle_params[c[1]] if p.skills.hierarchical else p.choice
+                  for p, c in zip(parts, chosen)]
+        seconds = split(robots.controllers(join([c[0] for c in carries]), join(params)))
+        stepped = [hbr_learn(robots, p.skills, c, ch, s) if p.skills.hierarchical else _flat_second(c, s)
+                   for p, c, ch, s in zip(parts, carries, chosen, seconds)]
+        return tuple(s[0] for s in stepped), tuple(s[1] for s in stepped)
+
+    carries, records = jax.lax.scan(second, tuple(carries), tuple(xs), length=STEPS_PER_SKILL)
+    rests = split(robots.neutral(join([c[0] for c in carries])))
+    outcomes = []
+    for p, (origin, _), carry, record, rest in zip(parts, starts, carries, records, rests):
+        if p.skills.hierarchical:
+            outcomes.append(hbr_outcome(origin, carry[1], record, rest))
+            continue
+        (state, reason), last = _flat_second(carry, rest)
+        poses = jnp.concatenate([jnp.swapaxes(record[0], 0, 1), last[0][:, None]], axis=1)  # (B, 4, 3)
+        qpos = None
+        if last[1] is not None:  # (3, B, F / 4, 25) and (B, F / 4, 25) -> (B, F, 25)
+            steps = jnp.swapaxes(record[1], 0, 1)
+            qpos = jnp.concatenate([steps.reshape(steps.shape[0], -1, steps.shape[-1]), last[1]], axis=1)
+        zeros = jnp.zeros((reason.shape[0], NUM_LEGS), jnp.float32)
+        outcomes.append(flat_outcome(Second(
+            state=state, pose=poses[:, -1], displacement=relative_pose(origin, poses[:, -1]), valid=reason == 0,
+            invalid_reason=reason, contact_fraction=zeros, leg_travel=zeros, qpos=qpos), poses))
+    return tuple(outcomes)

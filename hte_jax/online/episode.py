@@ -21,8 +21,8 @@ from tqdm.auto import tqdm
 from hte_jax import sharding
 from hte_jax.errors import ConfigError, require_int
 from hte_jax.hbr.hierarchy import STEPS_PER_SKILL, state_pose
-from hte_jax.online.action import (SECONDS_PER_ACTION, STEP_CONTROL_STEPS, ActionOutcome, SimulatedRobots,
-                                   flat_action, hbr_action)
+from hte_jax.online.action import (SECONDS_PER_ACTION, STEP_CONTROL_STEPS, ActionOutcome, Part, SimulatedRobots,
+                                   flat_action, hbr_action, joint_action)
 from hte_jax.online.aprol import MapBelief, closeness, initial_belief, select_entry, update_belief
 from hte_jax.online.gp import GPData, add_observation, empty_gp
 from hte_jax.online.maze import GridSpec, Maze, distance_field, planning_start, reached_goal
@@ -32,7 +32,7 @@ from hte_jax.online.rules import PatternRule, RuleBatch, rule_indices, start_rul
 from hte_jax.online.secondary import ERROR_DIM
 from hte_jax.online.skills import OUTCOME_DIM, Skills, displacement_of, predict
 from hte_jax.online.skills import outcome as outcome_of
-from hte_jax.sim.damage import Damage, damage_legs
+from hte_jax.sim.damage import Damage, as_damage, damage_legs
 from hte_jax.sim.robot import NUM_LEGS, Robot
 from hte_jax.sim.env import SimState
 from hte_jax.warp_calls import waited
@@ -200,6 +200,26 @@ def act_step(maze: Maze, config: AdaptationConfig, robot: Robot, skills: Skills,
     return record_action(maze, config, skills, episodes, decision, outcome), outcome.qpos
 
 
+@functools.partial(jax.jit, static_argnames=("maze", "config", "record_every"))
+def act_steps(maze: Maze, config: AdaptationConfig, robot: Robot, skills: tuple[Skills, ...],
+              episodes: tuple[Episodes, ...], decisions: tuple[Decision, ...],
+              record_every: int = 0) -> tuple[tuple[Episodes, ...], tuple[jax.Array | None, ...]]:
+    """`act_step` of several batches (each its skills, episodes and decision) as one program whose every second is
+    one rollout of all their robots (`action.joint_action`). Returns each batch's episodes and states."""
+    if record_every and (not isinstance(record_every, int) or STEP_CONTROL_STEPS % record_every):
+        raise ConfigError(f"record_every must divide {STEP_CONTROL_STEPS}, got {record_every!r}")
+    damages = [e.damage for e in episodes]
+    if any(isinstance(d, Damage) for d in damages):  # one kind for the joint rollout
+        damages = [as_damage(d, robot.config.damage_model) for d in damages]
+    damage = jax.tree.map(lambda *xs: jnp.concatenate(xs), *damages)
+    parts = tuple(Part(skills=s, state=e.sim, rules=e.rules if s.hierarchical else None, keys=d.keys[:, 2],
+                       choice=d.action if s.hierarchical else s.map_genotypes[d.map, d.action], taken=e.taken)
+                  for s, e, d in zip(skills, episodes, decisions))
+    outcomes = joint_action(SimulatedRobots(robot, damage, record_every), parts)
+    return (tuple(record_action(maze, config, s, e, d, o) for s, e, d, o in zip(skills, episodes, decisions, outcomes)),
+            tuple(o.qpos for o in outcomes))
+
+
 def execute(robots, skills: Skills, episodes: Episodes, decision: Decision) -> ActionOutcome:
     """Every episode's decided skill run on `robots` (`action.SimulatedRobots` or `external.ExecutorRobot`)."""
     if skills.hierarchical:
@@ -270,7 +290,8 @@ def episode_status(episodes: Episodes) -> tuple[jax.Array, jax.Array]:
 
 @functools.lru_cache(maxsize=32)
 def sharded_steps(maze: Maze, config: AdaptationConfig, mesh: Mesh, record_every: int):
-    """(plan, act): `plan_step` and `act_step` with the episode axis split over `mesh` (no collective inside)."""
+    """(plan, act, act_all): `plan_step`, `act_step` and `act_steps` with the episode axis split over `mesh` (no
+    collective inside)."""
     rows, whole = PartitionSpec(sharding.BATCH_AXIS), PartitionSpec()
 
     def plan(skills, field, episodes):
@@ -279,11 +300,15 @@ def sharded_steps(maze: Maze, config: AdaptationConfig, mesh: Mesh, record_every
     def act(robot, skills, episodes, decision):
         return act_step(maze, config, robot, skills, episodes, decision, record_every=record_every)
 
+    def act_all(robot, skills, episodes, decisions):
+        return act_steps(maze, config, robot, skills, episodes, decisions, record_every=record_every)
+
     if mesh.devices.size == 1:  # one device: the step functions themselves
-        return plan, act
+        return plan, act, act_all
     split = functools.partial(jax.shard_map, mesh=mesh, out_specs=rows, check_vma=False)
     return (jax.jit(split(plan, in_specs=(whole, whole, rows))),
-            jax.jit(split(act, in_specs=(whole, whole, rows, rows))))
+            jax.jit(split(act, in_specs=(whole, whole, rows, rows))),
+            jax.jit(split(act_all, in_specs=(whole, whole, rows, rows))))
 
 
 def run_episodes(maze: Maze, config: AdaptationConfig, robot: Robot, skills: Skills, episodes: Episodes,
@@ -291,32 +316,68 @@ def run_episodes(maze: Maze, config: AdaptationConfig, robot: Robot, skills: Ski
                  recorder: Recorder | None = None, mesh: Mesh | None = None) -> tuple[Episodes, RunTimings]:
     """Run the batch until every episode has ended (or for `max_steps` actions). recorder: collects its rows'
     states. mesh: the devices the episodes are spread over (None: all visible)."""
+    return run_together(maze, config, robot, [(skills, episodes)], progress, description, max_steps, [recorder],
+                        mesh)[0]
+
+
+def run_together(maze: Maze, config: AdaptationConfig, robot: Robot, batches: list[tuple[Skills, Episodes]],
+                 progress: bool = True, description: str = "episodes", max_steps: int | None = None,
+                 recorders: list[Recorder | None] | None = None,
+                 mesh: Mesh | None = None) -> list[tuple[Episodes, RunTimings]]:
+    """`run_episodes` of several batches (each its skills and episodes) in lockstep: each action plans every batch
+    that is still running, then acts all of them in one program (`act_steps`; one batch: `act_step`), until every
+    episode has ended. recorders: one per batch (None: not recorded). Each batch's timings hold its planning and
+    the joint acting."""
     mesh = sharding.batch_mesh() if mesh is None else mesh
-    batch = episodes.taken.shape[0]
+    recorders = [None] * len(batches) if recorders is None else list(recorders)
+    if len(recorders) != len(batches):
+        raise ConfigError(f"{len(batches)} batches, {len(recorders)} recorders")
+    every = {r.every for r in recorders if r is not None}
+    if len(every) > 1:
+        raise ConfigError(f"batches run together record at one interval, got {sorted(every)}")
+    sizes = [episodes.taken.shape[0] for _, episodes in batches]
     # Commit every input to the mesh: jit keys its cache on committed-ness, so uncommitted first
     # inputs would compile each step function twice.
     field = sharding.put_replicated(distance_field(maze, config.grid), mesh)
-    skills, robot = sharding.put_replicated((skills, robot), mesh)
-    episodes = sharding.put_batch(pad_episodes(episodes, sharding.padded_size(batch, mesh)), mesh)
-    plan, act = sharded_steps(maze, config, mesh, 0 if recorder is None else recorder.every)
-    timings, begin = RunTimings(), time.perf_counter()
+    skills, robot = sharding.put_replicated(([s for s, _ in batches], robot), mesh)
+    episodes = [sharding.put_batch(pad_episodes(e, sharding.padded_size(n, mesh)), mesh)
+                for (_, e), n in zip(batches, sizes)]
+    plan, act, act_all = sharded_steps(maze, config, mesh, every.pop() if every else 0)
+    timings, begin = [RunTimings() for _ in batches], time.perf_counter()
     bar = tqdm(total=config.max_actions, desc=description, unit="action", disable=not progress)
-    done, reached = (np.asarray(x) for x in sharding.addressable(episode_status(episodes)))
+
+    def status():
+        return [[np.asarray(x) for x in sharding.addressable(episode_status(e))] for e in episodes]
+
+    done = status()
+    decisions = [None] * len(batches)
     for _ in range(config.max_actions if max_steps is None else min(max_steps, config.max_actions)):
-        if done.all():
+        if all(d.all() for d, _ in done):
             break
+        for i, (d, _) in enumerate(done):
+            if decisions[i] is None or not d.all():  # an ended batch keeps its last decision: nothing acts on it
+                tick = time.perf_counter()
+                decisions[i] = waited(plan, skills[i], field, episodes[i])
+                timings[i].plan.append(time.perf_counter() - tick)
+        active = [~d[:n] for (d, _), n in zip(done, sizes)]
         tick = time.perf_counter()
-        decision = waited(plan, skills, field, episodes)
-        timings.plan.append(time.perf_counter() - tick)
-        active = ~done[:batch]
-        tick = time.perf_counter()
-        episodes, states = waited(act, robot, skills, episodes, decision)
-        timings.act.append(time.perf_counter() - tick)
-        if recorder is not None:
-            recorder.add(sharding.addressable(states), active)
-        done, reached = (np.asarray(x) for x in sharding.addressable(episode_status(episodes)))
+        if len(batches) == 1:
+            episode, state = waited(act, robot, skills[0], episodes[0], decisions[0])
+            episodes, states = [episode], [state]
+        else:
+            episodes, states = (list(x) for x in waited(act_all, robot, tuple(skills), tuple(episodes),
+                                                          tuple(decisions)))
+        acted = time.perf_counter() - tick
+        for t in timings:
+            t.act.append(acted)
+        for recorder, state, running in zip(recorders, states, active):
+            if recorder is not None:
+                recorder.add(sharding.addressable(state), running)
+        done = status()
         bar.update(1)
-        bar.set_postfix(reached=int(reached.sum()), running=int((~done).sum()))
+        bar.set_postfix(reached=int(sum(r.sum() for _, r in done)), running=int(sum((~d).sum() for d, _ in done)))
     bar.close()
-    timings.total = time.perf_counter() - begin
-    return jax.tree.map(lambda x: x[:batch], sharding.addressable(episodes)), timings
+    total = time.perf_counter() - begin
+    for t in timings:
+        t.total = total
+    return [(jax.tree.map(lambda x: x[:n], sharding.addressable(e)), t) for e, n, t in zip(episodes, sizes, timings)]

@@ -32,7 +32,7 @@ from hte_jax.flat.store import load_flat, shipped_flat_path
 from hte_jax.hbr.store import load_hbr, load_spare, spare_beside
 from hte_jax.online.arena import maze_robot, start_states
 from hte_jax.hbr.composition import COMPOSITIONS
-from hte_jax.online.episode import AdaptationConfig, Episodes, RunTimings, run_episodes, start_episodes
+from hte_jax.online.episode import AdaptationConfig, Episodes, RunTimings, run_together, start_episodes
 from hte_jax.online.skills import Skills, flat_skill_maps, flat_skills, hbr_skills
 from hte_jax.online.variants import batch_rules
 from hte_jax.online.variants import variant as variant_named
@@ -312,36 +312,52 @@ def run_batch(config: EvalConfig, path: str | None, variants: list[str], maze: M
     the episodes are spread over (`episode.run_episodes`; None: all visible). maze: the world
     (None: the configuration's, `EvalConfig.maze_task`). The episodes' robots carry a `Damage`, or its leg
     mask where that says the same (`damage.mask_if_plain`: the rollout's program without model edits)."""
+    return run_batches(config, [(path, variants)], maze, progress, seed, [record], record_every, mesh)[0]
+
+
+def run_batches(config: EvalConfig, planned: list[tuple[str | None, list[str]]], maze: Maze | None = None,
+                progress: bool = True, seed: int = 0, record: list[tuple[int, ...]] | None = None,
+                record_every: int = 4, mesh: Mesh | None = None) -> list[BatchResult]:
+    """`run_batch` of several batches (repertoire path, variants) of seed `seed`, run together: each action plans
+    each batch and acts all of them in one program (`episode.run_together`). record: each batch's rows to record."""
     began = time.perf_counter()
     maze = config.maze_task if maze is None else maze
-    maps = len(variants) == 1 and variant_named(variants[0]).repertoire == "aprol"
-    labels = batch_labels(config, variants)
-    skills, info = load_skills(path, maps=maps, composition=config.composition,
-                               spare=any(variant_named(v).spares for v in variants), spare_path=config.spare or None)
-    for name in variants:
-        variant_named(name).check_skills(skills)
-    rules, which = batch_rules([v for v, _, _ in labels])
-    conditions = config.damage_conditions
-    damage = stack_damages([conditions[d] for _, d, _ in labels])
-    simulated = mask_if_plain(damage, config.damage_model)
-    adaptation = config.adaptation
-    start = start_states(maze, simulated, config.robot)
+    record = [()] * len(planned) if record is None else record
+    adaptation, robot, conditions = config.adaptation, maze_robot(maze, config.robot), config.damage_conditions
     key = jax.random.PRNGKey(config.seed)
     key = key if seed == 0 else jax.random.fold_in(key, seed)
-    episodes = start_episodes(adaptation, skills, start, simulated, rules, np.asarray(which), key)
-    robot = maze_robot(maze, config.robot)
-    recorder = Recorder(tuple(record), record_every) if record else None
+    prepared = []
+    for path, variants in planned:
+        maps = len(variants) == 1 and variant_named(variants[0]).repertoire == "aprol"
+        labels = batch_labels(config, variants)
+        skills, info = load_skills(path, maps=maps, composition=config.composition,
+                                   spare=any(variant_named(v).spares for v in variants),
+                                   spare_path=config.spare or None)
+        for name in variants:
+            variant_named(name).check_skills(skills)
+        rules, which = batch_rules([v for v, _, _ in labels])
+        damage = stack_damages([conditions[d] for _, d, _ in labels])
+        simulated = mask_if_plain(damage, config.damage_model)
+        start = start_states(maze, simulated, config.robot)
+        episodes = start_episodes(adaptation, skills, start, simulated, rules, np.asarray(which), key)
+        prepared.append((variants, labels, skills, info, damage, episodes))
+    recorders = [Recorder(tuple(rows), record_every) if rows else None for rows in record]
     setup = time.perf_counter() - began
-    episodes, timings = run_episodes(maze, adaptation, robot, skills, episodes, progress=progress,
-                                     description="/".join(variants), recorder=recorder, mesh=mesh)
-    episodes = jax.device_get(episodes)  # what the records, plots and files read, on the host once
-    timings.setup = setup
-    replays = [replay_of(recorder, episodes, row, {
-        "variant": labels[row][0], "damage": labels[row][1], "replicate": labels[row][2], "seed": seed,
-        "repertoire": info["path"], "hierarchical": skills.hierarchical, **damage_info(conditions[labels[row][1]]),
-        "max_actions": config.max_actions, "maze": maze_to_dict(maze)}) for row in record]
-    variants, damages, replicates = (list(column) for column in zip(*labels))
-    return BatchResult(seed, info, variants, damages, replicates, damage, episodes, timings, replays)
+    ran = run_together(maze, adaptation, robot, [(p[2], p[5]) for p in prepared], progress=progress,
+                       description=" + ".join("/".join(p[0]) for p in prepared), recorders=recorders, mesh=mesh)
+    results = []
+    for (variants, labels, skills, info, damage, _), (episodes, timings), recorder, rows in zip(
+            prepared, ran, recorders, record):
+        episodes = jax.device_get(episodes)  # what the records, plots and files read, on the host once
+        timings.setup = setup
+        replays = [replay_of(recorder, episodes, row, {
+            "variant": labels[row][0], "damage": labels[row][1], "replicate": labels[row][2], "seed": seed,
+            "repertoire": info["path"], "hierarchical": skills.hierarchical,
+            **damage_info(conditions[labels[row][1]]), "max_actions": config.max_actions,
+            "maze": maze_to_dict(maze)}) for row in rows]
+        names, damages, replicates = (list(column) for column in zip(*labels))
+        results.append(BatchResult(seed, info, names, damages, replicates, damage, episodes, timings, replays))
+    return results
 
 
 def episode_numbers(variants: list[str], earlier: dict[str, int]) -> list[int]:
