@@ -69,12 +69,14 @@ class WorkerFailed(Exception):
         self.status = status
 
 
-def plan_workers(module: str, devices: list, todo: list[int], argv: list[str], env: dict[str, str]) -> list[Worker]:
-    """A worker per device, the i-th batch of `todo` on device i mod N (a device left without one gets no
-    worker): this command with the same flags, --resume, on its device alone, no progress bar."""
+def plan_workers(module: str, devices: list, units: list[list[int]], argv: list[str],
+                 env: dict[str, str]) -> list[Worker]:
+    """A worker per device, the i-th unit of `units` (batches that run together) on device i mod N (a device left
+    without one gets no worker): this command with the same flags, --resume, on its device alone, no progress
+    bar."""
     workers = []
     for i, device in enumerate(devices):
-        share = todo[i::len(devices)]
+        share = [k for unit in units[i::len(devices)] for k in unit]
         if not share:
             continue
         where, visible = device_env(device, env)

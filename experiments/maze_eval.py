@@ -43,7 +43,8 @@ batches a killed run finished and runs the others: the results equal an uninterr
 A seed's batches (its HBR variants, each flat repertoire) run together: each action plans every batch, then
 acts all of them in one program (--together none: one batch after another; the same results up to float
 rounding). --spread batches starts a worker process per device (each on that device alone, running the batches
-dealt to it in turn into their episodes_<k>.npz), waits for them, then summarises the batch files as --resume does.
+dealt to it, a seed's together, into their episodes_<k>.npz), waits for them, then summarises the batch files as
+--resume does.
 
 Writes config.json, episodes.json, summary.json (per variant and damage), statistics.json (the
 paper's method: quartiles of the replication medians, failure rates, Wilcoxon-Mann-Whitney tests with
@@ -111,8 +112,9 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--spread", default="episodes", metavar="WHAT",
                    help="with several devices: 'episodes' (default) splits each batch's episodes over them, one batch "
                         "after another; 'batches' starts a worker process per device, each running whole batches "
-                        "dealt in turn (the planner's host round trips overlap), then summarises their batch files "
-                        "as --resume does (not with --distributed)")
+                        "dealt in turn (under --together seed a seed's batches to one worker; the planner's host "
+                        "round trips overlap), then summarises their batch files as --resume does (not with "
+                        "--distributed)")
     p.add_argument("--together", default="seed", metavar="WHICH",
                    help="'seed' (default): the batches of a seed (its HBR variants, each flat repertoire) run together, "
                         "each action planning every batch and acting all of them in one program; 'none': one batch "
@@ -196,18 +198,19 @@ def main(argv=None) -> int:
             done = [args.resume and (out / f"episodes_{k}.npz").is_file() for k in range(len(planned))]
             if share is not None:  # a worker of --spread batches: its batches' files, no summary
                 interrupt.saved = lambda: _batches_written(out, len(planned))
-                for i, k in enumerate([k for k in share if not done[k]]):
+                for i, unit in enumerate(_units(args.together, planned, [k for k in share if not done[k]])):
                     if i and batch_workers.parent_gone():
-                        print(f"stopped before batch {k}: the process that started this worker stopped or asked it "
-                              "to", file=sys.stderr)
+                        print(f"stopped before batch {unit[0]}: the process that started this worker stopped or "
+                              "asked it to", file=sys.stderr)
                         return EXIT_INTERRUPTED
-                    result, rows, _ = run([k])[k]
-                    print(_batch_line(k, planned[k], result, rows), flush=True)
+                    for k, (result, rows, _) in run(unit).items():
+                        print(_batch_line(k, planned[k], result, rows), flush=True)
                 return 0
             by_workers = [k for k in range(len(planned)) if not done[k]] if workers else []
             if by_workers:
                 interrupt.saved = lambda: _batches_written(out, len(planned))
-                processes = batch_workers.plan_workers("experiments.maze_eval", workers, by_workers, argv, worker_env)
+                processes = batch_workers.plan_workers("experiments.maze_eval", workers,
+                                                       _units(args.together, planned, by_workers), argv, worker_env)
                 try:
                     batch_workers.run_workers(processes, out, show_progress(args), interrupt)
                 except batch_workers.WorkerFailed as failure:
@@ -215,6 +218,7 @@ def main(argv=None) -> int:
                     return failure.status
                 done = [True] * len(planned)
             pending = {}  # batches run together with an earlier one, not yet reported
+            units = _units(args.together, planned, [k for k in range(len(planned)) if not done[k]])
             for k, (seed, path, variants) in enumerate(planned):
                 labels, to_record, numbers = plans[k]
                 batch_file = out / f"episodes_{k}.npz"
@@ -227,8 +231,8 @@ def main(argv=None) -> int:
                         if k not in by_workers:  # a worker printed the line of each batch it ran
                             print(f"batch {k} ({'/'.join(variants)} on seed {seed}): read from {batch_file}")
                     continue
-                if k not in pending:  # this batch and the seed's other batches still to run
-                    pending = run(_together(args.together, planned, done, k))
+                if k not in pending:  # this batch and the others of its unit (its seed's, under --together seed)
+                    pending = run(next(u for u in units if k in u))
                 result, rows, saved = pending.pop(k)
                 records += rows
                 if not writer:
@@ -280,11 +284,14 @@ def _batch_line(k: int, batch: tuple, result, rows: list[dict]) -> str:
             f"planning median {np.median(result.timings.plan):.2f} s per action")
 
 
-def _together(which: str, planned: list, done: list[bool], k: int) -> list[int]:
-    """The batches to run with batch k: under --together seed, k and the later batches of its seed not done."""
+def _units(which: str, planned: list, todo: list[int]) -> list[list[int]]:
+    """The batches `todo` in the groups that run together, in order: under --together seed those of a seed."""
     if which == "none":
-        return [k]
-    return [j for j in range(k, len(planned)) if planned[j][0] == planned[k][0] and not done[j]]
+        return [[k] for k in todo]
+    seeds = {}
+    for k in todo:
+        seeds.setdefault(planned[k][0], []).append(k)
+    return list(seeds.values())
 
 
 def _worker_batches(text: str | None, resume: bool) -> list[int] | None:

@@ -1,8 +1,12 @@
 """Batches acted together (`action.joint_action` through `episode.act_steps`): each batch's episodes after the
 joint action are those of its own `act_step`, up to float rounding (a rollout of more rows rounds differently),
-robots that start invalid included; and `maze_eval --together` runs a seed's batches either way."""
+robots that start invalid included; `maze_eval --together` runs a seed's batches either way, and under
+`--spread batches` a seed's batches go to one worker, which runs them together (2 forced CPU devices; the default
+`--together seed` on 2 devices, episodes split over them, runs in `test_commands`)."""
 
 import json
+import subprocess
+import sys
 
 import jax
 import jax.numpy as jnp
@@ -16,7 +20,9 @@ from hte_jax.online.evaluation import batch_labels, batches, load_skills, preset
 from hte_jax.online.arena import start_states
 from hte_jax.online.maze import distance_field
 from hte_jax.online.variants import batch_rules
+from hte_jax.qd.io import read_checkpoint
 from hte_jax.sim.damage import mask_if_plain, stack_damages
+from tests.processes import ROOT, cpu_devices_env
 
 pytestmark = pytest.mark.slow
 
@@ -81,3 +87,19 @@ def test_maze_eval_runs_a_seeds_batches_together_or_one_at_a_time(tmp_path, caps
     capsys.readouterr()
     assert maze_main([*args, "--together", "all", "--out", str(tmp_path / "bad")]) == 2
     assert capsys.readouterr().err.strip() == "error: --together must be one of seed, none, got 'all'"
+
+
+def test_spread_batches_gives_a_seeds_batches_to_one_worker_that_runs_them_together(tmp_path):
+    args = ["--variant", "rte,2d-rte", "--damage", "leg1", "--replicates", "1", "--max-actions", "2", "--iterations",
+            "8", "--roots", "1", "--no-progress"]
+    spread = subprocess.run([sys.executable, "-m", "experiments.maze_eval", *args, "--devices", "2", "--spread",
+                             "batches", "--out", str(tmp_path / "spread")], cwd=ROOT, env=cpu_devices_env(2),
+                            capture_output=True, text=True, timeout=600)
+    assert spread.returncode == 0, spread.stderr[-3000:]
+    lines = [line for line in spread.stdout.splitlines() if line.startswith("batch ")]
+    assert [line.split(":")[0] for line in lines] == ["batch 0 (rte on seed 0", "batch 1 (2d-rte on seed 0"]
+    # one worker ran both, together: the same arrays as a one-device run of both together, bit for bit
+    assert maze_main([*args, "--devices", "1", "--out", str(tmp_path / "one")]) == 0
+    for k in (0, 1):
+        ours, theirs = (read_checkpoint(tmp_path / run / f"episodes_{k}.npz")[0] for run in ("spread", "one"))
+        assert ours.keys() == theirs.keys() and all(np.array_equal(ours[name], theirs[name]) for name in ours)

@@ -281,17 +281,23 @@ def test_spread_batches_deals_the_batches_to_a_process_per_device():
         _worker_devices("rows", mesh(*gpus), False, None)
 
     argv = ["--variant", "2d-rte", "--devices", "2", "--spread", "batches"]
-    workers = plan_workers("experiments.maze_eval", gpus, [0, 2, 3], argv, {"CUDA_VISIBLE_DEVICES": "5,7", "PATH": "/bin"})
+    workers = plan_workers("experiments.maze_eval", gpus, [[0], [2], [3]], argv,
+                           {"CUDA_VISIBLE_DEVICES": "5,7", "PATH": "/bin"})
     assert [w.batches for w in workers] == [[0, 3], [2]]
     assert [w.env["CUDA_VISIBLE_DEVICES"] for w in workers] == ["5", "7"]  # the parent's list, entry by entry
     assert workers[1].name == "worker 1 (gpu 1, CUDA_VISIBLE_DEVICES=7; batch 2)"
     assert workers[0].command[1:] == ["-m", "experiments.maze_eval", *argv, "--resume", "--devices", "1",
                                       "--no-progress", "--worker-batches", "0,3"]
     assert workers[0].env["PATH"] == "/bin" and workers[0].env["PYTHONPATH"].split(os.pathsep)[0] == str(ROOT)
-    assert [w.env["CUDA_VISIBLE_DEVICES"] for w in plan_workers("experiments.maze_eval", gpus, [0, 1], argv, {})] == ["0", "1"]
-    [alone] = plan_workers("experiments.maze_eval", gpus, [4], argv, {})  # fewer batches than devices
+    assert [w.env["CUDA_VISIBLE_DEVICES"] for w in plan_workers("experiments.maze_eval", gpus, [[0], [1]], argv, {})] \
+        == ["0", "1"]
+    [alone] = plan_workers("experiments.maze_eval", gpus, [[4]], argv, {})  # fewer batches than devices
     assert alone.batches == [4] and alone.index == 0
-    cpus = plan_workers("experiments.maze_eval", [device("cpu", 0), device("cpu", 1)], [0, 1], argv, {"XLA_FLAGS": "--x"})
+    # a unit (a seed's batches, run together) goes to one worker whole
+    assert [w.batches for w in plan_workers("experiments.maze_eval", gpus, [[0, 1], [2, 3], [4]], argv, {})] \
+        == [[0, 1, 4], [2, 3]]
+    cpus = plan_workers("experiments.maze_eval", [device("cpu", 0), device("cpu", 1)], [[0], [1]], argv,
+                        {"XLA_FLAGS": "--x"})
     assert cpus[1].name == "worker 1 (cpu device 1; batch 1)" and "CUDA_VISIBLE_DEVICES" not in cpus[1].env
     assert cpus[1].env["XLA_FLAGS"] == "--x" and cpus[1].command[-5:-2] == ["--devices", "1", "--no-progress"]
 
