@@ -191,7 +191,7 @@ def main(argv=None) -> int:
                         continue
                     # the replays before the batch file: a batch that is read has its replays
                     saved = _save_replays(out, result, plans[k][2], k)
-                    _save_batch(out / f"episodes_{k}.npz", result, rows)
+                    _save_batch(out / f"episodes_{k}.npz", result, rows, ks)
                     ran[k] = (result, rows, saved)
                 return ran
 
@@ -441,7 +441,9 @@ def _load_batch(path: Path, seed: int, labels: list[tuple[str, str, int]]):
     return result, saved["records"]
 
 
-def _save_batch(path: Path, result, records: list[dict]) -> None:
+def _save_batch(path: Path, result, records: list[dict], run_with: list[int]) -> None:
+    """Batch file `path`: the episodes' arrays, their records and labels, and `run_with`, the batches run together
+    with it (itself included: they share its acting seconds and setup)."""
     ep = result.episodes
     damage = result.damage
     arrays = {**{k: getattr(ep, k) for k in ("trajectory", "taken", "reached", "broken")}, "damage": damage.legs,
@@ -451,7 +453,7 @@ def _save_batch(path: Path, result, records: list[dict]) -> None:
     labels = {"seed": result.seed, "variants": result.variants, "damages": result.damages, "replicates": result.replicates,
               "damage_models": models,
               "repertoire": result.repertoire, "setup_seconds": result.timings.setup, "plan_seconds": result.timings.plan,
-              "act_seconds": result.timings.act,
+              "act_seconds": result.timings.act, "run_with": list(run_with),
               "records": records}
     save_checkpoint(path, arrays, labels, compress=True)
 

@@ -27,7 +27,8 @@ def test_protocol_time_runs_maze_eval_and_compares_two_runs(tmp_path, capsys):
         (batch,) = run["batches"]
         assert batch["episodes"] == 4 and batch["actions"] == 2 and batch["variants"] == ["2d-rte"]
         assert batch["setup_s"] > 0 and batch["first_action_s"] > 0 and batch["plan_median_s"] > 0
-        assert batch["seconds"] > batch["setup_s"] + batch["first_action_s"]
+        assert batch["seconds"] > batch["setup_s"] + batch["first_action_s"] and batch["run_with"] == [0]
+        assert run["batches_s"] == pytest.approx(batch["seconds"])
         episodes = json.loads((work / label / "episodes.json").read_text())["episodes"]
         assert run["variants"]["2d-rte"]["successes"] == sum(r["reached"] for r in episodes)
     row = result["comparisons"]["a,b"]["variants"]["2d-rte"]

@@ -22,6 +22,7 @@ from hte_jax.online.maze import distance_field
 from hte_jax.online.variants import batch_rules
 from hte_jax.qd.io import read_checkpoint
 from hte_jax.sim.damage import mask_if_plain, stack_damages
+from tests.benchmark_runner import benchmark_module
 from tests.processes import ROOT, cpu_devices_env
 
 pytestmark = pytest.mark.slow
@@ -84,6 +85,15 @@ def test_maze_eval_runs_a_seeds_batches_together_or_one_at_a_time(tmp_path, caps
     for a, b in zip(runs["seed"], runs["none"]):
         assert (a["variant"], a["actions_taken"], a["reached"]) == (b["variant"], b["actions_taken"], b["reached"])
         np.testing.assert_allclose(a["prediction_error"], b["prediction_error"], atol=5e-3)
+    # the batch files name the batches run together; protocol_time counts their shared acting once
+    read_run = benchmark_module("protocol_time").read_run
+    for which, groups in (("seed", [[0, 1], [0, 1]]), ("none", [[0], [1]])):
+        run, _ = read_run(tmp_path / which)
+        assert [b["run_with"] for b in run["batches"]] == groups
+        acting = [sum(read_checkpoint(tmp_path / which / f"episodes_{k}.npz")[1]["metadata"]["act_seconds"])
+                  for k in (0, 1)]
+        assert run["batches_s"] == pytest.approx(sum(b["seconds"] for b in run["batches"])
+                                                 - (acting[1] + run["batches"][1]["setup_s"]) * (which == "seed"))
     capsys.readouterr()
     assert maze_main([*args, "--together", "all", "--out", str(tmp_path / "bad")]) == 2
     assert capsys.readouterr().err.strip() == "error: --together must be one of seed, none, got 'all'"
