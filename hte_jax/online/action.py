@@ -204,16 +204,22 @@ def hbr_outcome(origin: jax.Array, rules: RuleBatch, records, rest: Second) -> A
     """The outcome of HBR skills from world poses `origin` (B, 3): their steps' stacked `hbr_learn` records
     (3, B, ...), the rules after them and the neutral second `rest`."""
     patterns, middle, errors, reasons, poses, contacts, travel, qpos = records
-    if qpos is not None:  # (3, B, F / 4, 25) steps and (B, F / 4, 25) neutral -> (B, F, 25)
-        steps = jnp.swapaxes(qpos, 0, 1)
-        qpos = jnp.concatenate([steps.reshape(steps.shape[0], -1, steps.shape[-1]), rest.qpos], axis=1)
     return ActionOutcome(
         state=rest.state, valid=(reasons == 0).all(axis=0) & rest.valid,
         invalid_reason=jnp.bitwise_or.reduce(reasons, axis=0) | rest.invalid_reason,
         poses=jnp.concatenate([jnp.swapaxes(poses, 0, 1), rest.pose[:, None]], axis=1),
         displacement=relative_pose(origin, rest.pose), patterns=patterns.T, middle_index=middle.T,
         errors=jnp.swapaxes(errors, 0, 1), contacts=jnp.swapaxes(contacts, 0, 1),
-        leg_travel=jnp.swapaxes(travel, 0, 1), rules=rules, qpos=qpos)
+        leg_travel=jnp.swapaxes(travel, 0, 1), rules=rules, qpos=_action_states(qpos, rest.qpos))
+
+
+def _action_states(steps: jax.Array | None, rest: jax.Array | None) -> jax.Array | None:
+    """An action's recorded states (B, F, 25) from its steps' (3, B, F / 4, 25) and the neutral second's
+    (B, F / 4, 25); None when not recorded."""
+    if steps is None:
+        return None
+    steps = jnp.swapaxes(steps, 0, 1)
+    return jnp.concatenate([steps.reshape(steps.shape[0], -1, steps.shape[-1]), rest], axis=1)
 
 
 def hbr_action(robots, skills: Skills, state: SimState | None, rules: RuleBatch, action: jax.Array, taken: jax.Array,
@@ -314,10 +320,7 @@ def joint_action(robots: SimulatedRobots, parts: tuple[Part, ...]) -> tuple[Acti
             continue
         (state, reason), last = _flat_second(carry, rest)
         poses = jnp.concatenate([jnp.swapaxes(record[0], 0, 1), last[0][:, None]], axis=1)  # (B, 4, 3)
-        qpos = None
-        if last[1] is not None:  # (3, B, F / 4, 25) and (B, F / 4, 25) -> (B, F, 25)
-            steps = jnp.swapaxes(record[1], 0, 1)
-            qpos = jnp.concatenate([steps.reshape(steps.shape[0], -1, steps.shape[-1]), last[1]], axis=1)
+        qpos = _action_states(record[1], last[1])
         zeros = jnp.zeros((reason.shape[0], NUM_LEGS), jnp.float32)
         outcomes.append(flat_outcome(Second(
             state=state, pose=poses[:, -1], displacement=relative_pose(origin, poses[:, -1]), valid=reason == 0,

@@ -189,13 +189,18 @@ def plan_step(maze: Maze, config: AdaptationConfig, skills: Skills, field: jax.A
                     prior=maps.prior[chosen_map, action])
 
 
+def _check_record_every(record_every: int) -> None:
+    """ConfigError unless `record_every` is 0 (nothing recorded) or an integer dividing a second's control steps."""
+    if record_every and (not isinstance(record_every, int) or STEP_CONTROL_STEPS % record_every):
+        raise ConfigError(f"record_every must divide {STEP_CONTROL_STEPS}, got {record_every!r}")
+
+
 @functools.partial(jax.jit, static_argnames=("maze", "config", "record_every"))
 def act_step(maze: Maze, config: AdaptationConfig, robot: Robot, skills: Skills, episodes: Episodes,
              decision: Decision, record_every: int = 0) -> tuple[Episodes, jax.Array | None]:
     """Execute every active episode's action on its MJX robot, learn and record it. Returns the episodes and
     the states (B, 400 / k, 25) every k = `record_every` control steps (None when k = 0)."""
-    if record_every and (not isinstance(record_every, int) or STEP_CONTROL_STEPS % record_every):
-        raise ConfigError(f"record_every must divide {STEP_CONTROL_STEPS}, got {record_every!r}")
+    _check_record_every(record_every)
     outcome = execute(SimulatedRobots(robot, episodes.damage, record_every), skills, episodes, decision)
     return record_action(maze, config, skills, episodes, decision, outcome), outcome.qpos
 
@@ -206,8 +211,7 @@ def act_steps(maze: Maze, config: AdaptationConfig, robot: Robot, skills: tuple[
               record_every: int = 0) -> tuple[tuple[Episodes, ...], tuple[jax.Array | None, ...]]:
     """`act_step` of several batches (each its skills, episodes and decision) as one program whose every second is
     one rollout of all their robots (`action.joint_action`). Returns each batch's episodes and states."""
-    if record_every and (not isinstance(record_every, int) or STEP_CONTROL_STEPS % record_every):
-        raise ConfigError(f"record_every must divide {STEP_CONTROL_STEPS}, got {record_every!r}")
+    _check_record_every(record_every)
     damages = [e.damage for e in episodes]
     if any(isinstance(d, Damage) for d in damages):  # one kind for the joint rollout
         damages = [as_damage(d, robot.config.damage_model) for d in damages]

@@ -343,8 +343,9 @@ def run_batches(config: EvalConfig, planned: list[tuple[str | None, list[str]]],
         prepared.append((variants, labels, skills, info, damage, episodes))
     recorders = [Recorder(tuple(rows), record_every) if rows else None for rows in record]
     setup = time.perf_counter() - began
-    ran = run_together(maze, adaptation, robot, [(p[2], p[5]) for p in prepared], progress=progress,
-                       description=" + ".join("/".join(p[0]) for p in prepared), recorders=recorders, mesh=mesh)
+    ran = run_together(maze, adaptation, robot, [(skills, episodes) for _, _, skills, _, _, episodes in prepared],
+                       progress=progress, description=" + ".join("/".join(variants) for variants, *_ in prepared),
+                       recorders=recorders, mesh=mesh)
     results = []
     for (variants, labels, skills, info, damage, _), (episodes, timings), recorder, rows in zip(
             prepared, ran, recorders, record):
