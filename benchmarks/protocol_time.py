@@ -6,7 +6,8 @@ included). `--read LABEL=DIR` reads a run made elsewhere (e.g. in parallel on an
 DIR/wall_s.txt if written, as `--run` does). From each run's batch files: per batch the actions, its setup
 seconds (loading the repertoire, starting the episodes), the first action's seconds (compiling) and the
 planning and acting medians per action after it, the batches it ran together with (`maze_eval --together`),
-and the batches' seconds in all (each batch's planning, each group's shared acting and setup once); from its episodes,
+and the batches' seconds in all (each batch's own planning, each group's shared planning, acting and setup once);
+from its episodes,
 per variant the successes and the median actions of the successful episodes. `--compare A,B` (repeatable)
 tests whether runs A and B differ beyond run-to-run noise, per variant: Fisher's exact test on the successes
 and Mann-Whitney on the successful episodes' actions (episodes as the sample; Bonferroni over the variants).
@@ -69,14 +70,14 @@ def read_run(folder: Path) -> tuple[dict, list[dict]]:
     except (OSError, ValueError, KeyError) as error:
         raise ValueError(f"{folder}: not a finished maze_eval run ({error})") from None
     wall = float((folder / WALL_FILE).read_text()) if (folder / WALL_FILE).is_file() else None
-    batches, shared = [], {}  # shared: per group of batches run together, its acting and setup seconds
+    batches, shared = [], {}  # shared: per group of batches run together, its acting, setup (and planning) seconds
     for k in range(len(list(folder.glob("episodes_*.npz")))):
         labels = read_checkpoint(folder / f"episodes_{k}.npz")[1]["metadata"]
         plan, act = labels["plan_seconds"], labels["act_seconds"]
-        run_with = labels.get("run_with", [k])
-        shared[tuple(run_with)] = sum(act) + (labels.get("setup_seconds") or 0.0)
+        run_with, plan_shared = labels.get("run_with", [k]), bool(labels.get("plan_shared", False))
+        shared[tuple(run_with)] = sum(act) + (labels.get("setup_seconds") or 0.0) + sum(plan) * plan_shared
         batches.append({"variants": sorted(set(labels["variants"])), "episodes": len(labels["variants"]),
-                        "run_with": run_with, "plan_s": float(sum(plan)),
+                        "run_with": run_with, "plan_shared": plan_shared, "plan_s": float(sum(plan)),
                         "actions": len(plan), "setup_s": labels.get("setup_seconds"), "first_action_s": plan[0] + act[0],
                         "plan_median_s": float(np.median(plan[1:])) if len(plan) > 1 else None,
                         "act_median_s": float(np.median(act[1:])) if len(act) > 1 else None,
@@ -86,8 +87,8 @@ def read_run(folder: Path) -> tuple[dict, list[dict]]:
         cell = success_summary([r for r in records if r["variant"] == variant])
         variants[variant] = {"episodes": cell["episodes"], "successes": cell["successes"],
                              "actions_median": cell["actions"]["median"]}
-    # the batches' seconds: each one's planning, each group's acting and setup once
-    in_batches = sum(b["plan_s"] for b in batches) + sum(shared.values())
+    # the batches' seconds: each one's own planning, each group's acting, setup and shared planning once
+    in_batches = sum(b["plan_s"] for b in batches if not b["plan_shared"]) + sum(shared.values())
     result = {"folder": str(folder), "wall_s": wall, "batches_s": float(in_batches), "impl": config.get("impl"),
               "planner": {k: config.get(k) for k in ("iterations", "roots")}, "batches": batches, "variants": variants}
     return result, records

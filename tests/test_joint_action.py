@@ -1,5 +1,6 @@
-"""Batches acted together (`action.joint_action` through `episode.act_steps`): each batch's episodes after the
-joint action are those of its own `act_step`, up to float rounding (a rollout of more rows rounds differently),
+"""Batches planned and acted together (`episode.plan_steps`; `action.joint_action` through `episode.act_steps`):
+each batch's decisions are those of its own `plan_step`, and its episodes after the joint action those of its own
+`act_step`, up to float rounding (a rollout of more rows rounds differently),
 robots that start invalid included; `maze_eval --together` runs a seed's batches either way, and under
 `--spread batches` a seed's batches go to one worker, which runs them together (2 forced CPU devices; the default
 `--together seed` on 2 devices, episodes split over them, runs in `test_commands`)."""
@@ -7,6 +8,7 @@ robots that start invalid included; `maze_eval --together` runs a seed's batches
 import json
 import subprocess
 import sys
+from operator import attrgetter
 
 import jax
 import jax.numpy as jnp
@@ -15,7 +17,7 @@ import pytest
 
 from experiments.maze_eval import main as maze_main
 from hte_jax.online.arena import maze_robot
-from hte_jax.online.episode import act_step, act_steps, plan_step, start_episodes
+from hte_jax.online.episode import act_step, act_steps, plan_step, plan_steps, start_episodes
 from hte_jax.online.evaluation import batch_labels, batches, load_skills, preset, with_overrides
 from hte_jax.online.arena import start_states
 from hte_jax.online.maze import distance_field
@@ -55,6 +57,15 @@ def test_batches_acted_together_match_each_batch_acted_alone():
              for k, (_, path, variants) in enumerate(batches(CONFIG))]
     assert [s.hierarchical for s, _ in parts] == [True, False]
     decisions = [plan_step(maze, adaptation, s, field, e) for s, e in parts]
+    # planned together: one search of both batches, the smaller action set padded with unusable actions
+    assert parts[0][0].actions.size != parts[1][0].actions.size
+    joint = plan_steps(maze, adaptation, tuple(s for s, _ in parts), field, tuple(e for _, e in parts))
+    for one, both in zip(decisions, joint):
+        for name in ("map", "action", "plan.action", "plan.visits", "plan.path_length"):
+            np.testing.assert_array_equal(attrgetter(name)(one), attrgetter(name)(both), err_msg=name)
+        for name in ("plan.value", "plan.path", "predicted", "prior", "start"):
+            np.testing.assert_allclose(attrgetter(name)(one), attrgetter(name)(both), atol=1e-5, err_msg=name)
+        np.testing.assert_array_equal(one.keys, both.keys)
     alone = [act_step(maze, adaptation, robot, s, e, d)[0] for (s, e), d in zip(parts, decisions)]
     together, states = act_steps(maze, adaptation, robot, tuple(s for s, _ in parts), tuple(e for _, e in parts),
                                  tuple(decisions))
@@ -90,10 +101,13 @@ def test_maze_eval_runs_a_seeds_batches_together_or_one_at_a_time(tmp_path, caps
     for which, groups in (("seed", [[0, 1], [0, 1]]), ("none", [[0], [1]])):
         run, _ = read_run(tmp_path / which)
         assert [b["run_with"] for b in run["batches"]] == groups
-        acting = [sum(read_checkpoint(tmp_path / which / f"episodes_{k}.npz")[1]["metadata"]["act_seconds"])
-                  for k in (0, 1)]
+        labels = [read_checkpoint(tmp_path / which / f"episodes_{k}.npz")[1]["metadata"] for k in (0, 1)]
+        # together, batch 1's planning, acting and setup are batch 0's
+        same = [labels[0][name] == labels[1][name] for name in ("plan_seconds", "act_seconds", "setup_seconds")]
+        assert same == [which == "seed"] * 3
+        assert [b["plan_shared"] for b in run["batches"]] == [which == "seed"] * 2
         assert run["batches_s"] == pytest.approx(sum(b["seconds"] for b in run["batches"])
-                                                 - (acting[1] + run["batches"][1]["setup_s"]) * (which == "seed"))
+                                                 - run["batches"][1]["seconds"] * (which == "seed"))
     capsys.readouterr()
     assert maze_main([*args, "--together", "all", "--out", str(tmp_path / "bad")]) == 2
     assert capsys.readouterr().err.strip() == "error: --together must be one of seed, none, got 'all'"

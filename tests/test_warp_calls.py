@@ -76,7 +76,7 @@ def test_maze_eval_plans_and_acts_with_the_collector_paused(monkeypatch, tmp_pat
     steps = episode.sharded_steps
 
     def recording_steps(*args, **kwargs):
-        plan, act, act_all = steps(*args, **kwargs)
+        plan, plan_all, act, act_all = steps(*args, **kwargs)
 
         def recorded(fn):
             def call(*a):
@@ -84,13 +84,13 @@ def test_maze_eval_plans_and_acts_with_the_collector_paused(monkeypatch, tmp_pat
                 return fn(*a)
             return call
 
-        return recorded(plan), recorded(act), recorded(act_all)
+        return recorded(plan), recorded(plan_all), recorded(act), recorded(act_all)
 
     monkeypatch.setattr(episode, "sharded_steps", recording_steps)
     args = ["--variant", "rte,2d-rte", "--damage", "none", "--replicates", "1", "--max-actions", "2", "--iterations",
             "8", "--roots", "1", "--out", str(tmp_path), "--no-progress"]
     assert maze_main(args) == 0
-    assert len(seen) == 6 and not any(seen)  # 2 actions, each planning both batches and acting them together
+    assert len(seen) == 4 and not any(seen)  # 2 actions, each planning both batches together and acting them together
     assert gc.isenabled()
 
 

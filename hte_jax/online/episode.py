@@ -162,31 +162,89 @@ class Decision:
     prior: jax.Array
 
 
-@functools.partial(jax.jit, static_argnames=("maze", "config"))
-def plan_step(maze: Maze, config: AdaptationConfig, skills: Skills, field: jax.Array, episodes: Episodes) -> Decision:
-    """Plan every episode's next action on its RTE GP's predictions (APROL then picks among all repertoires)."""
+@struct.dataclass
+class _Outlook:
+    """What an action's search needs of B episodes, and what its decision reads after it: mean (B, K, A, 4) and
+    variance (B, K, A) the RTE GPs' predictions of every repertoire's actions, displacement (B, A, 3) and usable
+    (B, A) the current repertoire's, start (B, 3) the planner's start pose, keys (B, 3, 2) next, plan, act."""
+
+    mean: jax.Array
+    variance: jax.Array
+    displacement: jax.Array
+    usable: jax.Array
+    start: jax.Array
+    keys: jax.Array
+
+
+def _outlook(maze: Maze, skills: Skills, episodes: Episodes) -> _Outlook:
+    """Every episode's predicted outcomes and planning start (the part of `plan_step` before its search)."""
     maps = skills.map_actions
     mean, variance = jax.vmap(lambda gps: jax.vmap(predict)(gps, maps))(episodes.rte)  # (B, K, A, 4), (B, K, A)
     rows, current = jnp.arange(mean.shape[0]), episodes.belief.current
-    displacement = displacement_of(mean[rows, current])  # (B, A, 3)
-    usable = maps.mask[current]  # (B, A)
     pose = episodes.pose
-    start = jnp.concatenate([planning_start(maze, pose[:, :2]), pose[:, 2:]], axis=-1)
-    keys = jax.vmap(lambda k: jax.random.split(k, 3))(episodes.key)  # (B, 3, 2): next, plan, act
+    return _Outlook(mean=mean, variance=variance, displacement=displacement_of(mean[rows, current]),
+                    usable=maps.mask[current],
+                    start=jnp.concatenate([planning_start(maze, pose[:, :2]), pose[:, 2:]], axis=-1),
+                    keys=jax.vmap(lambda k: jax.random.split(k, 3))(episodes.key))
+
+
+def _search(maze: Maze, config: AdaptationConfig, field: jax.Array, displacement: jax.Array, usable: jax.Array,
+            keys: jax.Array, start: jax.Array) -> PlanResult:
+    """B plans (vmapped `mcts.plan`): displacement (B, A, 3), usable (B, A), keys (B, 2), start (B, 3)."""
 
     def one(moves, mask, key, state):
         return plan(maze, config.grid, config.planner, world_of(moves, mask, field), key, state)
 
-    result = jax.vmap(one)(displacement, usable, keys[:, 1], start)
+    return jax.vmap(one)(displacement, usable, keys, start)
+
+
+def _decide(skills: Skills, episodes: Episodes, outlook: _Outlook, result: PlanResult) -> Decision:
+    """The decision from a plan (APROL then picks among all repertoires)."""
+    mean, variance = outlook.mean, outlook.variance
+    rows, maps = jnp.arange(mean.shape[0]), skills.map_actions
     if skills.num_maps > 1:
-        goal = displacement[rows, result.action, :2]  # what the plan expects the skill to do
+        goal = outlook.displacement[rows, result.action, :2]  # what the plan expects the skill to do
         chosen_map, action = jax.vmap(select_entry)(episodes.belief, mean, variance,
                                                     jnp.broadcast_to(maps.mask, variance.shape), goal)
     else:
         chosen_map, action = jnp.zeros_like(result.action), result.action
     predicted = displacement_of(mean[rows, chosen_map, action])
-    return Decision(plan=result, map=chosen_map, action=action, start=start, predicted=predicted, keys=keys,
-                    prior=maps.prior[chosen_map, action])
+    return Decision(plan=result, map=chosen_map, action=action, start=outlook.start, predicted=predicted,
+                    keys=outlook.keys, prior=maps.prior[chosen_map, action])
+
+
+@functools.partial(jax.jit, static_argnames=("maze", "config"))
+def plan_step(maze: Maze, config: AdaptationConfig, skills: Skills, field: jax.Array, episodes: Episodes) -> Decision:
+    """Plan every episode's next action on its RTE GP's predictions (APROL then picks among all repertoires)."""
+    outlook = _outlook(maze, skills, episodes)
+    result = _search(maze, config, field, outlook.displacement, outlook.usable, outlook.keys[:, 1], outlook.start)
+    return _decide(skills, episodes, outlook, result)
+
+
+def _pad_actions(x: jax.Array, size: int, fill) -> jax.Array:
+    """(B, A, ...) -> (B, size, ...), the added actions `fill`."""
+    return jnp.pad(x, [(0, 0), (0, size - x.shape[1])] + [(0, 0)] * (x.ndim - 2), constant_values=fill)
+
+
+@functools.partial(jax.jit, static_argnames=("maze", "config"))
+def plan_steps(maze: Maze, config: AdaptationConfig, skills: tuple[Skills, ...], field: jax.Array,
+               episodes: tuple[Episodes, ...]) -> tuple[Decision, ...]:
+    """`plan_step` of several batches (each its skills and episodes) as one search of all their episodes: the
+    action sets padded to the largest with unusable actions (never drawn: a plan draws among the usable ones
+    only), so each batch's decisions are its own `plan_step`'s up to float rounding."""
+    outlooks = [_outlook(maze, s, e) for s, e in zip(skills, episodes)]
+    width = max(o.usable.shape[1] for o in outlooks)
+    result = _search(maze, config, field,
+                     jnp.concatenate([_pad_actions(o.displacement, width, 0.0) for o in outlooks]),
+                     jnp.concatenate([_pad_actions(o.usable, width, False) for o in outlooks]),
+                     jnp.concatenate([o.keys[:, 1] for o in outlooks]), jnp.concatenate([o.start for o in outlooks]))
+    decisions, begin = [], 0
+    for s, e, o in zip(skills, episodes, outlooks):
+        rows, actions = o.usable.shape
+        own = jax.tree.map(lambda x: x[begin:begin + rows], result)
+        decisions.append(_decide(s, e, o, own.replace(visits=own.visits[:, :actions])))
+        begin += rows
+    return tuple(decisions)
 
 
 def _check_record_every(record_every: int) -> None:
@@ -271,12 +329,14 @@ def record_action(maze: Maze, config: AdaptationConfig, skills: Skills, episodes
 @dataclasses.dataclass
 class RunTimings:
     """Wall-clock seconds of each call of a run (the first of each includes compilation); setup: before the
-    first action (what `evaluation.run_batch` spent loading the repertoire and starting the episodes)."""
+    first action (what `evaluation.run_batch` spent loading the repertoire and starting the episodes); shared:
+    whether the planning and acting seconds are those of batches run together (`run_together`), not its own."""
 
     plan: list[float] = dataclasses.field(default_factory=list)
     act: list[float] = dataclasses.field(default_factory=list)
     total: float = 0.0
     setup: float = 0.0
+    shared: bool = False
 
 
 @functools.partial(jax.jit, static_argnames=("size",))
@@ -294,12 +354,15 @@ def episode_status(episodes: Episodes) -> tuple[jax.Array, jax.Array]:
 
 @functools.lru_cache(maxsize=32)
 def sharded_steps(maze: Maze, config: AdaptationConfig, mesh: Mesh, record_every: int):
-    """(plan, act, act_all): `plan_step`, `act_step` and `act_steps` with the episode axis split over `mesh` (no
-    collective inside)."""
+    """(plan, plan_all, act, act_all): `plan_step`, `plan_steps`, `act_step` and `act_steps` with the episode axis
+    split over `mesh` (no collective inside)."""
     rows, whole = PartitionSpec(sharding.BATCH_AXIS), PartitionSpec()
 
     def plan(skills, field, episodes):
         return plan_step(maze, config, skills, field, episodes)
+
+    def plan_all(skills, field, episodes):
+        return plan_steps(maze, config, skills, field, episodes)
 
     def act(robot, skills, episodes, decision):
         return act_step(maze, config, robot, skills, episodes, decision, record_every=record_every)
@@ -308,9 +371,9 @@ def sharded_steps(maze: Maze, config: AdaptationConfig, mesh: Mesh, record_every
         return act_steps(maze, config, robot, skills, episodes, decisions, record_every=record_every)
 
     if mesh.devices.size == 1:  # one device: the step functions themselves
-        return plan, act, act_all
+        return plan, plan_all, act, act_all
     split = functools.partial(jax.shard_map, mesh=mesh, out_specs=rows, check_vma=False)
-    return (jax.jit(split(plan, in_specs=(whole, whole, rows))),
+    return (jax.jit(split(plan, in_specs=(whole, whole, rows))), jax.jit(split(plan_all, in_specs=(whole, whole, rows))),
             jax.jit(split(act, in_specs=(whole, whole, rows, rows))),
             jax.jit(split(act_all, in_specs=(whole, whole, rows, rows))))
 
@@ -328,10 +391,10 @@ def run_together(maze: Maze, config: AdaptationConfig, robot: Robot, batches: li
                  progress: bool = True, description: str = "episodes", max_steps: int | None = None,
                  recorders: list[Recorder | None] | None = None,
                  mesh: Mesh | None = None) -> list[tuple[Episodes, RunTimings]]:
-    """`run_episodes` of several batches (each its skills and episodes) in lockstep: each action plans every batch
-    that is still running, then acts all of them in one program (`act_steps`; one batch: `act_step`), until every
-    episode has ended. recorders: one per batch (None: not recorded). Each batch's timings hold its planning and
-    the joint acting."""
+    """`run_episodes` of several batches (each its skills and episodes) in lockstep: each action plans all of them
+    in one search (`plan_steps`), then acts all of them in one program (`act_steps`; one batch: `plan_step`,
+    `act_step`), until every episode has ended. recorders: one per batch (None: not recorded). Each batch's
+    timings hold the joint planning and acting."""
     mesh = sharding.batch_mesh() if mesh is None else mesh
     recorders = [None] * len(batches) if recorders is None else list(recorders)
     if len(recorders) != len(batches):
@@ -346,24 +409,24 @@ def run_together(maze: Maze, config: AdaptationConfig, robot: Robot, batches: li
     skills, robot = sharding.put_replicated(([s for s, _ in batches], robot), mesh)
     episodes = [sharding.put_batch(pad_episodes(e, sharding.padded_size(n, mesh)), mesh)
                 for (_, e), n in zip(batches, sizes)]
-    plan, act, act_all = sharded_steps(maze, config, mesh, every.pop() if every else 0)
-    timings, begin = [RunTimings() for _ in batches], time.perf_counter()
+    plan, plan_all, act, act_all = sharded_steps(maze, config, mesh, every.pop() if every else 0)
+    timings, begin = [RunTimings(shared=len(batches) > 1) for _ in batches], time.perf_counter()
     bar = tqdm(total=config.max_actions, desc=description, unit="action", disable=not progress)
 
     def status():
         return [[np.asarray(x) for x in sharding.addressable(episode_status(e))] for e in episodes]
 
     done = status()
-    decisions = [None] * len(batches)
     for _ in range(config.max_actions if max_steps is None else min(max_steps, config.max_actions)):
         if all(d.all() for d, _ in done):
             break
-        for i, (d, _) in enumerate(done):
-            if decisions[i] is None or not d.all():  # an ended batch keeps its last decision: nothing acts on it
-                tick = time.perf_counter()
-                decisions[i] = waited(plan, skills[i], field, episodes[i])
-                timings[i].plan.append(time.perf_counter() - tick)
         active = [~d[:n] for (d, _), n in zip(done, sizes)]
+        tick = time.perf_counter()  # an ended batch is planned and acted on with the others: its episodes stay
+        if len(batches) == 1:
+            decisions = [waited(plan, skills[0], field, episodes[0])]
+        else:
+            decisions = waited(plan_all, tuple(skills), field, tuple(episodes))
+        planned = time.perf_counter() - tick
         tick = time.perf_counter()
         if len(batches) == 1:
             episode, state = waited(act, robot, skills[0], episodes[0], decisions[0])
@@ -373,6 +436,7 @@ def run_together(maze: Maze, config: AdaptationConfig, robot: Robot, batches: li
                                                           tuple(decisions)))
         acted = time.perf_counter() - tick
         for t in timings:
+            t.plan.append(planned)
             t.act.append(acted)
         for recorder, state, running in zip(recorders, states, active):
             if recorder is not None:
