@@ -40,8 +40,8 @@ its canonical label (the model omitted where it is --damage-model, the friction 
 those seeds (indices of the subfolders in name order), each keeping its index and its episodes
 (benchmarks/pool_statistics.py --run "LABEL=DIR&DIR" pools such runs). --resume reads the
 batches a killed run finished and runs the others: the results equal an uninterrupted run's.
-A seed's batches (its HBR variants, each flat repertoire) run together: each action plans every batch, then
-acts all of them in one program (--together none: one batch after another; the same results up to float
+A seed's batches (its HBR variants, each flat repertoire) run together: each action plans all of them in one
+search, then acts all of them in one program (--together none: one batch after another; the same results up to float
 rounding). --spread batches starts a worker process per device (each on that device alone, running the batches
 dealt to it, a seed's together, into their episodes_<k>.npz), waits for them, then summarises the batch files as
 --resume does.
@@ -117,8 +117,8 @@ def parser() -> argparse.ArgumentParser:
                         "--distributed)")
     p.add_argument("--together", default="seed", metavar="WHICH",
                    help="'seed' (default): the batches of a seed (its HBR variants, each flat repertoire) run together, "
-                        "each action planning every batch and acting all of them in one program; 'none': one batch "
-                        "after another (the same results up to float rounding)")
+                        "each action planning all of them in one search and acting all of them in one program; 'none': "
+                        "one batch after another (the same results up to float rounding)")
     # K,K,...: the batches a worker process of --spread batches runs (with --resume), and no summary
     p.add_argument("--worker-batches", default=None, help=argparse.SUPPRESS)
     p.add_argument("--show-config", action="store_true", help="print the resolved configuration and exit")
