@@ -6,11 +6,11 @@ included). `--read LABEL=DIR` reads a run made elsewhere (e.g. in parallel on an
 DIR/wall_s.txt if written, as `--run` does). From each run's batch files: per batch the actions, its setup
 seconds (loading the repertoire, starting the episodes), the first action's seconds (compiling) and the
 planning and acting medians per action after it, the batches it ran together with (`maze_eval --together`),
-and the batches' seconds in all (each batch's own planning, each group's shared planning, acting and setup once);
-from its episodes,
-per variant the successes and the median actions of the successful episodes. `--compare A,B` (repeatable)
-tests whether runs A and B differ beyond run-to-run noise, per variant: Fisher's exact test on the successes
-and Mann-Whitney on the successful episodes' actions (episodes as the sample; Bonferroni over the variants).
+and the batches' seconds in all (each batch's own planning, each group's shared planning, acting and setup
+once); from its episodes, per variant the successes and the median actions of the successful episodes.
+`--compare A,B` (repeatable) tests whether runs A and B differ beyond run-to-run noise, per variant: Fisher's
+exact test on the successes and Mann-Whitney on the successful episodes' actions (episodes as the sample;
+Bonferroni over the variants).
 
     python benchmarks/protocol_time.py --run "base=--protocol hte-jax --preset gpu" \\
         --run "fast=--protocol hte-jax --preset gpu --iterations 250 --roots 16" --compare base,fast

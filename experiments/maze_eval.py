@@ -41,10 +41,10 @@ those seeds (indices of the subfolders in name order), each keeping its index an
 (benchmarks/pool_statistics.py --run "LABEL=DIR&DIR" pools such runs). --resume reads the
 batches a killed run finished and runs the others: the results equal an uninterrupted run's.
 A seed's batches (its HBR variants, each flat repertoire) run together: each action plans all of them in one
-search, then acts all of them in one program (--together none: one batch after another; the same results up to float
-rounding). --spread batches starts a worker process per device (each on that device alone, running the batches
-dealt to it, a seed's together, into their episodes_<k>.npz), waits for them, then summarises the batch files as
---resume does.
+search, then acts all of them in one program (--together none: one batch after another; the same results up to
+float rounding). --spread batches starts a worker process per device (each on that device alone, running the
+batches dealt to it, a seed's together, into their episodes_<k>.npz), waits for them, then summarises the batch
+files as --resume does.
 
 Writes config.json, episodes.json, summary.json (per variant and damage), statistics.json (the
 paper's method: quartiles of the replication medians, failure rates, Wilcoxon-Mann-Whitney tests with

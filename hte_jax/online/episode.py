@@ -373,7 +373,8 @@ def sharded_steps(maze: Maze, config: AdaptationConfig, mesh: Mesh, record_every
     if mesh.devices.size == 1:  # one device: the step functions themselves
         return plan, plan_all, act, act_all
     split = functools.partial(jax.shard_map, mesh=mesh, out_specs=rows, check_vma=False)
-    return (jax.jit(split(plan, in_specs=(whole, whole, rows))), jax.jit(split(plan_all, in_specs=(whole, whole, rows))),
+    return (jax.jit(split(plan, in_specs=(whole, whole, rows))),
+            jax.jit(split(plan_all, in_specs=(whole, whole, rows))),
             jax.jit(split(act, in_specs=(whole, whole, rows, rows))),
             jax.jit(split(act_all, in_specs=(whole, whole, rows, rows))))
 
