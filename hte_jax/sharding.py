@@ -74,6 +74,22 @@ def pad_rows(tree: Any, size: int) -> Any:
     return jax.tree.map(pad, tree)
 
 
+def join_rows(trees: list) -> Any:
+    """Trees of one structure joined along every leaf's leading axis (rows), in order."""
+    return jax.tree.map(lambda *xs: jnp.concatenate(xs), *trees)
+
+
+def split_rows(tree: Any, sizes: list[int]) -> list:
+    """`tree` cut into consecutive parts of `sizes` rows each (`join_rows` undone)."""
+    bounds = np.cumsum([0, *sizes])
+    return [jax.tree.map(lambda x, a=a, b=b: x[a:b], tree) for a, b in zip(bounds[:-1], bounds[1:])]
+
+
+def where_rows(mask: jax.Array, new: Any, old: Any) -> Any:
+    """Row i of every leaf from `new` where `mask[i]` (a (B,) bool), else from `old`."""
+    return jax.tree.map(lambda n, o: jnp.where(mask.reshape(-1, *([1] * (n.ndim - 1))), n, o), new, old)
+
+
 def batch_sharding(mesh: Mesh, ndim: int = 1) -> NamedSharding:
     """The leading axis split over the mesh, the other `ndim - 1` axes whole."""
     return NamedSharding(mesh, PartitionSpec(BATCH_AXIS, *([None] * (ndim - 1))))

@@ -12,7 +12,6 @@ import math
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 from flax import struct
 
 from hte_jax.geometry import compose_pose, planar_pose, relative_pose
@@ -22,6 +21,7 @@ from hte_jax.hbr.hierarchy import (ANY_PATTERN, HBR, STEPS_PER_SKILL, StepResult
 from hte_jax.online.rules import RuleBatch, StepContext, StepObservation, choose_patterns, learn_rules, relative_error_of
 from hte_jax.online.secondary import ERROR_DIM
 from hte_jax.online.skills import Skills, displacement_of
+from hte_jax.sharding import join_rows, split_rows, where_rows
 from hte_jax.sim.controller import NUM_PARAMS
 from hte_jax.sim.damage import Damage, damage_legs
 from hte_jax.sim.robot import NUM_LEGS, Robot
@@ -261,19 +261,14 @@ class Part:
     keys: jax.Array
 
 
-def _frozen(alive: jax.Array, new, old):
-    """`new` where `alive` (B,), else `old` (a robot that went invalid stays where it stopped)."""
-    return jax.tree.map(lambda n, o: jnp.where(alive.reshape(-1, *([1] * (n.ndim - 1))), n, o), new, old)
-
-
 def _flat_second(carry, second: Second):
     """A flat part's carry (state, first invalid reason (B,) int32) after `second`, and its record (pose, qpos)."""
     state, reason = carry
-    alive = reason == 0
-    state = _frozen(alive, second.state, state)
+    alive = reason == 0  # a robot that went invalid stays where it stopped
+    state = where_rows(alive, second.state, state)
     qpos = None
     if second.qpos is not None:  # an invalid robot's states: where it stopped
-        qpos = _frozen(alive, second.qpos, jnp.broadcast_to(state.qpos[:, None], second.qpos.shape))
+        qpos = where_rows(alive, second.qpos, jnp.broadcast_to(state.qpos[:, None], second.qpos.shape))
     return (state, jnp.where(alive, second.invalid_reason, reason)), (state_pose(state), qpos)
 
 
@@ -282,14 +277,7 @@ def joint_action(robots: SimulatedRobots, parts: tuple[Part, ...]) -> tuple[Acti
     all of them one rollout: a batch's action costs what its rows add, not a rollout of its own. `robots.damage`
     holds every part's rows, in order. A flat part's robot that goes invalid stays where it stopped, as in
     `flat_action`'s single rollout."""
-    bounds = np.cumsum([0] + [p.choice.shape[0] for p in parts])
-
-    def split(tree) -> list:
-        return [jax.tree.map(lambda x: x[a:b], tree) for a, b in zip(bounds[:-1], bounds[1:])]
-
-    def join(trees):
-        return jax.tree.map(lambda *xs: jnp.concatenate(xs), *trees)
-
+    sizes = [p.choice.shape[0] for p in parts]
     starts, carries, xs = [], [], []
     for p in parts:
         if p.skills.hierarchical:
@@ -306,13 +294,13 @@ def joint_action(robots: SimulatedRobots, parts: tuple[Part, ...]) -> tuple[Acti
                   for p, (_, goal), c, x in zip(parts, starts, carries, xs)]
         params = [p.skills.hbr.middle_params[c[1]] if p.skills.hierarchical else p.choice
                   for p, c in zip(parts, chosen)]
-        seconds = split(robots.controllers(join([c[0] for c in carries]), join(params)))
+        seconds = split_rows(robots.controllers(join_rows([c[0] for c in carries]), join_rows(params)), sizes)
         stepped = [hbr_learn(robots, p.skills, c, ch, s) if p.skills.hierarchical else _flat_second(c, s)
                    for p, c, ch, s in zip(parts, carries, chosen, seconds)]
         return tuple(s[0] for s in stepped), tuple(s[1] for s in stepped)
 
     carries, records = jax.lax.scan(second, tuple(carries), tuple(xs), length=STEPS_PER_SKILL)
-    rests = split(robots.neutral(join([c[0] for c in carries])))
+    rests = split_rows(robots.neutral(join_rows([c[0] for c in carries])), sizes)
     outcomes = []
     for p, (origin, _), carry, record, rest in zip(parts, starts, carries, records, rests):
         if p.skills.hierarchical:

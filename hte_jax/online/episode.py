@@ -234,17 +234,13 @@ def plan_steps(maze: Maze, config: AdaptationConfig, skills: tuple[Skills, ...],
     only), so each batch's decisions are its own `plan_step`'s up to float rounding."""
     outlooks = [_outlook(maze, s, e) for s, e in zip(skills, episodes)]
     width = max(o.usable.shape[1] for o in outlooks)
-    result = _search(maze, config, field,
-                     jnp.concatenate([_pad_actions(o.displacement, width, 0.0) for o in outlooks]),
-                     jnp.concatenate([_pad_actions(o.usable, width, False) for o in outlooks]),
-                     jnp.concatenate([o.keys[:, 1] for o in outlooks]), jnp.concatenate([o.start for o in outlooks]))
-    decisions, begin = [], 0
-    for s, e, o in zip(skills, episodes, outlooks):
-        rows, actions = o.usable.shape
-        own = jax.tree.map(lambda x: x[begin:begin + rows], result)
-        decisions.append(_decide(s, e, o, own.replace(visits=own.visits[:, :actions])))
-        begin += rows
-    return tuple(decisions)
+    join = sharding.join_rows
+    result = _search(maze, config, field, join([_pad_actions(o.displacement, width, 0.0) for o in outlooks]),
+                     join([_pad_actions(o.usable, width, False) for o in outlooks]),
+                     join([o.keys[:, 1] for o in outlooks]), join([o.start for o in outlooks]))
+    parts = sharding.split_rows(result, [o.usable.shape[0] for o in outlooks])
+    return tuple(_decide(s, e, o, own.replace(visits=own.visits[:, :o.usable.shape[1]]))
+                 for s, e, o, own in zip(skills, episodes, outlooks, parts))
 
 
 def _check_record_every(record_every: int) -> None:
@@ -273,7 +269,7 @@ def act_steps(maze: Maze, config: AdaptationConfig, robot: Robot, skills: tuple[
     damages = [e.damage for e in episodes]
     if any(isinstance(d, Damage) for d in damages):  # one kind for the joint rollout
         damages = [as_damage(d, robot.config.damage_model) for d in damages]
-    damage = jax.tree.map(lambda *xs: jnp.concatenate(xs), *damages)
+    damage = sharding.join_rows(damages)
     parts = tuple(Part(skills=s, state=e.sim, rules=e.rules if s.hierarchical else None, keys=d.keys[:, 2],
                        choice=d.action if s.hierarchical else s.map_genotypes[d.map, d.action], taken=e.taken)
                   for s, e, d in zip(skills, episodes, decisions))
@@ -322,21 +318,18 @@ def record_action(maze: Maze, config: AdaptationConfig, skills: Skills, episodes
         sim=outcome.state, rte=rte, belief=belief, rules=rules, key=decision.keys[:, 0], taken=episodes.taken + 1,
         reached=reached_goal(maze, outcome.poses[:, -1, :2]) & outcome.valid, broken=~outcome.valid,
         reason=outcome.invalid_reason, trajectory=trajectory, history=recorded)
-    return jax.tree.map(lambda new, old: jnp.where(active.reshape(-1, *([1] * (new.ndim - 1))), new, old),
-                        updated, episodes)  # ended episodes unchanged
+    return sharding.where_rows(active, updated, episodes)  # ended episodes unchanged
 
 
 @dataclasses.dataclass
 class RunTimings:
     """Wall-clock seconds of each call of a run (the first of each includes compilation); setup: before the
-    first action (what `evaluation.run_batch` spent loading the repertoire and starting the episodes); shared:
-    whether the planning and acting seconds are those of batches run together (`run_together`), not its own."""
+    first action (what `evaluation.run_batch` spent loading the repertoire and starting the episodes)."""
 
     plan: list[float] = dataclasses.field(default_factory=list)
     act: list[float] = dataclasses.field(default_factory=list)
     total: float = 0.0
     setup: float = 0.0
-    shared: bool = False
 
 
 @functools.partial(jax.jit, static_argnames=("size",))
@@ -411,7 +404,7 @@ def run_together(maze: Maze, config: AdaptationConfig, robot: Robot, batches: li
     episodes = [sharding.put_batch(pad_episodes(e, sharding.padded_size(n, mesh)), mesh)
                 for (_, e), n in zip(batches, sizes)]
     plan, plan_all, act, act_all = sharded_steps(maze, config, mesh, every.pop() if every else 0)
-    timings, begin = [RunTimings(shared=len(batches) > 1) for _ in batches], time.perf_counter()
+    timings, begin = [RunTimings() for _ in batches], time.perf_counter()
     bar = tqdm(total=config.max_actions, desc=description, unit="action", disable=not progress)
 
     def status():
