@@ -74,7 +74,8 @@ def read_run(folder: Path) -> tuple[dict, list[dict]]:
     for k in range(len(list(folder.glob("episodes_*.npz")))):
         labels = read_checkpoint(folder / f"episodes_{k}.npz")[1]["metadata"]
         plan, act = labels["plan_seconds"], labels["act_seconds"]
-        run_with, plan_shared = labels.get("run_with", [k]), bool(labels.get("plan_shared", False))
+        run_with = labels.get("run_with", [k])
+        plan_shared = len(run_with) > 1  # batches run together plan in one search (`episode.plan_steps`)
         shared[tuple(run_with)] = sum(act) + (labels.get("setup_seconds") or 0.0) + sum(plan) * plan_shared
         batches.append({"variants": sorted(set(labels["variants"])), "episodes": len(labels["variants"]),
                         "run_with": run_with, "plan_shared": plan_shared, "plan_s": float(sum(plan)),

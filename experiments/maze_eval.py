@@ -443,7 +443,7 @@ def _load_batch(path: Path, seed: int, labels: list[tuple[str, str, int]]):
 
 def _save_batch(path: Path, result, records: list[dict], run_with: list[int]) -> None:
     """Batch file `path`: the episodes' arrays, their records and labels, and `run_with`, the batches run together
-    with it (itself included: they share its setup and its acting seconds, and its planning where `plan_shared`)."""
+    with it (itself included: they share its setup, planning and acting seconds)."""
     ep = result.episodes
     damage = result.damage
     arrays = {**{k: getattr(ep, k) for k in ("trajectory", "taken", "reached", "broken")}, "damage": damage.legs,
@@ -453,7 +453,7 @@ def _save_batch(path: Path, result, records: list[dict], run_with: list[int]) ->
     labels = {"seed": result.seed, "variants": result.variants, "damages": result.damages, "replicates": result.replicates,
               "damage_models": models,
               "repertoire": result.repertoire, "setup_seconds": result.timings.setup, "plan_seconds": result.timings.plan,
-              "act_seconds": result.timings.act, "run_with": list(run_with), "plan_shared": result.timings.shared,
+              "act_seconds": result.timings.act, "run_with": list(run_with),
               "records": records}
     save_checkpoint(path, arrays, labels, compress=True)
 
